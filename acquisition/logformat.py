@@ -1,0 +1,152 @@
+"""Topics and JSON Schemas of the elastocal MCAP log (docs/log-format.md).
+
+Every topic is JSON-encoded (message encoding ``json``) with a JSON Schema
+(schema encoding ``jsonschema``), so Foxglove and the ``mcap`` CLI open a log
+without elastocal. Message ``log_time`` is the acquisition timestamp in integer
+nanoseconds of one monotonic clock (``time.monotonic_ns`` of the recording
+host); ``publish_time`` is when the recorder wrote the message, same clock.
+"""
+
+from __future__ import annotations
+
+import json
+
+#: value of the ``format`` field of the ``/elastocal/session`` message and of the log metadata
+LOG_FORMAT = "elastocal.log/1"
+#: MCAP header profile
+PROFILE = "elastocal"
+
+TOPIC_SESSION = "/elastocal/session"
+TOPIC_ROBOT = "/elastocal/robot"
+TOPIC_CELL = "/elastocal/cell"
+TOPIC_PLAN = "/elastocal/plan"
+TOPIC_EVENT = "/procedure/event"
+TOPIC_TRACKER = "/tracker"
+DRIVE_TOPIC_PREFIX = "/drive/"
+N_JOINTS = 6
+
+
+def drive_topic(joint: int) -> str:
+    """Topic of the samples of drive ``joint`` (1-based): ``/drive/1`` .. ``/drive/6``."""
+    if not 1 <= joint <= N_JOINTS:
+        raise ValueError(f"joint must be 1..{N_JOINTS}, got {joint}")
+    return f"{DRIVE_TOPIC_PREFIX}{joint}"
+
+
+DRIVE_TOPICS = tuple(drive_topic(j) for j in range(1, N_JOINTS + 1))
+
+_NUMBER_OR_NULL = {"type": ["number", "null"]}
+_VEC6 = {"type": "array", "items": {"type": "number"}, "minItems": 6, "maxItems": 6}
+
+#: schema name -> JSON Schema (draft 2020-12)
+SCHEMAS: dict[str, dict] = {
+    "elastocal.Session": {
+        "title": "elastocal.Session",
+        "description": "First message of a log: format version and how the monotonic clock maps to UTC.",
+        "type": "object",
+        "properties": {
+            "format": {"type": "string", "const": LOG_FORMAT},
+            "software": {"type": "string", "description": "elastocal version that wrote the log"},
+            "started_utc": {"type": "string", "description": "ISO 8601 wall-clock time at monotonic_ns"},
+            "monotonic_ns": {"type": "integer", "description": "monotonic clock reading at started_utc"},
+            "resumed_from": {"type": ["string", "null"],
+                             "description": "log this one continues (copied messages keep their times)"},
+        },
+        "required": ["format", "started_utc", "monotonic_ns"],
+    },
+    "elastocal.Document": {
+        "title": "elastocal.Document",
+        "description": "A configuration document kept verbatim: robot.toml, cell.toml or plan.toml.",
+        "type": "object",
+        "properties": {
+            "kind": {"type": "string", "enum": ["robot", "cell", "plan"]},
+            "name": {"type": "string"},
+            "path": {"type": ["string", "null"], "description": "where it was read from when recorded"},
+            "sha256": {"type": "string"},
+            "text": {"type": "string", "description": "the TOML text"},
+        },
+        "required": ["kind", "name", "sha256", "text"],
+    },
+    "elastocal.DriveSample": {
+        "title": "elastocal.DriveSample",
+        "description": "One raw sample of one joint drive; log_time is its acquisition time [ns].",
+        "type": "object",
+        "properties": {
+            "joint": {"type": "integer", "minimum": 1, "maximum": N_JOINTS},
+            "position_rad": {"type": "number", "description": "joint coordinate q (motor side) [rad]"},
+            "velocity_rad_s": {**_NUMBER_OR_NULL, "description": "joint speed dq [rad/s]"},
+            "current_a": {**_NUMBER_OR_NULL,
+                          "description": "motor current [A], signed: torque_constant * i = load torque"},
+            "status": {"type": ["integer", "null"], "description": "drive status word as read"},
+        },
+        "required": ["joint", "position_rad", "velocity_rad_s", "current_a"],
+    },
+    "elastocal.TrackerSample": {
+        "title": "elastocal.TrackerSample",
+        "description": "One raw tracker measurement of one marker; log_time is its acquisition time [ns].",
+        "type": "object",
+        "properties": {
+            "marker": {"type": "string"},
+            "x": {"type": "number", "description": "[m], measurement frame"},
+            "y": {"type": "number", "description": "[m]"},
+            "z": {"type": "number", "description": "[m]"},
+        },
+        "required": ["marker", "x", "y", "z"],
+    },
+    "elastocal.ProcedureEvent": {
+        "title": "elastocal.ProcedureEvent",
+        "description": "A procedure event: what the cell and the operator were doing (docs/log-format.md).",
+        "type": "object",
+        "properties": {
+            "kind": {"type": "string", "enum": [
+                "procedure_start", "procedure_end", "step_start", "step_done", "pose", "load",
+                "settle", "hold_start", "reading", "hold_end", "run_start", "run_end",
+                "prompt", "answer", "fault", "resume"]},
+            "procedure": {"type": "string"},
+            "step": {"type": "integer", "description": "0-based index of the step in the procedure"},
+            "step_id": {"type": "string"},
+            "steps": {"type": "integer", "description": "number of steps of the procedure"},
+            "pose": {"type": "string"},
+            "load": {"type": "string", "description": "load state id; '0' is unloaded"},
+            "q": {**_VEC6, "description": "commanded joint coordinates [rad]"},
+            "wrench": {"type": ["array", "null"], "items": {"type": "number"},
+                       "description": "nominal external wrench on the load point, base axes [N, N*m]"},
+            "mass_kg": {"type": ["number", "null"]},
+            "marker": {"type": ["string", "null"]},
+            "repeat": {"type": "integer"},
+            "window_ns": {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2,
+                          "description": "[start, end] of a reading on the log clock [ns]"},
+            "run": {"type": "string"},
+            "direction": {"type": "string", "enum": ["UV", "VU", "+", "-"]},
+            "speed_rad_s": {"type": "number"},
+            "joint": {"type": "integer"},
+            "settled": {"type": "boolean"},
+            "duration_s": {"type": "number"},
+            "max_speed_rad_s": {"type": ["number", "null"]},
+            "spread_m": {"type": ["number", "null"]},
+            "text": {"type": "string", "description": "prompt text or fault message"},
+            "answer": {"type": "string"},
+            "automatic": {"type": "boolean", "description": "answered by --yes, not by a person"},
+            "error": {"type": "string", "description": "error type of a fault"},
+            "status": {"type": "string", "enum": ["completed", "aborted", "failed"]},
+            "completed_steps": {"type": "array", "items": {"type": "string"}},
+        },
+        "required": ["kind"],
+    },
+}
+
+#: topic -> schema name, for the fixed topics
+TOPIC_SCHEMAS: dict[str, str] = {
+    TOPIC_SESSION: "elastocal.Session",
+    TOPIC_ROBOT: "elastocal.Document",
+    TOPIC_CELL: "elastocal.Document",
+    TOPIC_PLAN: "elastocal.Document",
+    TOPIC_EVENT: "elastocal.ProcedureEvent",
+    TOPIC_TRACKER: "elastocal.TrackerSample",
+    **{t: "elastocal.DriveSample" for t in DRIVE_TOPICS},
+}
+
+
+def schema_bytes(name: str) -> bytes:
+    """The JSON Schema ``name`` as UTF-8 bytes (key order fixed)."""
+    return json.dumps(SCHEMAS[name], separators=(",", ":")).encode()

@@ -1,0 +1,192 @@
+"""Recorder: raw samples and procedure events into an MCAP log (docs/log-format.md).
+
+The recorder is a context manager around :class:`mcap.writer.Writer` (zstd
+chunks). Each JSON Schema is registered once, each topic's channel once, on
+first use. Samples carry the acquisition timestamp their driver gave them
+(integer ns, one monotonic clock); events are stamped by the recorder's clock.
+
+Surviving a kill: the writer keeps the chunk in progress in memory, so the
+recorder finishes the chunk and flushes the file at every procedure event and
+at least every ``flush_interval_s`` while samples arrive. A process killed at
+any moment leaves a file whose complete chunks
+:class:`elastocal.acquisition.export.LogReader` reads up to the kill.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import pathlib
+import threading
+import time
+from typing import Any, Callable, Sequence
+
+from mcap.writer import CompressionType, Writer
+
+from elastocal import __version__
+from elastocal.acquisition import logformat as lf
+from elastocal.errors import InputError
+
+Clock = Callable[[], int]
+
+
+def _dumps(obj: dict) -> bytes:
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    if x is None:
+        return None
+    x = float(x)
+    return x if x == x and abs(x) != float("inf") else None
+
+
+class Recorder:
+    """Write an elastocal MCAP log.
+
+    ``with Recorder(path) as rec: rec.document("robot", ...); rec.drive_sample(...)``.
+    Leaving the ``with`` block (normally or by an exception) writes the MCAP
+    summary and closes the file.
+    """
+
+    def __init__(self, path: str | pathlib.Path, *, overwrite: bool = False,
+                 chunk_size: int = 256 * 1024, flush_interval_s: float = 1.0,
+                 clock: Clock = time.monotonic_ns, resumed_from: str | None = None) -> None:
+        self.path = pathlib.Path(path)
+        if not overwrite and self.path.exists():
+            raise InputError("already exists; choose another --out or remove it", source=str(self.path))
+        if chunk_size <= 0:
+            raise ValueError("chunk_size must be positive")
+        if flush_interval_s <= 0:
+            raise ValueError("flush_interval_s must be positive")
+        self.chunk_size = chunk_size
+        self.flush_interval_ns = int(flush_interval_s * 1e9)
+        self.clock = clock
+        self.resumed_from = resumed_from
+        self._lock = threading.Lock()
+        self._file = None
+        self._writer: Writer | None = None
+        self._schema_ids: dict[str, int] = {}
+        self._channel_ids: dict[str, int] = {}
+        self._sequence = 0
+        self._last_flush_ns = 0
+        self._messages = 0
+
+    # ---------------------------------------------------------- lifecycle
+    def __enter__(self) -> "Recorder":
+        try:
+            self._file = open(self.path, "wb")
+        except OSError as exc:
+            raise InputError(f"cannot write: {exc.strerror}", source=str(self.path)) from None
+        self._writer = Writer(self._file, chunk_size=self.chunk_size, compression=CompressionType.ZSTD)
+        self._writer.start(profile=lf.PROFILE, library=f"elastocal/{__version__}")
+        self._writer.add_metadata("elastocal", {"format": lf.LOG_FORMAT, "software": __version__})
+        now = self.clock()
+        self._write(lf.TOPIC_SESSION, now, {
+            "format": lf.LOG_FORMAT, "software": __version__,
+            "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="microseconds"),
+            "monotonic_ns": now, "resumed_from": self.resumed_from,
+        }, now)
+        self.flush()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        with self._lock:
+            if self._writer is None:
+                return
+            try:
+                self._writer.finish()
+            finally:
+                self._writer = None
+                self._file.close()
+                self._file = None
+
+    @property
+    def messages_written(self) -> int:
+        return self._messages
+
+    # ------------------------------------------------------------ writing
+    def _channel(self, topic: str) -> int:
+        cid = self._channel_ids.get(topic)
+        if cid is None:
+            schema_name = lf.TOPIC_SCHEMAS[topic]
+            sid = self._schema_ids.get(schema_name)
+            if sid is None:
+                sid = self._writer.register_schema(schema_name, "jsonschema", lf.schema_bytes(schema_name))
+                self._schema_ids[schema_name] = sid
+            cid = self._writer.register_channel(topic, "json", sid)
+            self._channel_ids[topic] = cid
+        return cid
+
+    def _write(self, topic: str, log_time_ns: int, message: dict | bytes, publish_ns: int) -> None:
+        if self._writer is None:
+            raise RuntimeError("the recorder is not open; use it in a with block")
+        data = message if isinstance(message, bytes) else _dumps(message)
+        self._sequence += 1
+        self._writer.add_message(self._channel(topic), int(log_time_ns), data, int(publish_ns),
+                                 sequence=self._sequence & 0xFFFFFFFF)
+        self._messages += 1
+
+    def _maybe_flush(self, now_ns: int) -> None:
+        if now_ns - self._last_flush_ns >= self.flush_interval_ns:
+            self._flush_locked(now_ns)
+
+    def _flush_locked(self, now_ns: int) -> None:
+        self._writer.flush()
+        self._last_flush_ns = now_ns
+
+    def flush(self) -> None:
+        """Finish the chunk in progress and push everything to the file."""
+        with self._lock:
+            if self._writer is not None:
+                self._flush_locked(self.clock())
+
+    def document(self, kind: str, name: str, text: str, path: str | None = None) -> None:
+        """Record a configuration document (``robot``, ``cell`` or ``plan``) verbatim."""
+        topic = {"robot": lf.TOPIC_ROBOT, "cell": lf.TOPIC_CELL, "plan": lf.TOPIC_PLAN}[kind]
+        msg = {"kind": kind, "name": name, "path": path,
+               "sha256": hashlib.sha256(text.encode()).hexdigest(), "text": text}
+        with self._lock:
+            now = self.clock()
+            self._write(topic, now, msg, now)
+            self._flush_locked(now)
+
+    def drive_sample(self, joint: int, t_ns: int, position_rad: float, velocity_rad_s: float | None,
+                     current_a: float | None, status: int | None = None) -> None:
+        """One raw drive sample; ``t_ns`` is its acquisition time."""
+        msg = {"joint": int(joint), "position_rad": float(position_rad),
+               "velocity_rad_s": _finite_or_none(velocity_rad_s), "current_a": _finite_or_none(current_a),
+               "status": None if status is None else int(status)}
+        with self._lock:
+            now = self.clock()
+            self._write(lf.drive_topic(joint), t_ns, msg, now)
+            self._maybe_flush(now)
+
+    def tracker_sample(self, t_ns: int, marker: str, xyz: Sequence[float]) -> None:
+        """One raw tracker measurement of ``marker`` [m]; ``t_ns`` is its acquisition time."""
+        x, y, z = (float(v) for v in xyz)
+        with self._lock:
+            now = self.clock()
+            self._write(lf.TOPIC_TRACKER, t_ns, {"marker": str(marker), "x": x, "y": y, "z": z}, now)
+            self._maybe_flush(now)
+
+    def event(self, kind: str, **fields: Any) -> int:
+        """Record a procedure event stamped now; flushes the file. Returns its time [ns]."""
+        msg = {"kind": kind, **{k: v for k, v in fields.items() if v is not None}}
+        with self._lock:
+            now = self.clock()
+            self._write(lf.TOPIC_EVENT, now, msg, now)
+            self._flush_locked(now)
+        return now
+
+    def copy(self, topic: str, log_time_ns: int, publish_time_ns: int, data: bytes) -> None:
+        """Copy a message of an earlier log unchanged (resuming an interrupted procedure)."""
+        if topic not in lf.TOPIC_SCHEMAS:
+            raise InputError(f"unknown topic {topic!r} in the log being resumed")
+        with self._lock:
+            self._write(topic, log_time_ns, bytes(data), publish_time_ns)
+            self._maybe_flush(self.clock())

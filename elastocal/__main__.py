@@ -1,0 +1,3 @@
+from elastocal.cli import main
+
+raise SystemExit(main())

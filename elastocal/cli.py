@@ -1,0 +1,93 @@
+"""The ``elastocal`` command line: parse, call the library, print.
+
+Each subcommand lives in ``elastocal.commands.<module>`` and is imported only
+when it is used (a lazy table, like python-can's interface table). A command
+module defines ``add_arguments(parser)`` and ``run(args) -> int``.
+
+Expected errors print one line on stderr and exit 2 (bad input or usage) or
+1 (device or runtime fault); see ../spec/cli.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import sys
+
+from elastocal import __version__
+from elastocal.errors import DeviceError, ElastocalError, InputError
+
+#: command name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("elastocal.commands.demo", "run the whole chain on the embedded simulated cell"),
+    "sim": ("elastocal.commands.sim", "make datasets from the simulated cell, or serve simulated devices"),
+    "identify": ("elastocal.commands.identify", "fit the elastostatic model to tables or a log"),
+    "diagnose": ("elastocal.commands.diagnose", "compare model and measurements; rank missing effects"),
+    "report": ("elastocal.commands.report", "write an HTML page showing where the model fails"),
+    "devices": ("elastocal.commands.devices", "connect to the cell's devices and stream live readings"),
+    "calibrate": ("elastocal.commands.calibrate", "run the guided calibration procedure"),
+    "export": ("elastocal.commands.export", "turn an MCAP log into robot.toml and CSV tables"),
+    "geometry": ("elastocal.commands.geometry", "compensator geometry from a joint-2 marker sweep"),
+    "compensate": ("elastocal.commands.compensate", "compensated joint trajectory for a planned path"),
+    "plan": ("elastocal.commands.plan", "choose calibration poses and loads (design of experiments)"),
+    "check": ("elastocal.commands.check", "check whether the current calibration still holds"),
+    "history": ("elastocal.commands.history", "show calibrations and checks of a cell"),
+    "schedule": ("elastocal.commands.schedule", "install a periodic calibration check"),
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # usage errors: one line, exit 2
+        self.exit(2, f"elastocal: {message}\n")
+
+
+def _available() -> dict[str, tuple[str, str]]:
+    found = {}
+    for name, (module, text) in COMMANDS.items():
+        if importlib.util.find_spec(module) is not None:
+            found[name] = (module, text)
+    return found
+
+
+def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict[str, object]]:
+    """The parser; command modules are imported only for ``only`` (or all if None)."""
+    parser = _Parser(prog="elastocal", description="Elastostatic calibration of industrial robot cells.")
+    parser.add_argument("--version", action="version", version=f"elastocal {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    modules: dict[str, object] = {}
+    for name, (module_name, text) in _available().items():
+        p = sub.add_parser(name, help=text, description=text)
+        if only is None or name == only:
+            module = importlib.import_module(module_name)
+            module.add_arguments(p)
+            modules[name] = module
+    return parser, modules
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    first = next((a for a in argv if not a.startswith("-")), None)
+    parser, modules = build_parser(first if first in COMMANDS else None)
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 2
+    try:
+        return int(modules[args.command].run(args) or 0)
+    except InputError as exc:
+        print(f"elastocal {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except DeviceError as exc:
+        print(f"elastocal {args.command}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    except ElastocalError as exc:
+        print(f"elastocal {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"elastocal {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,72 @@
+"""What an effect is: parameters, where it shows, how it enters the static model.
+
+Every static effect enters the model linearly through three bases evaluated on
+a :class:`StaticContext` (one row per load state ``s`` and per deflection ``d``):
+
+* ``theta``  (S, 6, p): change of the six joint angles of state s per parameter;
+* ``links``  (S, 4, p): rotation of the four link springs (link_compliance);
+* ``add``    (D, 3, p): a term added to deflection d directly (tracker drift).
+
+The fit (identify/static.py) turns angles into positions with Pinocchio: in the
+first-order form through the Jacobians at the commanded pose, in the exact
+form through forward kinematics at the deflected configuration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class StaticContext:
+    """Arrays an effect may use to build its static basis."""
+
+    tau: np.ndarray             # (S, 6) absolute gear torque of each state [N·m]
+    delta_tau: np.ndarray       # (S, 6) torque change from the pose's reference (0 for references)
+    delta_link_moment: np.ndarray  # (S, 4) change of the moments at the link springs [N·m]
+    state_is_reference: np.ndarray  # (S,) bool
+    deflection_dt: np.ndarray   # (D,) time between the loaded and the reference readings [s]; NaN if unknown
+    n_deflections: int
+    torque_source: str          # "current" or "force"
+
+
+@dataclass(frozen=True)
+class StaticBasis:
+    theta: np.ndarray | None = None
+    links: np.ndarray | None = None
+    add: np.ndarray | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Effect:
+    """One physical effect: its parameters, the data that shows it, its words."""
+
+    name: str
+    parameters: tuple[str, ...]
+    units: tuple[str, ...]
+    seen_in: tuple[str, ...]          # "static", "runs"
+    explanation: str                  # one sentence a user understands
+    evidence: str                     # what the residual looks like when it is missing
+    static_basis: Optional[Callable[[StaticContext], StaticBasis]] = None
+    #: why the given static data cannot show the effect (None when it can)
+    static_refusal: Optional[Callable[[StaticContext], Optional[str]]] = None
+    #: model value -> reported value and its derivative (for the std)
+    report: Optional[Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]] = None
+    report_units: tuple[str, ...] | None = None
+
+    def reported(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.report is None:
+            return values, np.ones_like(values)
+        return self.report(values)
+
+
+def diagonal_basis(values: np.ndarray) -> np.ndarray:
+    """(S, n) -> (S, n, n) with values on the diagonal."""
+    s, n = values.shape
+    out = np.zeros((s, n, n))
+    idx = np.arange(n)
+    out[:, idx, idx] = values
+    return out

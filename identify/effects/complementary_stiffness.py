@@ -1,0 +1,28 @@
+"""complementary_stiffness: a loaded chain whose geometry deflects (Y17-18).
+
+``K_c = dJ_f^T/dtheta W``. No parameters: the model evaluates the force-based
+torques at the deflected configuration. The exact form always does so, and
+currents measure the torques directly, so only the force-based first-order
+model can lack it.
+"""
+
+from __future__ import annotations
+
+from elastocal.identify.effects.base import Effect, StaticContext
+
+
+def _refusal(ctx: StaticContext) -> str | None:
+    if ctx.torque_source != "force":
+        return "currents measure the joint torques of the deflected robot directly; the current-based model does not need it"
+    return None
+
+
+EFFECT = Effect(
+    name="complementary_stiffness",
+    parameters=(),
+    units=(),
+    seen_in=("static",),
+    explanation="a heavily loaded arm's geometry shifts, so the same force gives other joint torques",
+    evidence="force-based residual that grows with load outside the good (q2, q3) region",
+    static_refusal=_refusal,
+)

@@ -1,0 +1,30 @@
+"""link_compliance: torsion and bending at the distal ends of links 2 and 3.
+
+Parameters cl2x, cl2y, cl3x, cl3y [rad/(N·m)]: rotations about x and y of the
+frame at the distal end of link 2 (the joint-3 axis frame) and of link 3 (the
+wrist centre), proportional to the moment the load puts there. The moments come
+from the external wrench; with currents the wrench is recovered from the joint
+torques, W = J_f^{-T} Gamma (physics.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis
+from elastocal.identify.robot import LINK_SPRINGS
+
+
+def _basis(ctx: StaticContext) -> StaticBasis:
+    return StaticBasis(links=diagonal_basis(ctx.delta_link_moment))
+
+
+EFFECT = Effect(
+    name="link_compliance",
+    parameters=LINK_SPRINGS,
+    units=("rad/(N*m)",) * 4,
+    seen_in=("static",),
+    explanation="the arm links bend and twist, which no joint spring can mimic",
+    evidence="lateral deflection follows the torsion and bending moments on links 2 and 3",
+    static_basis=_basis,
+)

@@ -1,0 +1,482 @@
+"""Robot description (``robot.toml``, formats.md §1) and its Pinocchio models.
+
+The description is resolved once into frozen dataclasses; :class:`Robot` holds
+two immutable Pinocchio models built from the modified-DH table:
+
+* ``model``: the rigid 6-joint chain, configuration ``theta`` (the link-side DH
+  variable, ``theta = q + offset + dtheta``);
+* ``link_model``: the same chain with two passive revolute joints (about x and
+  y) at the distal ends of links 2 and 3, used by the ``link_compliance`` effect
+  and by the simulator. Its configuration is ``theta_links`` (10 values, in the
+  order of :data:`LINK_JOINT_ORDER`).
+
+Every method allocates its own Pinocchio ``Data`` (or takes one), so a
+``Robot`` can be shared between threads. Kinematics, Jacobians and gravity all
+come from Pinocchio.
+"""
+
+from __future__ import annotations
+
+import math
+import pathlib
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import pinocchio as pin
+
+from elastocal.errors import InputError
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
+
+N_JOINTS = 6
+LOAD_FRAME = "load_point"
+FLANGE_FRAME = "flange"
+MARKER_PREFIX = "marker:"
+#: names of the passive link-compliance joints, in the order of their parameters
+LINK_SPRINGS = ("cl2x", "cl2y", "cl3x", "cl3y")
+#: index in ``link_model``'s configuration of each actuated joint and link spring
+LINK_JOINT_ORDER = ("q1", "q2", "cl2x", "cl2y", "q3", "cl3x", "cl3y", "q4", "q5", "q6")
+ACTUATED_IN_LINK_MODEL = np.array([0, 1, 4, 7, 8, 9])
+SPRINGS_IN_LINK_MODEL = np.array([2, 3, 5, 6])
+
+
+def _vec3(value, *, source: str, column: str) -> tuple[float, float, float]:
+    try:
+        arr = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise InputError(f"expected a list of 3 numbers, got {value!r}", source=source, column=column) from None
+    if len(arr) != 3 or not all(math.isfinite(v) for v in arr):
+        raise InputError(f"expected 3 finite numbers, got {value!r}", source=source, column=column)
+    return arr  # type: ignore[return-value]
+
+
+def _number(table: Mapping, key: str, *, source: str, where: str, default: float | None = None) -> float:
+    if key not in table:
+        if default is None:
+            raise InputError("missing required key", source=source, column=f"{where}.{key}")
+        return default
+    value = table[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(f"expected a finite number, got {value!r}", source=source, column=f"{where}.{key}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """One actuated revolute joint in modified-DH form (Craig)."""
+
+    a: float
+    alpha: float
+    d: float
+    offset: float
+    lower: float
+    upper: float
+    torque_constant: float
+    mass: float = 0.0
+    com: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.lower < self.upper:
+            raise InputError(f"joint {self.name}: lower limit {self.lower} is not below upper {self.upper}")
+        if self.torque_constant == 0.0:
+            raise InputError(f"joint {self.name}: torque_constant must be non-zero")
+        if self.mass < 0.0:
+            raise InputError(f"joint {self.name}: mass must be >= 0")
+
+
+@dataclass(frozen=True)
+class ToolSpec:
+    """Load point and tracker markers, in flange (frame 6) coordinates [m]."""
+
+    flange_p_load: tuple[float, float, float]
+    flange_p_markers: tuple[tuple[str, tuple[float, float, float]], ...]
+
+    @property
+    def marker_names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.flange_p_markers)
+
+
+HYDRO_PARAMS = ("C", "l_c")
+SPRING_PARAMS = ("K_c", "s0")
+HYDRO_UNITS = {"C": "N*m", "l_c": "m"}
+SPRING_UNITS = {"K_c": "N/m", "s0": "m"}
+
+
+@dataclass(frozen=True)
+class CompensatorSpec:
+    """Gravity compensator on joint 2 (physics.md).
+
+    ``kind = "hydropneumatic"`` (Yang): geometry ``a, b, h`` [m], parameters
+    ``C`` [N·m] and ``l_c`` [m]. ``kind = "spring"`` (Klimchik): geometry
+    ``a, L`` [m] and ``alpha`` [rad], parameters ``K_c`` [N/m] and ``s0`` [m].
+    ``nominal`` optionally holds known parameter values (an elastocal
+    extension of formats.md: keys ``C``/``l_c`` or ``K_c``/``s0`` in the table).
+
+    The torque is the balancing torque ``M`` of the papers (Y32: ``M = tau2^0 -
+    xi2 i2``): it relieves joint 2, so the load torque joint 2 carries is
+    ``xi2 i2 = tau2^0 - M``.
+    """
+
+    kind: str
+    joint: int
+    geometry: tuple[tuple[str, float], ...]
+    nominal: tuple[tuple[str, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("hydropneumatic", "spring"):
+            raise InputError(f"compensator kind must be 'hydropneumatic' or 'spring', got {self.kind!r}")
+        if self.joint != 2:
+            raise InputError(f"compensator joint must be 2, got {self.joint}")
+
+    @property
+    def parameter_names(self) -> tuple[str, str]:
+        return HYDRO_PARAMS if self.kind == "hydropneumatic" else SPRING_PARAMS
+
+    @property
+    def parameter_units(self) -> dict[str, str]:
+        return dict(HYDRO_UNITS if self.kind == "hydropneumatic" else SPRING_UNITS)
+
+    def geo(self, key: str) -> float:
+        return dict(self.geometry)[key]
+
+    def nominal_parameters(self) -> np.ndarray | None:
+        nom = dict(self.nominal)
+        names = self.parameter_names
+        if all(n in nom for n in names):
+            return np.array([nom[n] for n in names], dtype=float)
+        return None
+
+    def torque(self, q2: np.ndarray | float, params: Sequence[float]) -> np.ndarray:
+        """Balancing torque M(q2) [N·m] for parameters (C, l_c) or (K_c, s0)."""
+        q2 = np.asarray(q2, dtype=float)
+        p0, p1 = float(params[0]), float(params[1])
+        if self.kind == "hydropneumatic":
+            a, b, h = self.geo("a"), self.geo("b"), self.geo("h")
+            r = math.hypot(a, h)
+            alpha = math.atan2(a, h)
+            length = self.hydro_length(q2)
+            return p0 * b * r * np.cos(alpha - q2) / (length * (p1 - length))
+        a, big_l, alpha = self.geo("a"), self.geo("L"), self.geo("alpha")
+        s = self.spring_length(q2)
+        return p0 * (1.0 - p1 / s) * a * big_l * np.sin(alpha - q2)
+
+    def torque_derivatives(self, q2: np.ndarray | float, params: Sequence[float]) -> np.ndarray:
+        """d M / d params, shape (len(q2), 2), analytic."""
+        q2 = np.atleast_1d(np.asarray(q2, dtype=float))
+        p0, p1 = float(params[0]), float(params[1])
+        if self.kind == "hydropneumatic":
+            a, b, h = self.geo("a"), self.geo("b"), self.geo("h")
+            r = math.hypot(a, h)
+            alpha = math.atan2(a, h)
+            length = self.hydro_length(q2)
+            g = b * r * np.cos(alpha - q2) / length
+            return np.column_stack([g / (p1 - length), -p0 * g / (p1 - length) ** 2])
+        a, big_l, alpha = self.geo("a"), self.geo("L"), self.geo("alpha")
+        s = self.spring_length(q2)
+        g = a * big_l * np.sin(alpha - q2)
+        return np.column_stack([(1.0 - p1 / s) * g, -p0 / s * g])
+
+    def stiffness(self, q2: np.ndarray | float, params: Sequence[float], step: float = 1e-6) -> np.ndarray:
+        """Equivalent stiffness k_b = dM/dq2 [N·m/rad] (Y12); it adds to k2 in the
+        force-based model."""
+        q2 = np.asarray(q2, dtype=float)
+        return (self.torque(q2 + step, params) - self.torque(q2 - step, params)) / (2 * step)
+
+    def hydro_length(self, q2: np.ndarray) -> np.ndarray:
+        a, b, h = self.geo("a"), self.geo("b"), self.geo("h")
+        r = math.hypot(a, h)
+        alpha = math.atan2(a, h)
+        return np.sqrt(b * b + r * r - 2.0 * b * r * np.sin(alpha - q2))
+
+    def spring_length(self, q2: np.ndarray) -> np.ndarray:
+        a, big_l, alpha = self.geo("a"), self.geo("L"), self.geo("alpha")
+        return np.sqrt(a * a + big_l * big_l + 2.0 * a * big_l * np.cos(alpha - q2))
+
+
+def _dh_placement(joint: JointSpec) -> pin.SE3:
+    """Rx(alpha_{i-1}) Tx(a_{i-1}) Tz(d_i): the parts of the modified-DH transform
+    that do not depend on theta (Rz(theta) and Tz(d) commute)."""
+    ca, sa = math.cos(joint.alpha), math.sin(joint.alpha)
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, ca, -sa], [0.0, sa, ca]])
+    trans = np.array([joint.a, 0.0, 0.0]) + rot @ np.array([0.0, 0.0, joint.d])
+    return pin.SE3(rot, trans)
+
+
+@dataclass(frozen=True, eq=False)
+class Robot:
+    """An immutable robot: its description and the Pinocchio models built from it."""
+
+    name: str
+    joints: tuple[JointSpec, ...]
+    gravity: tuple[float, float, float]
+    tool: ToolSpec
+    compensator: CompensatorSpec | None = None
+    source: str = "<robot>"
+    model: pin.Model = field(init=False, repr=False)
+    link_model: pin.Model = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if len(self.joints) != N_JOINTS:
+            raise InputError(f"expected {N_JOINTS} [[joint]] tables, got {len(self.joints)}", source=self.source)
+        object.__setattr__(self, "model", self._build(with_link_springs=False))
+        object.__setattr__(self, "link_model", self._build(with_link_springs=True))
+
+    # ----------------------------------------------------------------- build
+    def _build(self, *, with_link_springs: bool) -> pin.Model:
+        model = pin.Model()
+        model.name = self.name
+        model.gravity = pin.Motion(np.array(self.gravity), np.zeros(3))
+        parent = 0
+        for i, joint in enumerate(self.joints, start=1):
+            placement = _dh_placement(joint)
+            if with_link_springs and i in (3, 4):
+                link = i - 1
+                parent = model.addJoint(parent, pin.JointModelRX(), placement, f"link{link}_x")
+                parent = model.addJoint(parent, pin.JointModelRY(), pin.SE3.Identity(), f"link{link}_y")
+                placement = pin.SE3.Identity()
+            parent = model.addJoint(parent, pin.JointModelRZ(), placement, f"joint{i}")
+            if joint.mass > 0.0:
+                inertia = pin.Inertia.FromSphere(joint.mass, 0.05)
+                inertia = pin.Inertia(joint.mass, np.array(joint.com), inertia.inertia)
+                model.appendBodyToJoint(parent, inertia, pin.SE3.Identity())
+        model.addFrame(pin.Frame(FLANGE_FRAME, parent, pin.SE3.Identity(), pin.FrameType.OP_FRAME))
+        model.addFrame(pin.Frame(LOAD_FRAME, parent, pin.SE3(np.eye(3), np.array(self.tool.flange_p_load)),
+                                 pin.FrameType.OP_FRAME))
+        for name, flange_p in self.tool.flange_p_markers:
+            model.addFrame(pin.Frame(MARKER_PREFIX + name, parent, pin.SE3(np.eye(3), np.array(flange_p)),
+                                     pin.FrameType.OP_FRAME))
+        return model
+
+    # ------------------------------------------------------------ properties
+    @property
+    def torque_constants(self) -> np.ndarray:
+        return np.array([j.torque_constant for j in self.joints])
+
+    @property
+    def offsets(self) -> np.ndarray:
+        return np.array([j.offset for j in self.joints])
+
+    @property
+    def lower(self) -> np.ndarray:
+        return np.array([j.lower for j in self.joints])
+
+    @property
+    def upper(self) -> np.ndarray:
+        return np.array([j.upper for j in self.joints])
+
+    @property
+    def marker_names(self) -> tuple[str, ...]:
+        return self.tool.marker_names
+
+    @property
+    def has_masses(self) -> bool:
+        return any(j.mass > 0.0 for j in self.joints)
+
+    def frame_id(self, frame: str, *, links: bool = False) -> int:
+        model = self.link_model if links else self.model
+        name = frame if frame in (LOAD_FRAME, FLANGE_FRAME) else MARKER_PREFIX + frame
+        if not model.existFrame(name):
+            raise InputError(f"unknown marker {frame!r}; the robot has {', '.join(self.marker_names)}",
+                             source=self.source)
+        return model.getFrameId(name)
+
+    def theta(self, q: np.ndarray, dtheta: np.ndarray | None = None) -> np.ndarray:
+        """Link-side DH variable ``q + offset (+ dtheta)``."""
+        q = np.asarray(q, dtype=float)
+        out = q + self.offsets
+        return out if dtheta is None else out + dtheta
+
+    def theta_links(self, theta: np.ndarray, link_angles: np.ndarray | None = None) -> np.ndarray:
+        """Configuration of ``link_model`` from the 6 joint angles and 4 link-spring angles."""
+        out = np.zeros(len(LINK_JOINT_ORDER))
+        out[ACTUATED_IN_LINK_MODEL] = theta
+        if link_angles is not None:
+            out[SPRINGS_IN_LINK_MODEL] = link_angles
+        return out
+
+    # ------------------------------------------------------------ kinematics
+    def positions(self, theta: np.ndarray, frames: Sequence[str], *, links: bool = False) -> np.ndarray:
+        """Base-frame positions (len(frames), 3) of markers or the load point."""
+        model = self.link_model if links else self.model
+        data = model.createData()
+        pin.framesForwardKinematics(model, data, np.asarray(theta, dtype=float))
+        return np.array([data.oMf[self.frame_id(f, links=links)].translation for f in frames])
+
+    def jacobians(self, theta: np.ndarray, frames: Sequence[str], *, links: bool = False) -> np.ndarray:
+        """Frame Jacobians (len(frames), 6, nv), LOCAL_WORLD_ALIGNED: rows 0-2 the
+        velocity of the frame origin in base axes, rows 3-5 the angular velocity."""
+        model = self.link_model if links else self.model
+        data = model.createData()
+        theta = np.asarray(theta, dtype=float)
+        pin.computeJointJacobians(model, data, theta)
+        pin.updateFramePlacements(model, data)
+        return np.array([
+            pin.getFrameJacobian(model, data, self.frame_id(f, links=links), pin.LOCAL_WORLD_ALIGNED)
+            for f in frames
+        ])
+
+    def gravity_torque(self, theta: np.ndarray, *, links: bool = False) -> np.ndarray:
+        """Generalised gravity g(theta): the torque that holds the links against gravity."""
+        model = self.link_model if links else self.model
+        data = model.createData()
+        return pin.computeGeneralizedGravity(model, data, np.asarray(theta, dtype=float)).copy()
+
+    def load_torque(self, theta: np.ndarray, wrench: np.ndarray | None,
+                    compensator_params: Sequence[float] | None = None, *, gravity: bool = True,
+                    links: bool = False, q2: float | None = None) -> np.ndarray:
+        """Load torque the joints carry, ``J_f^T W - g(theta) - M e2`` (formats.md sign).
+
+        ``wrench`` is (fx, fy, fz, mx, my, mz) on the load point in base axes;
+        ``q2`` is the compensator's joint coordinate (default ``theta2 - offset2``).
+        """
+        theta = np.asarray(theta, dtype=float)
+        nv = (self.link_model if links else self.model).nv
+        tau = np.zeros(nv)
+        if wrench is not None:
+            jac = self.jacobians(theta, [LOAD_FRAME], links=links)[0]
+            tau += jac.T @ np.asarray(wrench, dtype=float)
+        if gravity and self.has_masses:
+            tau -= self.gravity_torque(theta, links=links)
+        if self.compensator is not None and compensator_params is not None:
+            idx2 = 1
+            if q2 is None:
+                q2 = theta[idx2] - self.joints[1].offset
+            tau[idx2] -= float(self.compensator.torque(q2, compensator_params))
+        return tau
+
+    # ------------------------------------------------------------ serialise
+    def to_toml(self) -> str:
+        """The description as robot.toml text (formats.md §1)."""
+
+        def num(x: float) -> str:
+            return repr(float(x))
+
+        def vec(v) -> str:
+            return "[" + ", ".join(num(x) for x in v) + "]"
+
+        lines = [f'name = "{self.name}"', 'convention = "modified-dh"', f"gravity = {vec(self.gravity)}", ""]
+        for j in self.joints:
+            lines += ["[[joint]]"]
+            if j.name:
+                lines.append(f'name = "{j.name}"')
+            lines += [f"a = {num(j.a)}", f"alpha = {num(j.alpha)}", f"d = {num(j.d)}",
+                      f"offset = {num(j.offset)}", f"lower = {num(j.lower)}", f"upper = {num(j.upper)}",
+                      f"torque_constant = {num(j.torque_constant)}", f"mass = {num(j.mass)}",
+                      f"com = {vec(j.com)}", ""]
+        lines += ["[tool]", f"load_point = {vec(self.tool.flange_p_load)}", "[tool.markers]"]
+        lines += [f"{name} = {vec(p)}" for name, p in self.tool.flange_p_markers]
+        if self.compensator is not None:
+            c = self.compensator
+            lines += ["", "[compensator]", f'kind = "{c.kind}"', f"joint = {c.joint}"]
+            lines += [f"{k} = {num(v)}" for k, v in c.geometry]
+            lines += [f"{k} = {num(v)}" for k, v in c.nominal]
+        return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------- loading
+def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Path | None = None) -> Robot:
+    """Parse robot.toml text into a :class:`Robot`; errors name the key."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"not valid TOML: {exc}", source=source) from None
+    name = doc.get("name", "robot")
+    if "urdf" in doc:
+        raise InputError("URDF robots are not supported yet; give the modified-DH [[joint]] tables",
+                         source=source, column="urdf")
+    convention = doc.get("convention", "modified-dh")
+    if convention != "modified-dh":
+        raise InputError(f"convention must be 'modified-dh', got {convention!r}", source=source, column="convention")
+    gravity = _vec3(doc.get("gravity", [0.0, 0.0, -9.81]), source=source, column="gravity")
+    tables = doc.get("joint")
+    if not isinstance(tables, list) or len(tables) != N_JOINTS:
+        raise InputError(f"expected {N_JOINTS} [[joint]] tables", source=source, column="joint")
+    joints = []
+    for i, t in enumerate(tables, start=1):
+        where = f"joint[{i}]"
+        lower = _number(t, "lower", source=source, where=where)
+        upper = _number(t, "upper", source=source, where=where)
+        if max(abs(lower), abs(upper)) > 4 * math.pi:
+            raise InputError(f"joint limits {lower}..{upper} look like degrees; limits are radians",
+                             source=source, column=f"{where}.lower")
+        xi = _number(t, "torque_constant", source=source, where=where)
+        if xi == 0.0:
+            raise InputError("torque_constant must be non-zero", source=source, column=f"{where}.torque_constant")
+        mass = _number(t, "mass", source=source, where=where, default=0.0)
+        if mass < 0:
+            raise InputError("mass must be >= 0", source=source, column=f"{where}.mass")
+        try:
+            joints.append(JointSpec(
+                a=_number(t, "a", source=source, where=where),
+                alpha=_number(t, "alpha", source=source, where=where),
+                d=_number(t, "d", source=source, where=where),
+                offset=_number(t, "offset", source=source, where=where, default=0.0),
+                lower=lower, upper=upper, torque_constant=xi, mass=mass,
+                com=_vec3(t.get("com", [0.0, 0.0, 0.0]), source=source, column=f"{where}.com"),
+                name=str(t.get("name", f"joint{i}")),
+            ))
+        except InputError as exc:
+            raise InputError(exc.detail, source=source, column=where) from None
+    tool = doc.get("tool")
+    if not isinstance(tool, dict):
+        raise InputError("missing [tool] table", source=source, column="tool")
+    if "load_point" not in tool:
+        raise InputError("missing required key", source=source, column="tool.load_point")
+    load = _vec3(tool["load_point"], source=source, column="tool.load_point")
+    markers = tool.get("markers", {})
+    if not isinstance(markers, dict) or not markers:
+        raise InputError("at least one marker is needed", source=source, column="tool.markers")
+    marker_items = tuple((str(k), _vec3(v, source=source, column=f"tool.markers.{k}")) for k, v in markers.items())
+    for mname, p in marker_items:
+        if max(abs(x) for x in p) > 10.0:
+            raise InputError(f"marker {mname} at {p} is over 10 m from the flange; positions are metres",
+                             source=source, column=f"tool.markers.{mname}")
+    comp = None
+    if "compensator" in doc:
+        c = doc["compensator"]
+        kind = c.get("kind")
+        keys = ("a", "b", "h") if kind == "hydropneumatic" else ("a", "L", "alpha")
+        if kind not in ("hydropneumatic", "spring"):
+            raise InputError(f"kind must be 'hydropneumatic' or 'spring', got {kind!r}",
+                             source=source, column="compensator.kind")
+        geometry = tuple((k, _number(c, k, source=source, where="compensator")) for k in keys)
+        params = HYDRO_PARAMS if kind == "hydropneumatic" else SPRING_PARAMS
+        nominal = tuple((k, _number(c, k, source=source, where="compensator")) for k in params if k in c)
+        joint_no = c.get("joint", 2)
+        if joint_no != 2:
+            raise InputError(f"compensator joint must be 2, got {joint_no!r}", source=source,
+                             column="compensator.joint")
+        comp = CompensatorSpec(kind=kind, joint=2, geometry=geometry, nominal=nominal)
+    return Robot(name=str(name), joints=tuple(joints), gravity=gravity,
+                 tool=ToolSpec(flange_p_load=load, flange_p_markers=marker_items),
+                 compensator=comp, source=source)
+
+
+def load_robot(path: str | pathlib.Path) -> Robot:
+    """Read a robot.toml file."""
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", source=str(path)) from None
+    return parse_robot(text, source=str(path), base_dir=path.parent)
+
+
+def bundled_robot_path(name: str = "hh150") -> pathlib.Path:
+    """Path of a robot description shipped with elastocal (``hh150``)."""
+    from importlib import resources
+
+    ref = resources.files("elastocal") / "robots" / f"{name}.toml"
+    return pathlib.Path(str(ref))
+
+
+def bundled_robot(name: str = "hh150") -> Robot:
+    path = bundled_robot_path(name)
+    if not path.exists():
+        raise InputError(f"no bundled robot named {name!r}")
+    return load_robot(path)

@@ -1,0 +1,510 @@
+"""Static identification from before/after-load deflections (Y35, Y39-42, K37).
+
+Pure functions: a robot and a table (or dataset) in, a frozen :class:`StaticFit`
+out. The model is a set of effects (identify/effects), each entering linearly
+through angle, link-spring and additive bases. Two forms:
+
+* ``first-order``: ``dP = J_m(q) (dtheta_load - dtheta_ref)`` as in the papers,
+  one linear least-squares solve;
+* ``exact`` (secant): ``dP = p(theta_load) - p(theta_ref)`` with the kinematics
+  evaluated at the deflected configurations, solved by Gauss-Newton from the
+  first-order solution.
+
+Torques come from motor currents (``xi i``, absolute, so the deflected
+configurations are known) or from the wrench columns (``J_f^T W - g - M``).
+
+The noise floor is the residual rms that measurement noise alone leaves: the
+tracker's and the currents' repeatability, estimated from repeated readings and
+propagated through the fitted model and the hat matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+import pinocchio as pin
+import scipy.linalg
+
+from elastocal.errors import InputError, UnidentifiableError
+from elastocal.identify.effects import get_effect
+from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext
+from elastocal.identify.robot import (
+    ACTUATED_IN_LINK_MODEL,
+    LOAD_FRAME,
+    MARKER_PREFIX,
+    SPRINGS_IN_LINK_MODEL,
+    Robot,
+)
+from elastocal.identify.tables import StaticTable
+
+TORQUE_SOURCES = ("current", "force")
+FORMS = ("exact", "first-order")
+#: a pivoted-QR diagonal below this fraction of the largest marks a parameter
+#: the data cannot separate from the others
+RANK_TOL = 1e-7
+
+
+# =================================================================== dataset
+@dataclass(frozen=True, eq=False)
+class StaticDataset:
+    """A static table reduced to load states and deflections.
+
+    States ``s`` are (pose, load) pairs; deflections ``d`` are (loaded state,
+    marker) pairs, measured against the reference state of the same pose.
+    """
+
+    source: str
+    pose_ids: tuple[str, ...]
+    q: np.ndarray                 # (P, 6)
+    markers: tuple[str, ...]
+    state_pose: np.ndarray        # (S,) index into pose_ids
+    state_load: np.ndarray        # (S,) str
+    state_ref: np.ndarray         # (S,) index of the pose's reference state
+    state_currents: np.ndarray    # (S, 6) mean currents [A], NaN when absent
+    state_n_currents: np.ndarray  # (S,) readings averaged
+    state_wrench: np.ndarray      # (S, 6) [N, N·m], NaN when unknown; 0 for references without one
+    defl_state: np.ndarray        # (D,)
+    defl_ref: np.ndarray          # (D,)
+    defl_marker: np.ndarray       # (D,) index into markers
+    dP: np.ndarray                # (D, 3) measured deflection [m]
+    defl_n: np.ndarray            # (D,) readings averaged in the loaded state
+    defl_n_ref: np.ndarray        # (D,) readings averaged in the reference
+    defl_dt: np.ndarray           # (D,) mean time loaded minus mean time reference [s], NaN if unknown
+    defl_t: np.ndarray            # (D,) mean time of the loaded readings [s], NaN if unknown
+    sigma_tracker: float | None   # repeatability per coordinate [m]
+    sigma_current: np.ndarray | None  # (6,) repeatability per joint [A]
+
+    @property
+    def n_states(self) -> int:
+        return len(self.state_pose)
+
+    @property
+    def n_deflections(self) -> int:
+        return len(self.defl_state)
+
+    @property
+    def has_currents(self) -> bool:
+        return bool(np.all(np.isfinite(self.state_currents)))
+
+    @property
+    def has_wrench(self) -> bool:
+        return bool(np.all(np.isfinite(self.state_wrench)))
+
+
+def build_dataset(table: StaticTable) -> StaticDataset:
+    """Average repeated readings and form the deflections of a validated table."""
+    pose_ids = tuple(dict.fromkeys(table.pose))
+    markers = tuple(dict.fromkeys(table.marker))
+    q = np.array([table.q[table.pose == p][0] for p in pose_ids])
+    state_pose, state_load, state_ref, cur, ncur, wrench = [], [], [], [], [], []
+    defl = {k: [] for k in ("state", "ref", "marker", "dP", "n", "n_ref", "dt", "t")}
+    dev_sq_p, dof_p = 0.0, 0
+    dev_sq_i, dof_i = np.zeros(6), 0
+    for pi, p in enumerate(pose_ids):
+        rows_p = table.pose == p
+        loads = ["0"] + [ld for ld in dict.fromkeys(table.load[rows_p]) if ld != "0"]
+        ref_index = len(state_pose)
+        means: dict[tuple[str, str], tuple[np.ndarray, int, float]] = {}
+        for ld in loads:
+            rows = rows_p & (table.load == ld)
+            c = table.currents[rows]
+            state_pose.append(pi)
+            state_load.append(ld)
+            state_ref.append(ref_index)
+            cur.append(c.mean(axis=0))
+            ncur.append(len(c))
+            if np.all(np.isfinite(c)) and len(c) > 1:
+                dev_sq_i += ((c - c.mean(axis=0)) ** 2).sum(axis=0)
+                dof_i += len(c) - 1
+            w = table.wrench[rows][0]
+            if ld == "0" and not np.all(np.isfinite(w)):
+                w = np.zeros(6)
+            wrench.append(w)
+            for m in markers:
+                rm = rows & (table.marker == m)
+                x = table.xyz[rm]
+                if len(x) > 1:
+                    dev_sq_p += float(((x - x.mean(axis=0)) ** 2).sum())
+                    dof_p += 3 * (len(x) - 1)
+                means[(ld, m)] = (x.mean(axis=0), len(x), float(np.mean(table.t[rm])))
+        for li, ld in enumerate(loads[1:], start=1):
+            for mi, m in enumerate(markers):
+                x1, n1, t1 = means[(ld, m)]
+                x0, n0, t0 = means[("0", m)]
+                defl["state"].append(ref_index + li)
+                defl["ref"].append(ref_index)
+                defl["marker"].append(mi)
+                defl["dP"].append(x1 - x0)
+                defl["n"].append(n1)
+                defl["n_ref"].append(n0)
+                defl["dt"].append(t1 - t0)
+                defl["t"].append(t1)
+    sigma_tracker = float(np.sqrt(dev_sq_p / dof_p)) if dof_p else None
+    sigma_current = np.sqrt(dev_sq_i / dof_i) if dof_i else None
+    return StaticDataset(
+        source=table.source, pose_ids=pose_ids, q=q, markers=markers,
+        state_pose=np.array(state_pose), state_load=np.array(state_load, dtype=str),
+        state_ref=np.array(state_ref), state_currents=np.array(cur), state_n_currents=np.array(ncur),
+        state_wrench=np.array(wrench), defl_state=np.array(defl["state"]), defl_ref=np.array(defl["ref"]),
+        defl_marker=np.array(defl["marker"]), dP=np.array(defl["dP"]).reshape(-1, 3),
+        defl_n=np.array(defl["n"]), defl_n_ref=np.array(defl["n_ref"]), defl_dt=np.array(defl["dt"]),
+        defl_t=np.array(defl["t"]), sigma_tracker=sigma_tracker, sigma_current=sigma_current,
+    )
+
+
+# =================================================================== results
+@dataclass(frozen=True)
+class Parameter:
+    name: str
+    value: float
+    std: float
+    unit: str
+
+
+@dataclass(frozen=True, eq=False)
+class StaticFit:
+    """Result of a static identification."""
+
+    model: tuple[str, ...]
+    torque: str
+    form: str
+    parameters: tuple[Parameter, ...]      # reported parameters (k, not c), identifiable ones
+    unidentifiable: tuple[str, ...]        # parameters the data cannot separate
+    beta_names: tuple[str, ...]            # model parameters (c1.., cl2x.., vx.., b1..)
+    beta: np.ndarray                       # their values (0 for unidentifiable ones)
+    beta_cov: np.ndarray                   # their covariance
+    predicted: np.ndarray                  # (D, 3)
+    residuals: np.ndarray                  # (D, 3) measured - predicted
+    rms: float
+    max: float
+    n: int
+    rss: float
+    n_params: int
+    noise_floor: float | None
+    expected_rss: float | None             # trace((I - H) Sigma): what noise alone leaves
+    condition_number: float
+    iterations: int
+    dataset: StaticDataset = field(repr=False)
+
+    def parameter(self, name: str) -> Parameter:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+    def values(self, names: Sequence[str]) -> np.ndarray:
+        return np.array([self.parameter(n).value for n in names])
+
+    def stds(self, names: Sequence[str]) -> np.ndarray:
+        return np.array([self.parameter(n).std for n in names])
+
+    def to_json(self) -> dict:
+        """The ``identify --json`` object of cli.md."""
+        out = {
+            "model": list(self.model),
+            "torque": self.torque,
+            "form": self.form,
+            "parameters": {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in self.parameters},
+            "residual": {"rms": self.rms, "max": self.max, "n": self.n, "unit": "m"},
+            "noise_floor": self.noise_floor,
+        }
+        if self.unidentifiable:
+            out["unidentifiable"] = list(self.unidentifiable)
+        out["condition_number"] = self.condition_number
+        return out
+
+
+# =================================================================== model
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    robot: Robot
+    ds: StaticDataset
+    effects: tuple[Effect, ...]
+    torque: str
+    form: str
+    complementary: bool
+    frames: tuple[str, ...]
+
+
+def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
+    """Absolute gear torque (S, 6) of each state."""
+    robot, ds = pr.robot, pr.ds
+    if pr.torque == "current":
+        return ds.state_currents * robot.torque_constants
+    comp = robot.compensator.nominal_parameters() if robot.compensator is not None else None
+    out = np.empty((ds.n_states, 6))
+    for s in range(ds.n_states):
+        theta = robot.theta(ds.q[ds.state_pose[s]]) if theta_states is None else theta_states[s]
+        out[s] = robot.load_torque(theta, ds.state_wrench[s], comp)
+    return out
+
+
+def _context(pr: _Problem, tau: np.ndarray) -> StaticContext:
+    robot, ds = pr.robot, pr.ds
+    delta_tau = tau - tau[ds.state_ref]
+    delta_link = np.zeros((ds.n_states, 4))
+    for pi in range(len(ds.pose_ids)):
+        states = np.flatnonzero(ds.state_pose == pi)
+        theta10 = robot.theta_links(robot.theta(ds.q[pi]))
+        jac = robot.jacobians(theta10, [LOAD_FRAME], links=True)[0]
+        j_act = jac[:, ACTUATED_IN_LINK_MODEL]
+        j_spr = jac[:, SPRINGS_IN_LINK_MODEL]
+        for s in states:
+            if pr.torque == "current":
+                try:
+                    dw = np.linalg.solve(j_act.T, delta_tau[s])
+                except np.linalg.LinAlgError:
+                    dw = np.linalg.lstsq(j_act.T, delta_tau[s], rcond=None)[0]
+            else:
+                dw = ds.state_wrench[s] - ds.state_wrench[ds.state_ref[s]]
+            delta_link[s] = j_spr.T @ dw
+    return StaticContext(tau=tau, delta_tau=delta_tau, delta_link_moment=delta_link,
+                         state_is_reference=ds.state_ref == np.arange(ds.n_states),
+                         deflection_dt=ds.defl_dt, n_deflections=ds.n_deflections, torque_source=pr.torque)
+
+
+def _bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ds = pr.ds
+    thetas, links, adds = [], [], []
+    for eff in pr.effects:
+        p = len(eff.parameters)
+        if p == 0:
+            continue
+        b = eff.static_basis(ctx) if eff.static_basis is not None else StaticBasis()
+        thetas.append(b.theta if b.theta is not None else np.zeros((ds.n_states, 6, p)))
+        links.append(b.links if b.links is not None else np.zeros((ds.n_states, 4, p)))
+        adds.append(b.add if b.add is not None else np.zeros((ds.n_deflections, 3, p)))
+    return np.concatenate(thetas, axis=2), np.concatenate(links, axis=2), np.concatenate(adds, axis=2)
+
+
+def _kinematics(robot: Robot, theta10: np.ndarray, frames: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (M, 3) and position Jacobians (M, 3, 10) of frames in the link model."""
+    model = robot.link_model
+    data = model.createData()
+    pin.computeJointJacobians(model, data, theta10)
+    pin.updateFramePlacements(model, data)
+    pos = np.empty((len(frames), 3))
+    jac = np.empty((len(frames), 3, model.nv))
+    for k, f in enumerate(frames):
+        fid = model.getFrameId(f)
+        pos[k] = data.oMf[fid].translation
+        jac[k] = pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)[:3]
+    return pos, jac
+
+
+def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted deflections (D, 3) and their Jacobian (D*3, p)."""
+    robot, ds = pr.robot, pr.ds
+    b_theta, b_links, b_add = bases
+    nominal = np.array([robot.theta(ds.q[ds.state_pose[s]]) for s in range(ds.n_states)])
+    pos = np.empty((ds.n_states, len(pr.frames), 3))
+    jac = np.empty((ds.n_states, len(pr.frames), 3, robot.link_model.nv))
+    if exact:
+        dtheta = b_theta @ beta
+        dlink = b_links @ beta
+        for s in range(ds.n_states):
+            th10 = robot.theta_links(nominal[s] + dtheta[s], dlink[s])
+            pos[s], jac[s] = _kinematics(robot, th10, pr.frames)
+    else:
+        for pi in range(len(ds.pose_ids)):
+            states = np.flatnonzero(ds.state_pose == pi)
+            p0, j0 = _kinematics(robot, robot.theta_links(nominal[states[0]]), pr.frames)
+            pos[states], jac[states] = p0, j0
+    d_idx = np.arange(ds.n_deflections)
+    m = ds.defl_marker
+    sl, sr = ds.defl_state, ds.defl_ref
+    j_act_l = jac[sl, m][:, :, ACTUATED_IN_LINK_MODEL]
+    j_act_r = jac[sr, m][:, :, ACTUATED_IN_LINK_MODEL]
+    j_spr_l = jac[sl, m][:, :, SPRINGS_IN_LINK_MODEL]
+    j_spr_r = jac[sr, m][:, :, SPRINGS_IN_LINK_MODEL]
+    if exact:
+        a = (j_act_l @ b_theta[sl] - j_act_r @ b_theta[sr] + j_spr_l @ b_links[sl] - j_spr_r @ b_links[sr]
+             + b_add[d_idx])
+        pred = pos[sl, m] - pos[sr, m] + b_add @ beta
+    else:
+        a = j_act_l @ (b_theta[sl] - b_theta[sr]) + j_spr_l @ (b_links[sl] - b_links[sr]) + b_add
+        pred = a @ beta
+    return pred, a.reshape(-1, a.shape[2])
+
+
+def _noise_blocks(pr: _Problem, beta: np.ndarray, bases) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    """Per-pose (row indices, covariance) of the deflection noise, or None
+    when the data hold no repeated readings."""
+    robot, ds = pr.robot, pr.ds
+    if ds.sigma_tracker is None:
+        return None
+    b_theta = bases[0]
+    blocks = []
+    sig_i = ds.sigma_current if (pr.torque == "current" and ds.sigma_current is not None) else None
+    c = None
+    if sig_i is not None:
+        # d dtheta / d tau for each state from the joint-stiffness part of the basis
+        c = beta[:6]
+    for pi in range(len(ds.pose_ids)):
+        dl = np.flatnonzero(ds.state_pose[ds.defl_state] == pi)
+        if dl.size == 0:
+            continue
+        rows = (3 * dl[:, None] + np.arange(3)).reshape(-1)
+        n = len(dl)
+        cov = np.zeros((3 * n, 3 * n))
+        for a_, da in enumerate(dl):
+            for b_, db in enumerate(dl):
+                if ds.defl_marker[da] != ds.defl_marker[db]:
+                    continue
+                v = ds.sigma_tracker**2 / ds.defl_n_ref[da]
+                if da == db:
+                    v += ds.sigma_tracker**2 / ds.defl_n[da]
+                cov[3 * a_:3 * a_ + 3, 3 * b_:3 * b_ + 3] += v * np.eye(3)
+        if sig_i is not None:
+            states = np.flatnonzero(ds.state_pose == pi)
+            theta10 = robot.theta_links(robot.theta(ds.q[pi]))
+            _, jac = _kinematics(robot, theta10, pr.frames)
+            g = np.zeros((3 * n, 6 * len(states)))
+            var = np.zeros(6 * len(states))
+            for k, s in enumerate(states):
+                var[6 * k:6 * k + 6] = (robot.torque_constants * sig_i) ** 2 / ds.state_n_currents[s]
+            for a_, da in enumerate(dl):
+                jm = jac[ds.defl_marker[da]][:, ACTUATED_IN_LINK_MODEL] * c
+                kl = int(np.flatnonzero(states == ds.defl_state[da])[0])
+                kr = int(np.flatnonzero(states == ds.defl_ref[da])[0])
+                g[3 * a_:3 * a_ + 3, 6 * kl:6 * kl + 6] += jm
+                g[3 * a_:3 * a_ + 3, 6 * kr:6 * kr + 6] -= jm
+            cov += (g * var) @ g.T
+        blocks.append((rows, cov))
+    return blocks
+
+
+def _select_columns(a: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Column scales and the mask of identifiable columns (pivoted QR on the
+    scaled regressor)."""
+    scale = np.linalg.norm(a, axis=0)
+    keep = scale > 0
+    scaled = a[:, keep] / scale[keep]
+    if scaled.shape[1]:
+        _, r, piv = scipy.linalg.qr(scaled, mode="economic", pivoting=True)
+        diag = np.abs(np.diag(r))
+        good = diag > RANK_TOL * diag[0]
+        kept_idx = np.flatnonzero(keep)
+        mask = np.zeros(len(names), dtype=bool)
+        mask[kept_idx[piv[good]]] = True
+    else:
+        mask = np.zeros(len(names), dtype=bool)
+    return np.where(scale > 0, scale, 1.0), mask
+
+
+def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
+                    model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
+                    form: str = "exact", max_iter: int = 30, tol: float = 1e-10) -> StaticFit:
+    """Fit the static model ``model`` (effect names) to a table or dataset."""
+    if torque not in TORQUE_SOURCES:
+        raise InputError(f"must be current or force, got {torque!r}", source="--torque")
+    if form not in FORMS:
+        raise InputError(f"must be exact or first-order, got {form!r}", source="--form")
+    ds = data if isinstance(data, StaticDataset) else build_dataset(data)
+    if torque == "current" and not ds.has_currents:
+        raise InputError("current-based identification needs the currents i1..i6 in every row; "
+                         "use --torque force", source=ds.source)
+    if torque == "force" and not ds.has_wrench:
+        raise InputError("force-based identification needs the wrench fx..mz of every loaded state",
+                         source=ds.source)
+    names = tuple(dict.fromkeys(["joint_stiffness", *model]))
+    effects = tuple(get_effect(n) for n in names)
+    frames = tuple(MARKER_PREFIX + m for m in ds.markers)
+    for m in ds.markers:
+        robot.frame_id(m)
+    complementary = "complementary_stiffness" in names
+    pr = _Problem(robot, ds, effects, torque, form, complementary, frames)
+    exact = form == "exact"
+    tau_dependent = torque == "force" and (exact or complementary)
+
+    tau = _torques(pr, None)
+    ctx = _context(pr, tau)
+    for eff in effects:
+        if "static" not in eff.seen_in and eff.static_refusal is None:
+            raise InputError(f"{eff.name} cannot be identified from static data", source="--model")
+        reason = eff.static_refusal(ctx) if eff.static_refusal is not None else None
+        if reason:
+            raise InputError(f"{eff.name}: {reason}", source="--model")
+    beta_names = tuple(p for eff in effects for p in eff.parameters)
+    bases = _bases(pr, ctx)
+    y = ds.dP.reshape(-1)
+    if y.size < len(beta_names):
+        raise UnidentifiableError(f"{y.size} deflection components cannot determine {len(beta_names)} parameters")
+
+    # first-order linear solve: starting point, and the answer for form=first-order
+    _, a = _evaluate(pr, np.zeros(len(beta_names)), bases, exact=False)
+    scale, mask = _select_columns(a, beta_names)
+    beta = np.zeros(len(beta_names))
+    beta[mask] = np.linalg.lstsq(a[:, mask] / scale[mask], y, rcond=None)[0] / scale[mask]
+    iterations = 1
+    if exact or tau_dependent:
+        for iterations in range(2, max_iter + 2):
+            if tau_dependent:
+                theta_states = np.array([robot.theta(ds.q[ds.state_pose[s]]) for s in range(ds.n_states)])
+                theta_states = theta_states + bases[0] @ beta
+                tau = _torques(pr, theta_states)
+                ctx = _context(pr, tau)
+                bases = _bases(pr, ctx)
+            pred, a = _evaluate(pr, beta, bases, exact=exact)
+            r = y - pred.reshape(-1)
+            step = np.zeros_like(beta)
+            step[mask] = np.linalg.lstsq(a[:, mask] / scale[mask], r, rcond=None)[0] / scale[mask]
+            beta = beta + step
+            if np.max(np.abs(step[mask] * scale[mask])) < tol * max(1.0, float(np.max(np.abs(y)))):
+                break
+    pred, a = _evaluate(pr, beta, bases, exact=exact)
+    resid = ds.dP - pred
+    r = resid.reshape(-1)
+    rss = float(r @ r)
+    n = r.size
+    p = int(mask.sum())
+    a_k = a[:, mask]
+    scaled = a_k / scale[mask]
+    sv = np.linalg.svd(scaled, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv.size and sv[-1] > 0 else float("inf")
+    m_inv = np.linalg.pinv(a_k.T @ a_k)
+    blocks = _noise_blocks(pr, beta, bases)
+    if blocks is not None:
+        meat = np.zeros((p, p))
+        trace_sigma = 0.0
+        for rows, cov in blocks:
+            ab = a_k[rows]
+            meat += ab.T @ cov @ ab
+            trace_sigma += float(np.trace(cov))
+        expected = trace_sigma - float(np.trace(m_inv @ meat))
+        inflation = max(1.0, rss / expected) if expected > 0 else 1.0
+        cov_k = m_inv @ meat @ m_inv * inflation
+        noise_floor = float(np.sqrt(max(expected, 0.0) / n))
+    else:
+        expected = None
+        s2 = rss / max(n - p, 1)
+        cov_k = m_inv * s2
+        noise_floor = None
+    cov = np.zeros((len(beta_names), len(beta_names)))
+    cov[np.ix_(mask, mask)] = cov_k
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+    params: list[Parameter] = []
+    unident: list[str] = []
+    offset = 0
+    for eff in effects:
+        k = len(eff.parameters)
+        sl = slice(offset, offset + k)
+        offset += k
+        if k == 0:
+            continue
+        values, deriv = eff.reported(beta[sl])
+        units = eff.report_units or eff.units
+        names_out = [f"k{j}" for j in range(1, 7)] if eff.name == "joint_stiffness" else list(eff.parameters)
+        for i in range(k):
+            if not mask[sl][i]:
+                unident.append(names_out[i])
+                continue
+            params.append(Parameter(names_out[i], float(values[i]), float(abs(deriv[i]) * std[sl][i]), units[i]))
+    return StaticFit(model=names, torque=torque, form=form, parameters=tuple(params),
+                     unidentifiable=tuple(unident), beta_names=beta_names, beta=beta, beta_cov=cov,
+                     predicted=pred, residuals=resid, rms=float(np.sqrt(rss / n)),
+                     max=float(np.max(np.abs(r))), n=n, rss=rss, n_params=p, noise_floor=noise_floor,
+                     expected_rss=expected, condition_number=cond, iterations=iterations, dataset=ds)

@@ -1,0 +1,409 @@
+"""The CSV tables of formats.md §2 (static deflections) and §3 (runs).
+
+Readers validate strictly and fail with one line naming file, line and column:
+unknown marker, missing unloaded reference, a pose with one load state,
+non-finite numbers, and values whose size betrays the wrong unit (degrees
+where radians are expected, millimetres where metres are).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import pathlib
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+from elastocal.errors import InputError
+from elastocal.identify.robot import Robot
+
+Q_COLS = tuple(f"q{j}" for j in range(1, 7))
+DQ_COLS = tuple(f"dq{j}" for j in range(1, 7))
+I_COLS = tuple(f"i{j}" for j in range(1, 7))
+W_COLS = ("fx", "fy", "fz", "mx", "my", "mz")
+XYZ_COLS = ("x", "y", "z")
+STATIC_COLUMNS = ("pose", "load", "t") + Q_COLS + W_COLS + I_COLS + ("marker",) + XYZ_COLS
+RUN_COLUMNS = ("run", "direction", "load", "t") + Q_COLS + DQ_COLS + I_COLS + W_COLS + ("marker",) + XYZ_COLS
+
+#: a marker coordinate beyond this is taken as millimetres [m]
+MAX_POSITION_M = 20.0
+#: a joint speed beyond this is taken as degrees per second [rad/s]
+MAX_SPEED_RAD_S = 10.0
+#: a current beyond this is not a motor current in amperes [A]
+MAX_CURRENT_A = 2000.0
+DIRECTIONS = ("UV", "VU", "+", "-")
+
+
+@dataclass(frozen=True, eq=False)
+class StaticTable:
+    """Rows of a static deflection table (formats.md §2) as arrays."""
+
+    source: str
+    pose: np.ndarray      # (n,) str
+    load: np.ndarray      # (n,) str; "0" is the unloaded reference
+    t: np.ndarray         # (n,) s, NaN when empty
+    q: np.ndarray         # (n, 6) rad
+    wrench: np.ndarray    # (n, 6) N, N·m; NaN when unknown
+    currents: np.ndarray  # (n, 6) A; NaN when empty
+    marker: np.ndarray    # (n,) str
+    xyz: np.ndarray       # (n, 3) m
+    line: np.ndarray      # (n,) line number in the file (header = 1)
+
+    def __len__(self) -> int:
+        return len(self.pose)
+
+    @property
+    def has_currents(self) -> bool:
+        return bool(len(self)) and bool(np.all(np.isfinite(self.currents)))
+
+    @property
+    def has_wrench(self) -> bool:
+        loaded = self.load != "0"
+        return bool(np.any(loaded)) and bool(np.all(np.isfinite(self.wrench[loaded])))
+
+    @property
+    def has_time(self) -> bool:
+        return bool(len(self)) and bool(np.all(np.isfinite(self.t)))
+
+    def subset(self, mask: np.ndarray) -> "StaticTable":
+        return StaticTable(self.source, self.pose[mask], self.load[mask], self.t[mask], self.q[mask],
+                           self.wrench[mask], self.currents[mask], self.marker[mask], self.xyz[mask],
+                           self.line[mask])
+
+
+@dataclass(frozen=True, eq=False)
+class RunTable:
+    """Samples of slow motions (formats.md §3) as arrays."""
+
+    source: str
+    run: np.ndarray        # (n,) str
+    direction: np.ndarray  # (n,) str: UV, VU, + or -
+    load: np.ndarray       # (n,) str
+    t: np.ndarray          # (n,) s
+    q: np.ndarray          # (n, 6) rad
+    dq: np.ndarray         # (n, 6) rad/s, NaN when empty
+    currents: np.ndarray   # (n, 6) A, NaN when empty
+    wrench: np.ndarray     # (n, 6), NaN when empty
+    marker: np.ndarray     # (n,) str, "" when empty
+    xyz: np.ndarray        # (n, 3) m, NaN when empty
+    line: np.ndarray       # (n,)
+
+    def __len__(self) -> int:
+        return len(self.run)
+
+    def subset(self, mask: np.ndarray) -> "RunTable":
+        return RunTable(self.source, self.run[mask], self.direction[mask], self.load[mask], self.t[mask],
+                        self.q[mask], self.dq[mask], self.currents[mask], self.wrench[mask],
+                        self.marker[mask], self.xyz[mask], self.line[mask])
+
+
+# ------------------------------------------------------------------ reading
+class _Rows:
+    """CSV rows with the helpers that name file, line and column in errors."""
+
+    def __init__(self, text: str, source: str, required: Iterable[str], known: Iterable[str]) -> None:
+        self.source = source
+        reader = csv.reader(io.StringIO(text))
+        try:
+            header = next(reader)
+        except StopIteration:
+            raise InputError("the file is empty", source=source) from None
+        self.header = [h.strip() for h in header]
+        missing = [c for c in required if c not in self.header]
+        if missing:
+            raise InputError(f"missing column(s) {', '.join(missing)}", source=source, row=1)
+        unknown = [c for c in self.header if c not in known]
+        if unknown:
+            raise InputError(f"unknown column(s) {', '.join(unknown)}", source=source, row=1)
+        self.index = {c: i for i, c in enumerate(self.header)}
+        self.rows: list[tuple[int, list[str]]] = []
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not cell.strip() for cell in row):
+                continue
+            if len(row) != len(self.header):
+                raise InputError(f"{len(row)} fields, the header has {len(self.header)}", source=source, row=lineno)
+            self.rows.append((lineno, [cell.strip() for cell in row]))
+        if not self.rows:
+            raise InputError("the table has no rows", source=source)
+
+    def text(self, lineno: int, row: list[str], col: str, *, required: bool = True) -> str:
+        if col not in self.index:
+            return ""
+        value = row[self.index[col]]
+        if required and not value:
+            raise InputError("empty value", source=self.source, row=lineno, column=col)
+        return value
+
+    def number(self, lineno: int, row: list[str], col: str, *, required: bool = True) -> float:
+        value = self.text(lineno, row, col, required=required)
+        if not value:
+            return math.nan
+        try:
+            x = float(value)
+        except ValueError:
+            raise InputError(f"not a number: {value!r}", source=self.source, row=lineno, column=col) from None
+        if not math.isfinite(x):
+            raise InputError(f"not a finite number: {value!r}", source=self.source, row=lineno, column=col)
+        return x
+
+    def group(self, lineno: int, row: list[str], cols: tuple[str, ...], what: str) -> list[float]:
+        """All of ``cols`` or none of them."""
+        values = [self.number(lineno, row, c, required=False) for c in cols]
+        present = [not math.isnan(v) for v in values]
+        if any(present) and not all(present):
+            col = cols[present.index(False)]
+            raise InputError(f"{what} is partly empty; give all of {','.join(cols)} or none",
+                             source=self.source, row=lineno, column=col)
+        return values
+
+
+def _read_text(path: str | pathlib.Path) -> tuple[str, str]:
+    path = pathlib.Path(path)
+    try:
+        return path.read_text(encoding="utf-8-sig"), str(path)
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", source=str(path)) from None
+    except UnicodeDecodeError:
+        raise InputError("not a UTF-8 text file", source=str(path)) from None
+
+
+def _check_joint_units(rows: _Rows, lineno: int, q: list[float], robot: Robot | None) -> None:
+    for j, value in enumerate(q):
+        col = Q_COLS[j]
+        if robot is not None:
+            lo, hi = robot.joints[j].lower, robot.joints[j].upper
+            margin = 1e-3
+            if not lo - margin <= value <= hi + margin:
+                hint = ""
+                if lo <= math.radians(value) <= hi and abs(value) > 2 * math.pi:
+                    hint = "; degrees? angles in files are radians"
+                raise InputError(f"{value} rad is outside the joint limits [{lo:.4g}, {hi:.4g}]{hint}",
+                                 source=rows.source, row=lineno, column=col)
+        elif abs(value) > 2 * math.pi:
+            raise InputError(f"{value} is larger than 2*pi; degrees? angles in files are radians",
+                             source=rows.source, row=lineno, column=col)
+
+
+def _check_position_units(rows: _Rows, lineno: int, xyz: list[float]) -> None:
+    for col, value in zip(XYZ_COLS, xyz):
+        if abs(value) > MAX_POSITION_M:
+            raise InputError(f"{value} m is more than {MAX_POSITION_M:g} m from the base; millimetres? "
+                             "positions are metres", source=rows.source, row=lineno, column=col)
+
+
+def _check_currents(rows: _Rows, lineno: int, currents: list[float]) -> None:
+    for col, value in zip(I_COLS, currents):
+        if abs(value) > MAX_CURRENT_A:
+            raise InputError(f"{value} A is not a plausible motor current; currents are amperes",
+                             source=rows.source, row=lineno, column=col)
+
+
+def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "<static.csv>") -> StaticTable:
+    rows = _Rows(text, source, required=STATIC_COLUMNS, known=STATIC_COLUMNS)
+    markers = set(robot.marker_names) if robot is not None else None
+    pose, load, t, q, w, cur, marker, xyz, line = [], [], [], [], [], [], [], [], []
+    for lineno, row in rows.rows:
+        pose.append(rows.text(lineno, row, "pose"))
+        load.append(rows.text(lineno, row, "load"))
+        t.append(rows.number(lineno, row, "t", required=False))
+        qv = [rows.number(lineno, row, c) for c in Q_COLS]
+        _check_joint_units(rows, lineno, qv, robot)
+        q.append(qv)
+        w.append(rows.group(lineno, row, W_COLS, "the wrench"))
+        iv = rows.group(lineno, row, I_COLS, "the current vector")
+        _check_currents(rows, lineno, [v for v in iv if not math.isnan(v)])
+        cur.append(iv)
+        m = rows.text(lineno, row, "marker")
+        if markers is not None and m not in markers:
+            raise InputError(f"unknown marker {m!r}; the robot has {', '.join(sorted(markers))}",
+                             source=source, row=lineno, column="marker")
+        marker.append(m)
+        pv = [rows.number(lineno, row, c) for c in XYZ_COLS]
+        _check_position_units(rows, lineno, pv)
+        xyz.append(pv)
+        line.append(lineno)
+    table = StaticTable(source, np.array(pose, dtype=str), np.array(load, dtype=str), np.array(t, dtype=float),
+                        np.array(q, dtype=float), np.array(w, dtype=float), np.array(cur, dtype=float),
+                        np.array(marker, dtype=str), np.array(xyz, dtype=float), np.array(line, dtype=int))
+    _check_static_structure(table)
+    return table
+
+
+def _check_static_structure(table: StaticTable) -> None:
+    """Every pose has an unloaded reference and at least one load state, for each
+    marker; one configuration per pose; the wrench of the reference is zero or empty."""
+    src = table.source
+    for p in dict.fromkeys(table.pose):
+        rows = table.pose == p
+        loads = set(table.load[rows])
+        first = int(table.line[rows][0])
+        if "0" not in loads:
+            raise InputError(f"pose {p} has no unloaded reference (load 0)", source=src, row=first, column="load")
+        if len(loads) < 2:
+            raise InputError(f"pose {p} has only one load state; a deflection needs load 0 and a loaded state",
+                             source=src, row=first, column="load")
+        q = table.q[rows]
+        bad = np.flatnonzero(np.any(np.abs(q - q[0]) > 1e-6, axis=1))
+        if bad.size:
+            lineno = int(table.line[rows][bad[0]])
+            col = Q_COLS[int(np.argmax(np.abs(q[bad[0]] - q[0]) > 1e-6))]
+            raise InputError(f"pose {p} changes its joint coordinates between rows; one pose, one configuration",
+                             source=src, row=lineno, column=col)
+        for m in dict.fromkeys(table.marker[rows]):
+            mm = rows & (table.marker == m)
+            mloads = set(table.load[mm])
+            if "0" not in mloads:
+                raise InputError(f"marker {m} at pose {p} has no unloaded reference (load 0)",
+                                 source=src, row=int(table.line[mm][0]), column="marker")
+            for ld in sorted(set(table.load[rows]) - mloads):
+                raise InputError(f"marker {m} at pose {p} has no reading under load {ld}",
+                                 source=src, row=int(table.line[mm][0]), column="marker")
+        for ld in loads:
+            rl = rows & (table.load == ld)
+            w = table.wrench[rl]
+            if np.any(np.isfinite(w)) and np.any(np.abs(w - w[0]) > 1e-9):
+                lineno = int(table.line[rl][int(np.argmax(np.any(np.abs(w - w[0]) > 1e-9, axis=1)))])
+                raise InputError(f"pose {p} load {ld}: the wrench changes between readings of one load state",
+                                 source=src, row=lineno, column="fx")
+
+
+def read_static_table(path: str | pathlib.Path, robot: Robot | None = None) -> StaticTable:
+    """Read and validate a static deflection table."""
+    text, source = _read_text(path)
+    return parse_static_table(text, robot, source=source)
+
+
+def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<runs.csv>") -> RunTable:
+    required = ("run", "direction", "load", "t") + Q_COLS
+    rows = _Rows(text, source, required=required, known=RUN_COLUMNS)
+    markers = set(robot.marker_names) if robot is not None else None
+    run, direction, load, t, q, dq, cur, w, marker, xyz, line = ([] for _ in range(11))
+    for lineno, row in rows.rows:
+        run.append(rows.text(lineno, row, "run"))
+        d = rows.text(lineno, row, "direction")
+        if d not in DIRECTIONS:
+            raise InputError(f"direction must be one of {', '.join(DIRECTIONS)}, got {d!r}",
+                             source=source, row=lineno, column="direction")
+        direction.append(d)
+        load.append(rows.text(lineno, row, "load"))
+        t.append(rows.number(lineno, row, "t"))
+        qv = [rows.number(lineno, row, c) for c in Q_COLS]
+        _check_joint_units(rows, lineno, qv, robot)
+        q.append(qv)
+        dqv = rows.group(lineno, row, DQ_COLS, "the joint speed vector")
+        for col, v in zip(DQ_COLS, dqv):
+            if abs(v) > MAX_SPEED_RAD_S:
+                raise InputError(f"{v} rad/s is too fast for a calibration run; degrees per second? "
+                                 "speeds are rad/s", source=source, row=lineno, column=col)
+        dq.append(dqv)
+        iv = rows.group(lineno, row, I_COLS, "the current vector")
+        _check_currents(rows, lineno, [v for v in iv if not math.isnan(v)])
+        cur.append(iv)
+        w.append(rows.group(lineno, row, W_COLS, "the wrench"))
+        m = rows.text(lineno, row, "marker", required=False)
+        pv = rows.group(lineno, row, XYZ_COLS, "the marker position")
+        if m and markers is not None and m not in markers:
+            raise InputError(f"unknown marker {m!r}; the robot has {', '.join(sorted(markers))}",
+                             source=source, row=lineno, column="marker")
+        if m and math.isnan(pv[0]):
+            raise InputError(f"marker {m} has no position", source=source, row=lineno, column="x")
+        if not m and not math.isnan(pv[0]):
+            raise InputError("a position without a marker name", source=source, row=lineno, column="marker")
+        if m:
+            _check_position_units(rows, lineno, pv)
+        marker.append(m)
+        xyz.append(pv)
+        line.append(lineno)
+    table = RunTable(source, np.array(run, dtype=str), np.array(direction, dtype=str), np.array(load, dtype=str),
+                     np.array(t, dtype=float), np.array(q, dtype=float), np.array(dq, dtype=float),
+                     np.array(cur, dtype=float), np.array(w, dtype=float), np.array(marker, dtype=str),
+                     np.array(xyz, dtype=float), np.array(line, dtype=int))
+    for r in dict.fromkeys(table.run):
+        rr = table.run == r
+        dirs = set(table.direction[rr])
+        if len(dirs) != 1:
+            raise InputError(f"run {r} mixes directions {', '.join(sorted(dirs))}; one run, one direction",
+                             source=source, row=int(table.line[rr][0]), column="direction")
+        tt = table.t[rr]
+        back = np.flatnonzero(np.diff(tt) < 0)
+        if back.size:
+            raise InputError(f"run {r}: time goes backwards", source=source,
+                             row=int(table.line[rr][back[0] + 1]), column="t")
+    return table
+
+
+def read_run_table(path: str | pathlib.Path, robot: Robot | None = None) -> RunTable:
+    """Read and validate a run table."""
+    text, source = _read_text(path)
+    return parse_run_table(text, robot, source=source)
+
+
+# ------------------------------------------------------------------ writing
+def _fmt(x: float) -> str:
+    return "" if not math.isfinite(x) else repr(float(x))
+
+
+def format_static_table(table: StaticTable) -> str:
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(STATIC_COLUMNS)
+    for n in range(len(table)):
+        writer.writerow([table.pose[n], table.load[n], _fmt(table.t[n])]
+                        + [_fmt(v) for v in table.q[n]] + [_fmt(v) for v in table.wrench[n]]
+                        + [_fmt(v) for v in table.currents[n]] + [table.marker[n]]
+                        + [_fmt(v) for v in table.xyz[n]])
+    return out.getvalue()
+
+
+def write_static_table(path: str | pathlib.Path, table: StaticTable) -> None:
+    pathlib.Path(path).write_text(format_static_table(table), encoding="utf-8")
+
+
+def format_run_table(table: RunTable) -> str:
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(RUN_COLUMNS)
+    for n in range(len(table)):
+        writer.writerow([table.run[n], table.direction[n], table.load[n], _fmt(table.t[n])]
+                        + [_fmt(v) for v in table.q[n]] + [_fmt(v) for v in table.dq[n]]
+                        + [_fmt(v) for v in table.currents[n]] + [_fmt(v) for v in table.wrench[n]]
+                        + [table.marker[n]] + [_fmt(v) for v in table.xyz[n]])
+    return out.getvalue()
+
+
+def write_run_table(path: str | pathlib.Path, table: RunTable) -> None:
+    pathlib.Path(path).write_text(format_run_table(table), encoding="utf-8")
+
+
+def static_table_from_arrays(*, pose, load, q, marker, xyz, t=None, wrench=None, currents=None,
+                             source: str = "<memory>") -> StaticTable:
+    """Build a (validated) StaticTable from arrays, e.g. from a simulation or a log."""
+    n = len(pose)
+    nan6 = np.full((n, 6), np.nan)
+    table = StaticTable(source, np.asarray(pose, dtype=str), np.asarray(load, dtype=str),
+                        np.full(n, np.nan) if t is None else np.asarray(t, dtype=float),
+                        np.asarray(q, dtype=float).reshape(n, 6),
+                        nan6 if wrench is None else np.asarray(wrench, dtype=float).reshape(n, 6),
+                        nan6.copy() if currents is None else np.asarray(currents, dtype=float).reshape(n, 6),
+                        np.asarray(marker, dtype=str), np.asarray(xyz, dtype=float).reshape(n, 3),
+                        np.arange(2, n + 2))
+    _check_static_structure(table)
+    return table
+
+
+def run_table_from_arrays(*, run, direction, load, t, q, dq=None, currents=None, wrench=None, marker=None,
+                          xyz=None, source: str = "<memory>") -> RunTable:
+    """Build a RunTable from arrays (missing columns become NaN / empty)."""
+    n = len(run)
+    nan6 = np.full((n, 6), np.nan)
+    return RunTable(source, np.asarray(run, dtype=str), np.asarray(direction, dtype=str),
+                    np.asarray(load, dtype=str), np.asarray(t, dtype=float), np.asarray(q, dtype=float).reshape(n, 6),
+                    nan6 if dq is None else np.asarray(dq, dtype=float).reshape(n, 6),
+                    nan6.copy() if currents is None else np.asarray(currents, dtype=float).reshape(n, 6),
+                    nan6.copy() if wrench is None else np.asarray(wrench, dtype=float).reshape(n, 6),
+                    np.full(n, "", dtype=str) if marker is None else np.asarray(marker, dtype=str),
+                    np.full((n, 3), np.nan) if xyz is None else np.asarray(xyz, dtype=float).reshape(n, 3),
+                    np.arange(2, n + 2))

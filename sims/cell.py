@@ -1,0 +1,231 @@
+"""The simulated cell: exact nonlinear statics of a virtual-joint robot.
+
+This is the truth model of tests, benchmarks and the demo. One torsion spring
+per joint (``k``), optional springs at the distal ends of links 2 and 3
+(``link_compliance``), gravity of the links, the gravity compensator on joint 2,
+an external wrench at the load point, and switchable effects that elastocal's
+joint-only model does not know about: link compliance, tracker thermal drift,
+static friction that absorbs part of a load change, backlash.
+
+Conventions (formats.md): ``xi i`` is the load torque a joint carries,
+``xi_j i_j = k_j (theta_j - q_j - offset_j)`` at rest. Friction during motion
+opposes the motion: ``xi i = tau_load - f(dq)`` with
+``f = fc sign(dq) + fv dq + fl |tau_load| sign(dq)``.
+
+Every function is pure given its arguments; noise comes from a
+``numpy.random.Generator`` the caller passes (seeded).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Sequence
+
+import numpy as np
+
+from elastocal.identify.robot import (
+    ACTUATED_IN_LINK_MODEL,
+    LINK_SPRINGS,
+    LOAD_FRAME,
+    SPRINGS_IN_LINK_MODEL,
+    Robot,
+)
+
+#: HH-150 joint stiffness, Yang Table 6 (current-based) [N·m/rad]
+HH150_STIFFNESS = (0.559e6, 1.435e6, 1.829e6, 0.184e6, 0.171e6, 0.070e6)
+#: effects the simulator can hide in a dataset (``--hidden``)
+HIDDEN_EFFECTS = ("none", "link_compliance", "thermal_drift", "static_friction", "backlash")
+
+
+def _arr(value, n: int, name: str) -> np.ndarray:
+    out = np.asarray(value, dtype=float).reshape(-1)
+    if out.shape != (n,):
+        raise ValueError(f"{name}: expected {n} values, got {out.shape}")
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{name}: values must be finite")
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class CellTruth:
+    """The true parameters of a simulated cell (SI units)."""
+
+    stiffness: np.ndarray = field(default_factory=lambda: np.array(HH150_STIFFNESS))
+    #: compensator parameters (C, l_c) or (K_c, s0); None when the robot has none
+    compensator: tuple[float, float] | None = (4771.4, 0.9112)
+    #: link compliance cl2x, cl2y, cl3x, cl3y [rad/(N·m)]
+    link_compliance: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    #: tracker drift [m/s]
+    drift_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: static friction torque that can absorb a load change, per joint [N·m]
+    static_friction: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    #: backlash (total lost motion) per joint [rad]; smoothed over backlash_torque_nm
+    backlash: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    backlash_torque_nm: float = 20.0
+    #: Coulomb, viscous and load-dependent friction during motion
+    coulomb: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    viscous: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    load_friction: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    #: measurement noise (one standard deviation per reading)
+    tracker_noise_m: float = 10e-6
+    current_noise_a: float = 0.02
+
+    def __post_init__(self) -> None:
+        for name, n in (("stiffness", 6), ("link_compliance", 4), ("drift_velocity", 3),
+                        ("static_friction", 6), ("backlash", 6), ("coulomb", 6), ("viscous", 6),
+                        ("load_friction", 6)):
+            object.__setattr__(self, name, _arr(getattr(self, name), n, name))
+        if np.any(self.stiffness <= 0):
+            raise ValueError("stiffness must be positive")
+
+    def with_hidden(self, effect: str) -> "CellTruth":
+        """The same truth with one hidden effect switched on at a typical size."""
+        if effect == "none":
+            return self
+        if effect == "link_compliance":
+            return replace(self, link_compliance=np.array([4.0e-7, 2.5e-7, 6.0e-7, 3.0e-7]))
+        if effect == "thermal_drift":
+            return replace(self, drift_velocity=np.array([1.2e-7, -0.8e-7, 1.5e-7]))
+        if effect == "static_friction":
+            return replace(self, static_friction=np.array([60.0, 250.0, 200.0, 25.0, 20.0, 12.0]))
+        if effect == "backlash":
+            return replace(self, backlash=np.array([4e-5, 3e-5, 3e-5, 8e-5, 8e-5, 1e-4]))
+        raise ValueError(f"unknown hidden effect {effect!r}; one of {', '.join(HIDDEN_EFFECTS)}")
+
+    def parameters(self, robot: Robot) -> dict[str, dict[str, float | str]]:
+        """True parameters under the names of formats.md §4 (truth.json)."""
+        out: dict[str, dict[str, float | str]] = {}
+        for j, k in enumerate(self.stiffness, start=1):
+            out[f"k{j}"] = {"value": float(k), "unit": "N*m/rad"}
+        if robot.compensator is not None and self.compensator is not None:
+            units = robot.compensator.parameter_units
+            for name, value in zip(robot.compensator.parameter_names, self.compensator):
+                out[name] = {"value": float(value), "unit": units[name]}
+        if np.any(self.link_compliance):
+            for name, v in zip(LINK_SPRINGS, self.link_compliance):
+                out[name] = {"value": float(v), "unit": "rad/(N*m)"}
+        if np.any(self.drift_velocity):
+            for name, v in zip(("vx", "vy", "vz"), self.drift_velocity):
+                out[name] = {"value": float(v), "unit": "m/s"}
+        if np.any(self.backlash):
+            for j, v in enumerate(self.backlash, start=1):
+                out[f"b{j}"] = {"value": float(v), "unit": "rad"}
+        if np.any(self.static_friction):
+            for j, v in enumerate(self.static_friction, start=1):
+                out[f"fs{j}"] = {"value": float(v), "unit": "N*m"}
+        for prefix, arr, unit in (("fc", self.coulomb, "N*m"), ("fv", self.viscous, "N*m*s/rad"),
+                                  ("fl", self.load_friction, "1")):
+            if np.any(arr):
+                for j, v in enumerate(arr, start=1):
+                    out[f"{prefix}{j}"] = {"value": float(v), "unit": unit}
+        return out
+
+
+@dataclass(frozen=True)
+class Equilibrium:
+    """A static equilibrium of the simulated robot (noise-free)."""
+
+    q: np.ndarray                  # commanded joint coordinates [rad]
+    theta: np.ndarray              # link-side DH angles of the 6 joints [rad]
+    link_angles: np.ndarray        # rotations of the 4 link springs [rad]
+    gear_torque: np.ndarray        # torque each gear (and motor) carries [N·m]; xi i = gear_torque
+    wrench: np.ndarray             # external wrench on the load point, base axes
+    friction_torque: np.ndarray    # part of the load absorbed by static friction [N·m]
+
+
+class SimCell:
+    """Statics of the simulated robot; immutable, thread-safe."""
+
+    def __init__(self, robot: Robot, truth: CellTruth | None = None) -> None:
+        self.robot = robot
+        self.truth = truth if truth is not None else CellTruth()
+        if robot.compensator is None:
+            self.truth = replace(self.truth, compensator=None)
+
+    # --------------------------------------------------------------- statics
+    def _full_load(self, theta10: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+        r = self.robot
+        q2 = theta10[ACTUATED_IN_LINK_MODEL[1]] - r.joints[1].offset
+        return r.load_torque(theta10, wrench, self.truth.compensator, links=True, q2=q2)
+
+    def equilibrium(self, q: Sequence[float], wrench: Sequence[float] | None = None, *,
+                    reference: Equilibrium | None = None, tol_rad: float = 1e-13,
+                    max_iter: int = 200) -> Equilibrium:
+        """Solve ``k dtheta + backlash = load(theta)`` at commanded ``q``.
+
+        ``reference``: the unloaded equilibrium at the same ``q``; when given and
+        the truth has static friction, friction absorbs up to ``static_friction``
+        of the change of each joint's load torque (the gears, motors and springs
+        see only the rest).
+        """
+        r = self.robot
+        t = self.truth
+        q = np.asarray(q, dtype=float)
+        w = np.zeros(6) if wrench is None else np.asarray(wrench, dtype=float)
+        compliance = 1.0 / t.stiffness
+        theta0 = r.theta(q)
+        absorbed = np.zeros(6)
+
+        def solve(fixed_absorbed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            th10 = r.theta_links(theta0)
+            for _ in range(max_iter):
+                load = self._full_load(th10, w)
+                gear = load[ACTUATED_IN_LINK_MODEL] - fixed_absorbed
+                dtheta = compliance * gear
+                if np.any(t.backlash):
+                    dtheta = dtheta + 0.5 * t.backlash * np.tanh(gear / t.backlash_torque_nm)
+                new = th10.copy()
+                new[ACTUATED_IN_LINK_MODEL] = theta0 + dtheta
+                new[SPRINGS_IN_LINK_MODEL] = t.link_compliance * load[SPRINGS_IN_LINK_MODEL]
+                step = np.max(np.abs(new - th10))
+                th10 = new
+                if step < tol_rad:
+                    break
+            load = self._full_load(th10, w)
+            return th10, load[ACTUATED_IN_LINK_MODEL] - fixed_absorbed
+
+        th10, gear = solve(absorbed)
+        if reference is not None and np.any(t.static_friction):
+            delta = gear - reference.gear_torque
+            absorbed = np.sign(delta) * np.minimum(np.abs(delta), t.static_friction)
+            th10, gear = solve(absorbed)
+        return Equilibrium(q=q, theta=th10[ACTUATED_IN_LINK_MODEL].copy(),
+                           link_angles=th10[SPRINGS_IN_LINK_MODEL].copy(), gear_torque=gear,
+                           wrench=w, friction_torque=absorbed)
+
+    def marker_positions(self, eq: Equilibrium, markers: Sequence[str]) -> np.ndarray:
+        """Noise-free base-frame positions (len(markers), 3) at an equilibrium."""
+        th10 = self.robot.theta_links(eq.theta, eq.link_angles)
+        return self.robot.positions(th10, list(markers), links=True)
+
+    def currents(self, eq: Equilibrium) -> np.ndarray:
+        """Noise-free motor currents [A] (signed: xi i = gear torque)."""
+        return eq.gear_torque / self.robot.torque_constants
+
+    # ----------------------------------------------------------- measuring
+    def read_tracker(self, eq: Equilibrium, markers: Sequence[str], t_s: float,
+                     rng: np.random.Generator) -> np.ndarray:
+        """Tracker readings of the markers at time ``t_s``: drift and noise added."""
+        p = self.marker_positions(eq, markers)
+        p = p + self.truth.drift_velocity * t_s
+        return p + rng.normal(0.0, self.truth.tracker_noise_m, size=p.shape)
+
+    def read_currents(self, eq: Equilibrium, rng: np.random.Generator) -> np.ndarray:
+        return self.currents(eq) + rng.normal(0.0, self.truth.current_noise_a, size=6)
+
+    # -------------------------------------------------------------- motion
+    def motion_currents(self, q: np.ndarray, dq: np.ndarray, wrench: np.ndarray | None = None) -> np.ndarray:
+        """Noise-free currents during a slow motion (quasi-static, friction on).
+
+        ``xi i = tau_load - (fc sign(dq) + fv dq + fl |tau_load| sign(dq))``.
+        """
+        eq = self.equilibrium(q, wrench)
+        tau = eq.gear_torque
+        t = self.truth
+        s = np.sign(dq)
+        friction = t.coulomb * s + t.viscous * dq + t.load_friction * np.abs(tau) * s
+        return (tau - friction) / self.robot.torque_constants
+
+    def load_point(self, eq: Equilibrium) -> np.ndarray:
+        th10 = self.robot.theta_links(eq.theta, eq.link_angles)
+        return self.robot.positions(th10, [LOAD_FRAME], links=True)[0]
