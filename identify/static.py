@@ -262,7 +262,8 @@ def _context(pr: _Problem, tau: np.ndarray) -> StaticContext:
             delta_link[s] = j_spr.T @ dw
     return StaticContext(tau=tau, delta_tau=delta_tau, delta_link_moment=delta_link,
                          state_is_reference=ds.state_ref == np.arange(ds.n_states),
-                         deflection_dt=ds.defl_dt, n_deflections=ds.n_deflections, torque_source=pr.torque)
+                         deflection_dt=ds.defl_dt, n_deflections=ds.n_deflections, torque_source=pr.torque,
+                         form=pr.form)
 
 
 def _bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -495,7 +496,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         offset += k
         if k == 0:
             continue
-        values, deriv = eff.reported(beta[sl])
+        values, deriv = eff.reported(np.where(mask[sl], beta[sl], 1.0))
         units = eff.report_units or eff.units
         names_out = [f"k{j}" for j in range(1, 7)] if eff.name == "joint_stiffness" else list(eff.parameters)
         for i in range(k):

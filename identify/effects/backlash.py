@@ -1,8 +1,13 @@
 """backlash: lost motion when a joint's torque changes sign.
 
 Parameters b1..b6 [rad], the total play of each joint. The play is taken up
-over a small torque band: the joint angle gains (b/2) tanh(tau / TAU_BAND_NM).
-Static data show it only where a load state reverses a joint's torque.
+over a small torque band: the joint angle gains (b/2) tanh(tau / TAU_BAND_NM),
+tau the absolute gear torque of the state (currents, or the force model with
+gravity). Static data show the play of a joint only where a load state moves
+its torque across zero from the unloaded reference (a hung weight on a wrist
+joint that carries almost nothing unloaded, a pull against the gravity torque);
+a joint whose torque keeps its sign in every state has a zero basis column and
+is reported unidentifiable instead of fitted to noise.
 """
 
 from __future__ import annotations
@@ -13,10 +18,35 @@ from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext, 
 
 #: torque over which the play is taken up [N·m]
 TAU_BAND_NM = 20.0
+#: a joint shows its play only if some load state changes tanh(tau/band)/2 by at
+#: least this fraction of the play (one tenth of it)
+MIN_VISIBLE_FRACTION = 0.1
+
+
+def take_up(tau: np.ndarray) -> np.ndarray:
+    """Fraction of the play taken up at torque ``tau`` (-0.5 .. 0.5)."""
+    return 0.5 * np.tanh(np.asarray(tau, dtype=float) / TAU_BAND_NM)
+
+
+def visible_joints(ctx: StaticContext) -> np.ndarray:
+    """(6,) bool: joints whose play some load state of these data shows."""
+    frac = take_up(ctx.tau)
+    ref = take_up(ctx.tau - ctx.delta_tau)
+    change = np.abs(frac - ref)[~ctx.state_is_reference]
+    if change.size == 0:
+        return np.zeros(ctx.tau.shape[1], dtype=bool)
+    return change.max(axis=0) >= MIN_VISIBLE_FRACTION
 
 
 def _basis(ctx: StaticContext) -> StaticBasis:
-    return StaticBasis(theta=diagonal_basis(0.5 * np.tanh(ctx.tau / TAU_BAND_NM)))
+    values = take_up(ctx.tau) * visible_joints(ctx)
+    return StaticBasis(theta=diagonal_basis(values))
+
+
+def _refusal(ctx: StaticContext) -> str | None:
+    if not np.any(visible_joints(ctx)):
+        return "no load state reverses the torque of any joint, so no play can show; add loads that do"
+    return None
 
 
 EFFECT = Effect(
@@ -27,4 +57,8 @@ EFFECT = Effect(
     explanation="a gear has play that shows as a jump when the torque on the joint reverses",
     evidence="a step in deflection when a load reverses the torque of a joint",
     static_basis=_basis,
+    static_refusal=_refusal,
+    static_model="each joint angle gains (b_j/2) tanh(tau_j / 20 N·m) besides the spring's c_j tau_j",
+    run_model="at a direction reversal the motor turns through the play before the link follows; "
+              "it shows in tracked positions, not in currents",
 )

@@ -7,6 +7,12 @@ a :class:`StaticContext` (one row per load state ``s`` and per deflection ``d``)
 * ``links``  (S, 4, p): rotation of the four link springs (link_compliance);
 * ``add``    (D, 3, p): a term added to deflection d directly (tracker drift).
 
+An effect the given data cannot show returns the reason from ``static_refusal``;
+the fit then refuses it with that reason instead of reporting a number the data
+do not hold. A basis column that is exactly zero marks a parameter these data
+cannot see (e.g. the backlash of a joint whose torque never reverses): the fit
+reports it as unidentifiable.
+
 The fit (identify/static.py) turns angles into positions with Pinocchio: in the
 first-order form through the Jacobians at the commanded pose, in the exact
 form through forward kinematics at the deflected configuration.
@@ -31,6 +37,7 @@ class StaticContext:
     deflection_dt: np.ndarray   # (D,) time between the loaded and the reference readings [s]; NaN if unknown
     n_deflections: int
     torque_source: str          # "current" or "force"
+    form: str = "exact"         # "exact" or "first-order"
 
 
 @dataclass(frozen=True)
@@ -56,6 +63,9 @@ class Effect:
     #: model value -> reported value and its derivative (for the std)
     report: Optional[Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]] = None
     report_units: tuple[str, ...] | None = None
+    #: how the effect enters the static model and the run (torque) model, in words
+    static_model: str = ""
+    run_model: str = ""
 
     def reported(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.report is None:

@@ -13,7 +13,10 @@ from elastocal.identify.effects.base import Effect, StaticContext
 
 def _refusal(ctx: StaticContext) -> str | None:
     if ctx.torque_source != "force":
-        return "currents measure the joint torques of the deflected robot directly; the current-based model does not need it"
+        return ("currents measure the joint torques of the deflected robot directly; "
+                "the current-based model does not need it")
+    if ctx.form == "exact":
+        return "the exact form already evaluates J_f^T W at the deflected configuration"
     return None
 
 
@@ -25,4 +28,7 @@ EFFECT = Effect(
     explanation="a heavily loaded arm's geometry shifts, so the same force gives other joint torques",
     evidence="force-based residual that grows with load outside the good (q2, q3) region",
     static_refusal=_refusal,
+    static_model="force-based torques J_f(theta)^T W - g(theta) evaluated at the deflected configuration "
+                 "(first order: K = K_theta - K_c)",
+    run_model="not in the torque model",
 )

@@ -29,4 +29,7 @@ EFFECT = Effect(
     static_basis=_basis,
     report=_report,
     report_units=("N*m/rad",) * 6,
+    static_model="each joint angle gains c_j tau_j, tau from the currents (xi i) or from J_f^T W",
+    run_model="the joint torques of a slow motion are the load torques the springs carry; "
+              "k enters the run model only through the deflected configuration",
 )

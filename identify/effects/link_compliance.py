@@ -4,12 +4,10 @@ Parameters cl2x, cl2y, cl3x, cl3y [rad/(N·m)]: rotations about x and y of the
 frame at the distal end of link 2 (the joint-3 axis frame) and of link 3 (the
 wrist centre), proportional to the moment the load puts there. The moments come
 from the external wrench; with currents the wrench is recovered from the joint
-torques, W = J_f^{-T} Gamma (physics.md).
+torques, W = J_f^{-T} Gamma (physics.md), so both torque sources can show it.
 """
 
 from __future__ import annotations
-
-import numpy as np
 
 from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis
 from elastocal.identify.robot import LINK_SPRINGS
@@ -27,4 +25,7 @@ EFFECT = Effect(
     explanation="the arm links bend and twist, which no joint spring can mimic",
     evidence="lateral deflection follows the torsion and bending moments on links 2 and 3",
     static_basis=_basis,
+    static_model="two extra rotations (about x and y) at the ends of links 2 and 3, "
+                 "cl times the moment of the load change there",
+    run_model="not in the torque model: link springs change positions, not joint torques",
 )

@@ -1,0 +1,55 @@
+"""Human-readable tables for the CLI (the library never prints)."""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping
+
+
+def _num(x: float | None) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return f"{x:.6g}"
+
+
+def _um(x: float | None) -> str:
+    return "-" if x is None else f"{x * 1e6:.1f} µm"
+
+
+def format_parameters(params: Mapping[str, Mapping], truth: Mapping[str, Mapping] | None = None) -> str:
+    head = f"  {'parameter':<10} {'value':>14} {'std':>12}  {'unit':<11}"
+    if truth:
+        head += f" {'true':>14} {'error':>8}"
+    lines = [head]
+    for name, p in params.items():
+        line = f"  {name:<10} {_num(p['value']):>14} {_num(p.get('std')):>12}  {p.get('unit', ''):<11}"
+        if truth and name in truth:
+            t = float(truth[name]["value"])
+            err = (p["value"] - t) / t * 100 if t else float("nan")
+            line += f" {_num(t):>14} {err:>7.2f}%"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def verdict_line(rms: float, floor: float | None) -> str:
+    if floor is None:
+        return f"residual {_um(rms)} rms (no repeated readings: noise floor unknown)"
+    ratio = rms / floor
+    word = "at the noise floor" if ratio < 1.3 else "above the noise floor: the model misses something"
+    return f"residual {_um(rms)} rms, noise floor {_um(floor)} ({ratio:.2f}x): {word}"
+
+
+def format_fit(obj: Mapping, title: str, truth: Mapping[str, Mapping] | None = None) -> str:
+    lines = [title, format_parameters(obj["parameters"], truth)]
+    res = obj["residual"]
+    if res.get("unit", "m") == "m":
+        lines.append(verdict_line(res["rms"], obj.get("noise_floor")))
+    else:
+        lines.append(f"torque residual {res['rms']:.4g} {res['unit']} rms over {res['n']} samples")
+    if "torque_residual" in obj:
+        tr = obj["torque_residual"]
+        lines.append(f"torque residual {tr['rms']:.4g} {tr['unit']} rms over {tr['n']} samples")
+    if obj.get("unidentifiable"):
+        lines.append("unidentifiable from these data (left out): " + ", ".join(obj["unidentifiable"])
+                     + f"; condition number {obj.get('condition_number', float('nan')):.3g}")
+    return "\n".join(lines)

@@ -1,0 +1,57 @@
+"""Inputs shared by identify, diagnose and report (cli.md): a log, or tables."""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+from dataclasses import dataclass
+
+from elastocal.errors import InputError
+from elastocal.identify.robot import Robot, load_robot
+from elastocal.identify.tables import RunTable, StaticTable, read_run_table, read_static_table
+
+
+@dataclass(frozen=True)
+class Inputs:
+    robot: Robot
+    static: StaticTable | None
+    runs: RunTable | None
+    files: tuple[pathlib.Path, ...]
+
+
+def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = True) -> None:
+    parser.add_argument("log", nargs="?", help="an MCAP log written by `elastocal calibrate` (instead of tables)")
+    parser.add_argument("--robot", help="robot.toml (formats.md §1)")
+    parser.add_argument("--static", help="static deflection table, CSV (formats.md §2)")
+    parser.add_argument("--runs", help="run table, CSV (formats.md §3)")
+    if model_flags:
+        parser.add_argument("--model", default="joint_stiffness",
+                            help="comma-separated effects to include (default joint_stiffness)")
+        parser.add_argument("--torque", choices=("current", "force"), default="current",
+                            help="joint torques from motor currents (default) or from the wrench columns")
+        parser.add_argument("--form", choices=("exact", "first-order"), default="exact",
+                            help="exact (secant, default) or first-order kinematics")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+
+
+def load_inputs(args: argparse.Namespace) -> Inputs:
+    if args.log:
+        if args.static or args.runs:
+            raise InputError("give either a log or --static/--runs tables, not both", source=args.log)
+        try:
+            from elastocal.acquisition.export import load_log
+        except ImportError:
+            raise InputError("reading logs needs elastocal.acquisition.export", source=args.log) from None
+        robot, static, runs = load_log(args.log)
+        if args.robot:
+            robot = load_robot(args.robot)
+        return Inputs(robot, static, runs, (pathlib.Path(args.log),))
+    if not args.robot:
+        raise InputError("missing --robot robot.toml (or give a log)", source="--robot")
+    if not args.static and not args.runs:
+        raise InputError("give --static static.csv and/or --runs runs.csv (or a log)", source="--static")
+    robot = load_robot(args.robot)
+    static = read_static_table(args.static, robot) if args.static else None
+    runs = read_run_table(args.runs, robot) if args.runs else None
+    files = tuple(pathlib.Path(p) for p in (args.static, args.runs) if p)
+    return Inputs(robot, static, runs, files)

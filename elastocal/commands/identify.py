@@ -1,0 +1,58 @@
+"""`elastocal identify`: fit the model to tables or a log (cli.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from elastocal.commands._inputs import add_input_arguments, load_inputs
+from elastocal.commands._format import format_fit
+from elastocal.errors import InputError
+from elastocal.identify.calibration import calibration_from_fit, write_calibration
+from elastocal.identify.effects import parse_model
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_input_arguments(parser)
+    parser.add_argument("--out", help="write the calibration JSON (formats.md §4) here")
+
+
+def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str) -> tuple[dict, object | None]:
+    """The identify --json object for the inputs, and the static fit if any."""
+    from elastocal.identify.static import identify_static
+
+    if inputs.static is None:
+        from elastocal.identify import runs as run_ident  # run data: compensator, friction
+
+        result = run_ident.identify_runs(inputs.robot, inputs.runs, model=model)
+        return result.to_json(), None
+    fit = identify_static(inputs.robot, inputs.static, model=model, torque=torque, form=form)
+    obj = fit.to_json()
+    if inputs.runs is not None:
+        from elastocal.identify import runs as run_ident
+
+        run_model = tuple(m for m in model if m != "joint_stiffness")
+        if run_model:
+            result = run_ident.identify_runs(inputs.robot, inputs.runs, model=("joint_stiffness", *run_model))
+            rj = result.to_json()
+            obj["parameters"].update(rj["parameters"])
+            obj["torque_residual"] = rj["residual"]
+    return obj, fit
+
+
+def run(args: argparse.Namespace) -> int:
+    inputs = load_inputs(args)
+    model = parse_model(args.model)
+    if inputs.static is None and inputs.runs is None:
+        raise InputError("the log holds neither a static experiment nor runs", source=args.log or "--static")
+    obj, fit = identify_inputs(inputs, model, args.torque, args.form)
+    if args.out:
+        write_calibration(args.out, calibration_from_fit(inputs.robot.name, obj, inputs.files))
+    if args.json:
+        print(json.dumps(obj))
+    else:
+        print(format_fit(obj, title=f"{inputs.robot.name}: {', '.join(obj['model'])} "
+                                    f"({obj.get('torque', 'current')}-based, {obj.get('form', 'exact')} form)"))
+        if args.out:
+            print(f"calibration written to {args.out}")
+    return 0

@@ -1,0 +1,108 @@
+"""`elastocal sim static|runs|serve`: datasets from the simulated cell, or simulated devices."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+from elastocal.errors import InputError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="sim_command", metavar="{static,runs,serve}")
+    sub.required = True
+    for name, text in (("static", "a static before/after-load experiment: robot.toml, static.csv, truth.json"),
+                       ("runs", "friction runs and joint-2 sweeps: robot.toml, runs.csv, truth.json")):
+        p = sub.add_parser(name, help=text, description=text)
+        p.add_argument("--hidden", default="none",
+                       help="effect the simulated cell has and the default model lacks (none for none)")
+        p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+        p.add_argument("--out", required=True, help="output directory")
+        p.add_argument("--robot", help="robot.toml to simulate (default: the bundled HH-150)")
+        p.add_argument("--json", action="store_true", help="print the written files as one JSON object")
+        if name == "static":
+            p.add_argument("--poses", type=int, default=12, help="number of poses (default 12)")
+            p.add_argument("--loads", type=int, default=3, help="loaded states per pose (default 3)")
+            p.add_argument("--repeats", type=int, default=3, help="readings per marker and state (default 3)")
+    try:
+        from elastocal.sims.serve import add_serve_arguments
+    except ImportError:
+        return
+    serve = sub.add_parser("serve", help="serve simulated devices on loopback and a virtual CAN bus",
+                           description="serve simulated devices on loopback and a virtual CAN bus")
+    add_serve_arguments(serve)
+
+
+def _robot(args):
+    from elastocal.identify.robot import bundled_robot, load_robot
+
+    return load_robot(args.robot) if args.robot else bundled_robot()
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.sim_command == "serve":
+        from elastocal.sims.serve import run_serve
+
+        return run_serve(args)
+    from elastocal.sims.cell import HIDDEN_EFFECTS, CellTruth
+
+    out = pathlib.Path(args.out)
+    robot = _robot(args)
+    out.mkdir(parents=True, exist_ok=True)
+    written = {"robot": str(out / "robot.toml")}
+    (out / "robot.toml").write_text(robot.to_toml(), encoding="utf-8")
+    if args.sim_command == "static":
+        if args.hidden not in HIDDEN_EFFECTS:
+            raise InputError(f"the simulator cannot hide {args.hidden!r} in static data; one of "
+                             f"{', '.join(HIDDEN_EFFECTS)}", source="--hidden")
+        for flag in ("poses", "loads", "repeats"):
+            if getattr(args, flag) < 1:
+                raise InputError("must be at least 1", source=f"--{flag}")
+        from elastocal.identify.tables import write_static_table
+        from elastocal.sims.static import StaticPlan, simulate_static
+
+        truth = CellTruth().with_hidden(args.hidden)
+        plan = StaticPlan(n_poses=args.poses, n_loads=args.loads, repeats=args.repeats)
+        table = simulate_static(robot, truth, seed=args.seed, plan=plan)
+        write_static_table(out / "static.csv", table)
+        written["static"] = str(out / "static.csv")
+        params = truth.parameters(robot)
+        try:
+            from elastocal.acquisition.export import write_log_from_tables
+        except ImportError:
+            write_log_from_tables = None
+        if write_log_from_tables is not None:
+            write_log_from_tables(out / "log.mcap", robot, static=table)
+            written["log"] = str(out / "log.mcap")
+    else:
+        from elastocal.sims.runs import default_run_truth, simulate_run_dataset
+
+        truth = default_run_truth(CellTruth())
+        if args.hidden != "none":
+            truth = _hide_in_runs(truth, args.hidden)
+        extra = simulate_run_dataset(robot, truth, seed=args.seed, out_dir=out)
+        written["runs"] = str(out / "runs.csv")
+        if (out / "log.mcap").exists():
+            written["log"] = str(out / "log.mcap")
+        params = truth.parameters(robot)
+        params.update(extra or {})
+    truth_doc = {"hidden": args.hidden, "seed": args.seed, "robot": robot.name, "parameters": params,
+                 "noise": {"tracker_m": truth.tracker_noise_m, "current_a": truth.current_noise_a}}
+    (out / "truth.json").write_text(json.dumps(truth_doc, indent=2) + "\n", encoding="utf-8")
+    written["truth"] = str(out / "truth.json")
+    if args.json:
+        print(json.dumps(written))
+    else:
+        for kind, path in written.items():
+            print(f"wrote {kind:<6} {path}")
+    return 0
+
+
+def _hide_in_runs(truth, effect: str):
+    from elastocal.sims import runs as sim_runs
+
+    hide = getattr(sim_runs, "hide_in_runs", None)
+    if hide is None:
+        raise InputError(f"the simulator cannot hide {effect!r} in run data", source="--hidden")
+    return hide(truth, effect)

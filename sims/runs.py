@@ -1,0 +1,205 @@
+"""Slow motions on the simulated cell: joint-2 sweeps and UV/VU friction runs (formats.md §3).
+
+* Joint-2 sweeps (Y §5, Table 7): joint 2 moves at constant speed through a
+  range, forward (``+``) and backward (``-``), the other joints held, at one or
+  more values of q3. Friction changes sign with the direction; the mean of the
+  two directions leaves gravity, payload and compensator (Y32-34).
+* UV/VU runs (Y §6): the same joint-space straight line from U to V and back,
+  at two speeds (viscous friction) and two loads (load-dependent friction),
+  every joint moving so every joint's friction shows.
+
+The motion is quasi-static: each sample is the static equilibrium at the
+commanded ``q`` with friction on (:meth:`SimCell.motion_currents`), so
+``xi i = tau_load - (fc sign(dq) + fv dq + fl |tau_load| sign(dq))``, plus
+current noise from the caller's seeded generator. No tracker readings.
+"""
+
+from __future__ import annotations
+
+import pathlib
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from elastocal.identify.robot import Robot
+from elastocal.identify.tables import RunTable, run_table_from_arrays, write_run_table
+from elastocal.sims.cell import CellTruth, SimCell
+
+#: plausible friction of a 150 kg-class robot (per joint): Coulomb [N·m],
+#: viscous [N·m·s/rad], load-dependent [-]
+DEFAULT_COULOMB = (110.0, 180.0, 140.0, 35.0, 30.0, 22.0)
+DEFAULT_VISCOUS = (650.0, 1100.0, 800.0, 160.0, 140.0, 90.0)
+DEFAULT_LOAD_FRICTION = (0.04, 0.03, 0.035, 0.04, 0.045, 0.05)
+
+
+def default_run_truth(base: CellTruth) -> CellTruth:
+    """``base`` with plausible Coulomb, viscous and load-dependent friction."""
+    return replace(base, coulomb=np.array(DEFAULT_COULOMB), viscous=np.array(DEFAULT_VISCOUS),
+                   load_friction=np.array(DEFAULT_LOAD_FRICTION))
+
+
+def _six(value, name: str) -> tuple[float, ...]:
+    out = tuple(float(v) for v in value)
+    if len(out) != 6 or not all(np.isfinite(out)):
+        raise ValueError(f"{name}: expected 6 finite numbers")
+    return out
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """Joint-2 sweeps forward and backward at each q3 (Y Table 7 style)."""
+
+    q_base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 1.5707963267948966, 0.0)
+    q2_start: float = -0.6          # [rad]
+    q2_end: float = 1.7             # [rad]
+    q3_values: tuple[float, ...] = (0.0, -0.7)
+    speed_rad_s: float = 0.05
+    step_rad: float = 0.01          # joint-2 travel between two samples
+    wrench: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # payload on the load point
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "q_base", _six(self.q_base, "q_base"))
+        object.__setattr__(self, "wrench", _six(self.wrench, "wrench"))
+        if not self.q2_end > self.q2_start:
+            raise ValueError("q2_end must be above q2_start")
+        if self.speed_rad_s <= 0 or self.step_rad <= 0:
+            raise ValueError("speed_rad_s and step_rad must be positive")
+        if not self.q3_values:
+            raise ValueError("q3_values: give at least one q3")
+
+
+@dataclass(frozen=True)
+class FrictionPlan:
+    """UV/VU runs along one joint-space line, at each speed and each load."""
+
+    q_u: tuple[float, ...] = (-0.5, -0.1, -0.6, -0.9, 0.7, -1.2)
+    q_v: tuple[float, ...] = (0.5, 0.7, 0.1, 0.9, 1.7, 1.2)
+    #: speed of the fastest-moving joint in each pair of runs [rad/s]
+    speeds_rad_s: tuple[float, ...] = (0.05, 0.15)
+    #: (load name, wrench on the load point [N, N·m]); "0" is unloaded
+    loads: tuple[tuple[str, tuple[float, ...]], ...] = (
+        ("0", (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)),
+        ("1", (900.0, -700.0, -1500.0, 150.0, -150.0, 120.0)),
+    )
+    samples: int = 240              # samples per run
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "q_u", _six(self.q_u, "q_u"))
+        object.__setattr__(self, "q_v", _six(self.q_v, "q_v"))
+        object.__setattr__(self, "loads", tuple((str(n), _six(w, f"load {n}")) for n, w in self.loads))
+        if self.samples < 2 or any(s <= 0 for s in self.speeds_rad_s):
+            raise ValueError("samples must be >= 2 and speeds positive")
+
+
+@dataclass
+class _Columns:
+    run: list
+    direction: list
+    load: list
+    t: list
+    q: list
+    dq: list
+    currents: list
+    wrench: list
+
+    @classmethod
+    def empty(cls) -> "_Columns":
+        return cls([], [], [], [], [], [], [], [])
+
+
+def _record(cols: _Columns, cell: SimCell, rng: np.random.Generator, *, run: str, direction: str, load: str,
+            t: np.ndarray, q: np.ndarray, dq: np.ndarray, wrench: np.ndarray) -> None:
+    noise = cell.truth.current_noise_a
+    w = np.asarray(wrench, dtype=float)
+    for k in range(len(t)):
+        i = cell.motion_currents(q[k], dq[k], w) + rng.normal(0.0, noise, size=6)
+        cols.run.append(run)
+        cols.direction.append(direction)
+        cols.load.append(load)
+        cols.t.append(t[k])
+        cols.q.append(q[k])
+        cols.dq.append(dq[k])
+        cols.currents.append(i)
+        cols.wrench.append(w)
+
+
+def simulate_sweeps(robot: Robot, truth: CellTruth, plan: SweepPlan, rng: np.random.Generator, *,
+                    t0: float = 0.0, cols: _Columns | None = None) -> tuple[_Columns, float]:
+    """Joint-2 sweeps (``+`` then ``-``) at each q3 of ``plan``."""
+    cell = SimCell(robot, truth)
+    cols = _Columns.empty() if cols is None else cols
+    n = int(round((plan.q2_end - plan.q2_start) / plan.step_rad)) + 1
+    q2 = np.linspace(plan.q2_start, plan.q2_end, n)
+    dt = (q2[1] - q2[0]) / plan.speed_rad_s
+    t = t0
+    load = "0" if not np.any(plan.wrench) else "payload"
+    for k, q3 in enumerate(plan.q3_values, start=1):
+        for direction, path in (("+", q2), ("-", q2[::-1])):
+            q = np.tile(plan.q_base, (n, 1))
+            q[:, 2] = q3
+            q[:, 1] = path
+            dq = np.zeros((n, 6))
+            dq[:, 1] = plan.speed_rad_s if direction == "+" else -plan.speed_rad_s
+            times = t + dt * np.arange(n)
+            _record(cols, cell, rng, run=f"sweep{k}{direction}", direction=direction, load=load, t=times, q=q,
+                    dq=dq, wrench=np.array(plan.wrench))
+            t = times[-1] + 5.0
+    return cols, t
+
+
+def simulate_friction_runs(robot: Robot, truth: CellTruth, plan: FrictionPlan, rng: np.random.Generator, *,
+                           t0: float = 0.0, cols: _Columns | None = None) -> tuple[_Columns, float]:
+    """UV and VU runs at each speed and load of ``plan``."""
+    cell = SimCell(robot, truth)
+    cols = _Columns.empty() if cols is None else cols
+    qu, qv = np.array(plan.q_u), np.array(plan.q_v)
+    s = np.linspace(0.0, 1.0, plan.samples)
+    span = qv - qu
+    t = t0
+    for load, wrench in plan.loads:
+        for speed in plan.speeds_rad_s:
+            duration = float(np.max(np.abs(span))) / speed
+            for direction in ("UV", "VU"):
+                if direction == "UV":
+                    q = qu + np.outer(s, span)
+                    dq = np.tile(span / duration, (plan.samples, 1))
+                else:
+                    q = qv - np.outer(s, span)
+                    dq = np.tile(-span / duration, (plan.samples, 1))
+                times = t + s * duration
+                _record(cols, cell, rng, run=f"{direction}-{speed:g}-{load}", direction=direction, load=load,
+                        t=times, q=q, dq=dq, wrench=np.array(wrench))
+                t = times[-1] + 5.0
+    return cols, t
+
+
+def simulate_runs(robot: Robot, truth: CellTruth, *, seed: int, sweeps: SweepPlan | None = SweepPlan(),
+                  friction: FrictionPlan | None = FrictionPlan(), source: str = "<simulated runs>") -> RunTable:
+    """Run table (formats.md §3) of joint-2 sweeps then UV/VU runs on the simulated cell."""
+    rng = np.random.default_rng(seed)
+    cols = _Columns.empty()
+    t = 0.0
+    if sweeps is not None:
+        cols, t = simulate_sweeps(robot, truth, sweeps, rng, t0=t, cols=cols)
+    if friction is not None:
+        cols, t = simulate_friction_runs(robot, truth, friction, rng, t0=t, cols=cols)
+    if not cols.run:
+        raise ValueError("simulate_runs: nothing to simulate (no sweeps and no friction runs)")
+    return run_table_from_arrays(run=cols.run, direction=cols.direction, load=cols.load, t=cols.t, q=cols.q,
+                                 dq=cols.dq, currents=cols.currents, wrench=cols.wrench, source=source)
+
+
+def write_runs_csv(path: str | pathlib.Path, table: RunTable) -> None:
+    """Write a simulated run table (formats.md §3)."""
+    write_run_table(path, table)
+
+
+def simulate_run_dataset(robot: Robot, truth: CellTruth, *, seed: int, out_dir: str | pathlib.Path) -> dict:
+    """Write ``out_dir/runs.csv`` (sweeps and UV/VU runs) and return the true
+    parameters it shows that ``truth.parameters(robot)`` does not hold (none:
+    compensator and friction parameters are already there)."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    table = simulate_runs(robot, truth, seed=seed, source=str(out / "runs.csv"))
+    write_runs_csv(out / "runs.csv", table)
+    return {}
