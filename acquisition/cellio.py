@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import abc
 import math
+import time
 from dataclasses import dataclass
 from typing import Callable, Protocol, Sequence
 
@@ -45,11 +46,23 @@ class TrackerSample:
 
 
 @dataclass(frozen=True)
+class SampleGap:
+    """Samples a device stream lost (reported by the driver, recorded as a ``gap`` event)."""
+
+    device: str
+    start_ns: int
+    end_ns: int
+    missing: int
+    reason: str
+
+
+@dataclass(frozen=True)
 class Samples:
     """Samples acquired by one :meth:`CellIO.poll`, each list in time order."""
 
     drives: tuple[DriveSample, ...]
     tracker: tuple[TrackerSample, ...]
+    gaps: tuple[SampleGap, ...] = ()
 
 
 class LoadWorld(Protocol):
@@ -69,6 +82,11 @@ class CellIO(abc.ABC):
     @abc.abstractmethod
     def start_move(self, q: Sequence[float], speed_rad_s: float) -> None:
         """Start a joint move to ``q``; the fastest joint moves at ``speed_rad_s``."""
+
+    def start_run(self, start: Sequence[float], end: Sequence[float], speed_rad_s: float) -> None:
+        """Start a slow constant-speed pass from ``start`` (where the robot stands)
+        to ``end``; the fastest joint moves at ``speed_rad_s``."""
+        self.start_move(end, speed_rad_s)
 
     @abc.abstractmethod
     def move_done(self) -> bool:
@@ -106,6 +124,8 @@ class VirtualTiming:
     ring_tau_s: float = 0.08
     ring_hz: float = 6.0
     start_ns: int = 1_000_000_000
+    #: real seconds slept per simulated second in poll (0: as fast as possible)
+    pace: float = 0.0
 
 
 class VirtualCellIO(CellIO):
@@ -239,4 +259,6 @@ class VirtualCellIO(CellIO):
         else:
             self._next_tracker_ns = max(self._next_tracker_ns, end_ns)
         self._t_ns = end_ns
+        if self.timing.pace > 0:
+            time.sleep(self.timing.pace * duration_s)
         return Samples(tuple(drives), tuple(tracker))

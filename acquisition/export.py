@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import operator
 import pathlib
 import struct
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ from typing import IO, Iterator
 
 import numpy as np
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError
-from mcap.records import Channel, Chunk, Footer, Message, Schema
+from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 
 from elastocal.acquisition import logformat as lf
@@ -56,6 +57,32 @@ class _ExactReads:
         return data
 
 
+class _Position:
+    """A complete file, read directly (no per-read check needed)."""
+
+    def __init__(self, raw: IO[bytes]) -> None:
+        self._raw = raw
+        self.read = raw.read
+
+    @property
+    def offset(self) -> int:
+        return self._raw.tell()
+
+
+def _ends_with_magic(f: IO[bytes]) -> bool:
+    from mcap.writer import MCAP0_MAGIC
+
+    f.seek(0, 2)
+    size = f.tell()
+    if size < 2 * len(MCAP0_MAGIC):
+        f.seek(0)
+        return False
+    f.seek(size - len(MCAP0_MAGIC))
+    tail = f.read(len(MCAP0_MAGIC))
+    f.seek(0)
+    return tail == MCAP0_MAGIC
+
+
 @dataclass
 class LogReader:
     """Messages of a (possibly truncated) elastocal log, in file order.
@@ -85,13 +112,16 @@ class LogReader:
         except OSError as exc:
             raise InputError(f"cannot read: {exc.strerror}", source=str(self.path)) from None
         with f:
-            stream = _ExactReads(f)
-            reader = StreamReader(stream, emit_chunks=True, record_size_limit=1 << 30)
+            # a finished log ends with the MCAP magic: read it directly; otherwise
+            # every read is checked so that a truncated record ends the walk
+            stream = _ExactReads(f) if not _ends_with_magic(f) else _Position(f)
+            reader = StreamReader(stream, emit_chunks=True, record_size_limit=1 << 30)  # type: ignore[arg-type]
             it = reader.records
             while True:
                 try:
                     record = next(it)
-                except StopIteration:
+                except StopIteration:  # the footer and the closing magic were read
+                    self.complete = True
                     return
                 except EndOfFile:
                     if stream.offset == 0:
@@ -107,8 +137,6 @@ class LogReader:
                     raise InputError(f"corrupt MCAP record near byte {stream.offset}: {exc}",
                                      source=str(self.path)) from None
                 self.end_offset = stream.offset
-                if isinstance(record, Footer):
-                    self.complete = True
                 yield record
 
     def _expand(self, record: object) -> list[Message]:
@@ -176,6 +204,45 @@ class LogReader:
                              source=str(self.path)) from None
         return value
 
+    def grouped(self) -> Iterator[dict[str, tuple[list[int], list]]]:
+        """Decoded messages, one dict per chunk: topic -> (log times, payloads),
+        each in file order. The fastest way through a log: one JSON decode per
+        topic and chunk."""
+        for record in self._records():
+            msgs = self._expand(record)
+            if not msgs:
+                continue
+            by_channel: dict[int, tuple[list[int], list[bytes]]] = {}
+            for m in msgs:
+                entry = by_channel.get(m.channel_id)
+                if entry is None:
+                    entry = by_channel[m.channel_id] = ([], [])
+                entry[0].append(m.log_time)
+                entry[1].append(m.data)
+            out = {}
+            for cid, (times, datas) in by_channel.items():
+                topic = self._topic_of(cid)
+                try:
+                    values = json.loads(b"[" + b",".join(datas) + b"]")
+                except ValueError:
+                    values = [self._decode_data(topic, t, d) for t, d in zip(times, datas)]
+                out[topic] = (times, values)
+            yield out
+
+    def _topic_of(self, channel_id: int) -> str:
+        try:
+            return self.topics[channel_id]
+        except KeyError:
+            raise InputError(f"message on channel {channel_id} before its channel record",
+                             source=str(self.path)) from None
+
+    def _decode_data(self, topic: str, log_time: int, data: bytes) -> dict:
+        try:
+            return json.loads(data)
+        except ValueError as exc:
+            raise InputError(f"message on {topic} at log time {log_time} ns is not JSON: {exc}",
+                             source=str(self.path)) from None
+
     def messages(self) -> Iterator[tuple[str, int, dict]]:
         """Decoded messages one by one: (topic, log_time_ns, payload)."""
         for batch in self.batches():
@@ -196,7 +263,7 @@ class Document:
 class DriveSamples:
     """Samples of one drive, in time order."""
 
-    t_ns: np.ndarray            # (n,) int64
+    t_ns: np.ndarray            # (n,) int64: session * SEGMENT_NS + acquisition time
     position_rad: np.ndarray    # (n,)
     velocity_rad_s: np.ndarray  # (n,) NaN when not given
     current_a: np.ndarray       # (n,) NaN when not given
@@ -206,7 +273,7 @@ class DriveSamples:
 class TrackerSamples:
     """Samples of one marker, in time order."""
 
-    t_ns: np.ndarray  # (n,) int64
+    t_ns: np.ndarray  # (n,) int64: session * SEGMENT_NS + acquisition time
     xyz: np.ndarray   # (n, 3) m
 
 
@@ -269,33 +336,48 @@ def read_log(path: str | pathlib.Path) -> LogContents:
     tracker_parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     drive_index = {t: j for j, t in enumerate(lf.DRIVE_TOPICS)}
     n_messages = 0
-    for batch in reader.batches():
-        n_messages += len(batch)
-        drives: list[list] = [[] for _ in range(lf.N_JOINTS)]
-        tracker: dict[str, list] = {}
-        for topic, t_ns, v in batch:
+    get_drive = operator.itemgetter("position_rad", "velocity_rad_s", "current_a")
+    get_xyz = operator.itemgetter("x", "y", "z")
+    segment = 0
+    for groups in reader.grouped():
+        offset = segment * SEGMENT_NS
+        resumes = 0
+        for topic, (times, values) in groups.items():
+            n_messages += len(times)
             j = drive_index.get(topic)
             if j is not None:
-                drives[j].append((t_ns, v["position_rad"], v["velocity_rad_s"], v["current_a"]))
+                try:
+                    vals = np.array(list(map(get_drive, values)), dtype=float)
+                except (KeyError, TypeError, ValueError):
+                    raise InputError(f"a message on {topic} is not a drive sample", source=source) from None
+                drive_parts[j].append((_keys(times, offset, source), vals))
             elif topic == lf.TOPIC_TRACKER:
-                tracker.setdefault(v["marker"], []).append((t_ns, v["x"], v["y"], v["z"]))
+                try:
+                    markers = [v["marker"] for v in values]
+                    xyz = np.array(list(map(get_xyz, values)), dtype=float)
+                except (KeyError, TypeError, ValueError):
+                    raise InputError(f"a message on {topic} is not a tracker sample", source=source) from None
+                t = _keys(times, offset, source)
+                if len(set(markers)) == 1:
+                    tracker_parts.setdefault(markers[0], []).append((t, xyz))
+                else:
+                    names = np.array(markers)
+                    for m in dict.fromkeys(markers):
+                        sel = names == m
+                        tracker_parts.setdefault(m, []).append((t[sel], xyz[sel]))
             elif topic == lf.TOPIC_EVENT:
-                events.append({**v, "t_ns": t_ns})
+                events.extend({**v, "t_ns": t, "segment": segment} for t, v in zip(times, values))
+                resumes += sum(1 for v in values if v.get("kind") == "resume")
             elif topic in (lf.TOPIC_ROBOT, lf.TOPIC_CELL, lf.TOPIC_PLAN):
-                doc = _document(v, source)
-                docs.setdefault(doc.kind, doc)
+                for v in values:
+                    doc = _document(v, source)
+                    docs.setdefault(doc.kind, doc)
             elif topic == lf.TOPIC_SESSION:
-                if v.get("format") != lf.LOG_FORMAT:
-                    raise InputError(f"log format {v.get('format')!r} is not {lf.LOG_FORMAT}", source=source)
-                sessions.append(v)
-        for j, rows in enumerate(drives):
-            if rows:
-                t = np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows))
-                vals = np.array([r[1:] for r in rows], dtype=float)
-                drive_parts[j].append((t, vals))
-        for m, rows in tracker.items():
-            t = np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows))
-            tracker_parts.setdefault(m, []).append((t, np.array([r[1:] for r in rows], dtype=float)))
+                for v in values:
+                    if v.get("format") != lf.LOG_FORMAT:
+                        raise InputError(f"log format {v.get('format')!r} is not {lf.LOG_FORMAT}", source=source)
+                    sessions.append(v)
+        segment += resumes
     if n_messages == 0 or not sessions:
         raise InputError("no elastocal session in the log (not an elastocal log, or killed before "
                          "its first message was written)", source=source)
@@ -325,11 +407,36 @@ def read_log(path: str | pathlib.Path) -> LogContents:
 
 
 # ------------------------------------------------------------------ tables
+#: samples of the k-th recording session of a log (a resumed log holds several,
+#: possibly on clocks restarted by a reboot) are kept at k * SEGMENT_NS + t, so
+#: reading windows only ever see samples of their own session
+SEGMENT_NS = 10**17
+MAX_SEGMENTS = 90
+
+
+def _keys(times: list[int], offset: int, source: str) -> np.ndarray:
+    t = np.array(times, dtype=np.int64)
+    if len(t) and (t.max() >= SEGMENT_NS or t.min() < 0):
+        raise InputError(f"sample times beyond {SEGMENT_NS} ns (3 years) of the log clock", source=source)
+    if offset >= MAX_SEGMENTS * SEGMENT_NS:
+        raise InputError(f"more than {MAX_SEGMENTS} resumed sessions in one log", source=source)
+    return t + offset
+
+
+def _key(event: dict, t_ns: int) -> int:
+    return int(event["segment"]) * SEGMENT_NS + int(t_ns)
+
+
 def _window(t_ns: np.ndarray, start: int, end: int) -> slice:
     return slice(int(np.searchsorted(t_ns, start, side="left")), int(np.searchsorted(t_ns, end, side="right")))
 
 
 def _time_origin(contents: LogContents) -> int:
+    """Origin of the ``t`` columns: the first ``procedure_start`` of the log (a
+    resumed log keeps the one of the log it continues)."""
+    for e in contents.events:
+        if e["kind"] == "procedure_start":
+            return int(e["t_ns"])
     return min(e["t_ns"] for e in contents.events) if contents.events else 0
 
 
@@ -354,7 +461,7 @@ def static_table_from_log(contents: LogContents, robot: Robot | None = None) -> 
     origin = _time_origin(contents)
     pose, load, t, q, wrench, currents, marker, xyz = [], [], [], [], [], [], [], []
     for e in readings:
-        start, end = (int(v) for v in e["window_ns"])
+        start, end = (_key(e, v) for v in e["window_ns"])
         m = e["marker"]
         samples = contents.markers.get(m)
         sl = _window(samples.t_ns, start, end) if samples is not None else slice(0, 0)
@@ -369,7 +476,7 @@ def static_table_from_log(contents: LogContents, robot: Robot | None = None) -> 
         currents.append(cur)
         pose.append(str(e["pose"]))
         load.append(str(e["load"]))
-        t.append(((start + end) // 2 - origin) * 1e-9)
+        t.append(((start + end) // 2 - e["segment"] * SEGMENT_NS - origin) * 1e-9)
         q.append([float(v) for v in e["q"]])
         wrench.append(_wrench(e.get("wrench")))
         marker.append(m)
@@ -402,7 +509,7 @@ def run_table_from_log(contents: LogContents) -> RunTable | None:
     cols: dict[str, list] = {k: [] for k in ("run", "direction", "load", "t", "q", "dq", "i", "w", "marker", "xyz")}
     ref = contents.drives[0]
     for start, end in runs:
-        sl = _window(ref.t_ns, int(start["t_ns"]), int(end["t_ns"]))
+        sl = _window(ref.t_ns, _key(start, start["t_ns"]), _key(end, end["t_ns"]))
         t_rows = ref.t_ns[sl]
         n = len(t_rows)
         if n == 0:
@@ -430,7 +537,7 @@ def run_table_from_log(contents: LogContents) -> RunTable | None:
         cols["run"] += [str(start["run"])] * n
         cols["direction"] += [str(start["direction"])] * n
         cols["load"] += [str(start.get("load", "0"))] * n
-        cols["t"].append((t_rows - origin) * 1e-9)
+        cols["t"].append((t_rows - start["segment"] * SEGMENT_NS - origin) * 1e-9)
         cols["q"].append(q)
         cols["dq"].append(dq)
         cols["i"].append(cur)
@@ -503,3 +610,113 @@ def export_log(path: str | pathlib.Path, out_dir: str | pathlib.Path) -> ExportR
     return ExportResult(files=tuple(files), static_rows=0 if static is None else len(static),
                         run_rows=0 if runs is None else len(runs), complete=contents.complete,
                         truncated=contents.truncated, incomplete_steps=contents.incomplete_steps)
+
+
+# ------------------------------------------------------------------ tables -> log
+class _SetClock:
+    """A clock the writer of a synthetic log sets before each event."""
+
+    def __init__(self, t_ns: int) -> None:
+        self.t_ns = t_ns
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+
+#: log time of the first event of a log written from tables [ns]
+SYNTHETIC_ORIGIN_NS = 1_000_000_000_000
+#: spacing of rows that have no usable time [ns]
+SYNTHETIC_SLOT_NS = 10_000_000
+
+
+def _row_times(t: np.ndarray, start_ns: int) -> np.ndarray:
+    """Log times of table rows: their own ``t`` when finite, >= 0 and strictly
+    increasing, else one slot per row."""
+    if len(t) and np.all(np.isfinite(t)) and t[0] >= 0 and np.all(np.diff(t) > 0):
+        times = start_ns + np.round(t * 1e9).astype(np.int64)
+        if len(times) < 2 or np.all(np.diff(times) > 1_000):
+            return times
+    return start_ns + SYNTHETIC_SLOT_NS * (1 + np.arange(len(t), dtype=np.int64))
+
+
+def _opt(x: float) -> float | None:
+    return None if not np.isfinite(x) else float(x)
+
+
+def write_log_from_tables(path: str | pathlib.Path, robot: Robot, *, static: StaticTable | None = None,
+                          runs: RunTable | None = None, overwrite: bool = True) -> None:
+    """Write a log whose export gives back ``static`` and ``runs`` (datasets made
+    without devices, e.g. ``elastocal sim``): one reading window per static row
+    holding exactly that row's tracker sample and currents, one drive sample per
+    run row. ``q``, currents, wrenches and positions come back bit for bit; ``t``
+    comes back to the nanosecond when the table's times are increasing, else as
+    10 ms slots; runs that overlap in time are moved after one another.
+    """
+    from elastocal.acquisition.recorder import Recorder
+
+    clock = _SetClock(SYNTHETIC_ORIGIN_NS)
+    with Recorder(path, overwrite=overwrite, clock=clock) as rec:
+        rec.document("robot", robot.name, robot.to_toml())
+        rec.event("procedure_start", procedure="from-tables")
+        now = SYNTHETIC_ORIGIN_NS - 1_000_000  # step events may precede the origin
+        if static is not None and len(static):
+            times = _row_times(static.t, SYNTHETIC_ORIGIN_NS)
+            order = {p: i for i, p in enumerate(dict.fromkeys(static.pose))}
+            for p in order:
+                rows = np.flatnonzero(static.pose == p)
+                step_id = f"static/{p}"
+                clock.t_ns = int(times[rows[0]]) - 2_000
+                rec.event("step_start", procedure="static", step_id=step_id)
+                for r in rows:
+                    t = int(times[r])
+                    for j in range(6):
+                        rec.drive_sample(j + 1, t, float(static.q[r, j]), 0.0, _opt(static.currents[r, j]))
+                    rec.tracker_sample(t, str(static.marker[r]), static.xyz[r])
+                    clock.t_ns = t + 500
+                    w = static.wrench[r]
+                    rec.event("reading", step_id=step_id, pose=str(p), load=str(static.load[r]),
+                              marker=str(static.marker[r]), q=[float(v) for v in static.q[r]],
+                              wrench=None if not np.all(np.isfinite(w)) else [float(v) for v in w],
+                              window_ns=[t - 500, t + 500])
+                clock.t_ns = int(times[rows[-1]]) + 1_000
+                rec.event("step_done", procedure="static", step_id=step_id)
+            now = int(times.max()) + 1_000_000_000
+        if runs is not None and len(runs):
+            for run_id in dict.fromkeys(runs.run):
+                rows = np.flatnonzero(runs.run == run_id)
+                for name, col in (("load", runs.load), ("wrench", runs.wrench)):
+                    vals = col[rows]
+                    same = np.all(vals == vals[0]) if vals.dtype.kind in "US" else \
+                        np.allclose(vals, vals[0], equal_nan=True, rtol=0, atol=0)
+                    if not same:
+                        raise InputError(f"run {run_id}: the {name} changes within the run; a log run has one",
+                                         source=runs.source)
+                t = runs.t[rows]
+                rel = _row_times(t - t[0], 0) if np.all(np.isfinite(t)) else _row_times(t, 0)
+                start = now if not np.isfinite(t[0]) else max(now, SYNTHETIC_ORIGIN_NS + int(round(t[0] * 1e9)) - 2_000)
+                times = start + 2_000 + rel - rel[0]
+                step_id = f"runs/{run_id}"
+                clock.t_ns = start
+                rec.event("step_start", procedure="runs", step_id=step_id)
+                clock.t_ns = start + 1_000
+                w = runs.wrench[rows[0]]
+                markers = sorted({m for m in runs.marker[rows] if m})
+                if len(markers) > 1:
+                    raise InputError(f"run {run_id} follows several markers ({', '.join(markers)}); a log run "
+                                     f"follows one", source=runs.source)
+                rec.event("run_start", step_id=step_id, run=str(run_id), direction=str(runs.direction[rows[0]]),
+                          load=str(runs.load[rows[0]]), marker=markers[0] if markers else None,
+                          wrench=None if not np.all(np.isfinite(w)) else [float(v) for v in w])
+                for r, tn in zip(rows, times):
+                    tn = int(tn)
+                    for j in range(6):
+                        rec.drive_sample(j + 1, tn, float(runs.q[r, j]), _opt(runs.dq[r, j]),
+                                         _opt(runs.currents[r, j]))
+                    if runs.marker[r]:
+                        rec.tracker_sample(tn, str(runs.marker[r]), runs.xyz[r])
+                clock.t_ns = int(times[-1]) + 1_000
+                rec.event("run_end", step_id=step_id, run=str(run_id), direction=str(runs.direction[rows[0]]))
+                rec.event("step_done", procedure="runs", step_id=step_id)
+                now = clock.t_ns + 1_000_000_000
+        clock.t_ns = now
+        rec.event("procedure_end", status="completed")

@@ -101,7 +101,7 @@ SCHEMAS: dict[str, dict] = {
             "kind": {"type": "string", "enum": [
                 "procedure_start", "procedure_end", "step_start", "step_done", "pose", "load",
                 "settle", "hold_start", "reading", "hold_end", "run_start", "run_end",
-                "prompt", "answer", "fault", "resume"]},
+                "prompt", "answer", "fault", "gap", "resume"]},
             "procedure": {"type": "string"},
             "step": {"type": "integer", "description": "0-based index of the step in the procedure"},
             "step_id": {"type": "string"},
@@ -129,6 +129,8 @@ SCHEMAS: dict[str, dict] = {
             "automatic": {"type": "boolean", "description": "answered by --yes, not by a person"},
             "error": {"type": "string", "description": "error type of a fault"},
             "status": {"type": "string", "enum": ["completed", "aborted", "failed"]},
+            "device": {"type": "string", "description": "device of a gap"},
+            "missing": {"type": "integer", "description": "samples a gap lost"},
             "completed_steps": {"type": "array", "items": {"type": "string"}},
         },
         "required": ["kind"],

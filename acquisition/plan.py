@@ -418,3 +418,57 @@ def load_plan(path: str | pathlib.Path) -> Plan:
     except OSError as exc:
         raise InputError(f"cannot read: {exc.strerror}", source=str(path)) from None
     return parse_plan(text, source=str(path))
+
+
+# ------------------------------------------------------------------ writing
+def _toml_list(values: Sequence) -> str:
+    return "[" + ", ".join(repr(float(v)) if not isinstance(v, str) else f'"{v}"' for v in values) + "]"
+
+
+def plan_toml(*, poses: Sequence[Sequence[float]] | Mapping[str, Sequence[float]], loads: Sequence[LoadSpec],
+              markers: Sequence[str], name: str = "calibration", repeats: int = 3, reading_s: float = 0.2,
+              speed_rad_s: float = 0.3, settle: SettleSpec | None = None,
+              friction: Sequence[FrictionSpec] = (), sweep: SweepSpec | None = None,
+              check: CheckSpec | None = None, procedures: Sequence[str] | None = None) -> str:
+    """plan.toml text for poses (a list, ids P1.., or a mapping id -> q), loads and
+    markers, plus optional friction paths, sweep and check; :func:`parse_plan`
+    reads it back. For the demo, the ``plan`` command and tests."""
+    lines = [f'name = "{name}"']
+    if procedures is not None:
+        lines.append(f"procedures = {_toml_list(procedures)}")
+    s = settle or SettleSpec()
+    lines += ["", "[settle]", f"speed_rad_s = {s.speed_rad_s!r}", f"spread_m = {s.spread_m!r}",
+              f"window_s = {s.window_s!r}", f"timeout_s = {s.timeout_s!r}"]
+    for spec in loads:
+        lines += ["", "[[load]]", f'id = "{spec.id}"']
+        if spec.mass_kg is not None:
+            lines.append(f"mass_kg = {spec.mass_kg!r}")
+        else:
+            lines.append(f"force_n = {_toml_list(spec.force_n)}")
+            if any(spec.moment_nm):
+                lines.append(f"moment_nm = {_toml_list(spec.moment_nm)}")
+        if spec.description:
+            lines.append(f'description = "{spec.description}"')
+    items = list(poses.items()) if isinstance(poses, Mapping) else [(f"P{k}", q) for k, q in enumerate(poses, 1)]
+    if items:
+        lines += ["", "[static]", f"markers = {_toml_list(markers)}", f"repeats = {repeats}",
+                  f"reading_s = {reading_s!r}", f"speed_rad_s = {speed_rad_s!r}"]
+        for pid, q in items:
+            lines += ["", "[[static.pose]]", f'id = "{pid}"', f"q = {_toml_list(q)}"]
+    for f in friction:
+        lines += ["", "[[friction]]", f'id = "{f.id}"', f"from = {_toml_list(f.start)}", f"to = {_toml_list(f.end)}",
+                  f"speeds_rad_s = {_toml_list(f.speeds_rad_s)}", f"loads = {_toml_list(f.loads)}",
+                  f"repeats = {f.repeats}"]
+        if f.marker:
+            lines.append(f'marker = "{f.marker}"')
+    if sweep is not None:
+        lines += ["", "[sweep]", f"q = {_toml_list(sweep.q)}", f"q2_from = {sweep.q2_from!r}",
+                  f"q2_to = {sweep.q2_to!r}", f"speed_rad_s = {sweep.speed_rad_s!r}", f"repeats = {sweep.repeats}",
+                  f'load = "{sweep.load}"']
+        if sweep.marker:
+            lines.append(f'marker = "{sweep.marker}"')
+    if check is not None:
+        lines += ["", "[check]", f"poses = {_toml_list(check.poses)}", f'load = "{check.load}"']
+        if check.friction:
+            lines.append(f'friction = "{check.friction}"')
+    return "\n".join(lines) + "\n"

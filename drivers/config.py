@@ -363,7 +363,7 @@ class SimConfig:
     tracker_noise_m: float = 10e-6
     current_noise_a: float = 0.02
     gear_ratios: tuple[float, ...] = (150.0, 160.0, 140.0, 80.0, 80.0, 60.0)
-    can_reply_delay_s: float = 100e-6
+    can_reply_delay_s: float = 50e-6
     modbus_reply_delay_s: float = 0.0
     tracker_reply_delay_s: float = 0.0
 

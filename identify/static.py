@@ -187,6 +187,11 @@ class StaticFit:
     condition_number: float
     iterations: int
     dataset: StaticDataset = field(repr=False)
+    #: (3D, n_params) Jacobian of the predicted deflections in the identifiable
+    #: parameters at the solution (rows x, y, z of each deflection)
+    design: np.ndarray | None = field(default=None, repr=False)
+    #: per-pose (row indices, covariance) of the deflection noise; None without repeats
+    noise_blocks: tuple[tuple[np.ndarray, np.ndarray], ...] | None = field(default=None, repr=False)
 
     def parameter(self, name: str) -> Parameter:
         for p in self.parameters:
@@ -212,6 +217,7 @@ class StaticFit:
         }
         if self.unidentifiable:
             out["unidentifiable"] = list(self.unidentifiable)
+            out["rank"] = self.n_params
         out["condition_number"] = self.condition_number
         return out
 
@@ -241,7 +247,7 @@ def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
     return out
 
 
-def _context(pr: _Problem, tau: np.ndarray) -> StaticContext:
+def _context(pr: _Problem, tau: np.ndarray, estimate: np.ndarray | None = None) -> StaticContext:
     robot, ds = pr.robot, pr.ds
     delta_tau = tau - tau[ds.state_ref]
     delta_link = np.zeros((ds.n_states, 4))
@@ -263,7 +269,8 @@ def _context(pr: _Problem, tau: np.ndarray) -> StaticContext:
     return StaticContext(tau=tau, delta_tau=delta_tau, delta_link_moment=delta_link,
                          state_is_reference=ds.state_ref == np.arange(ds.n_states),
                          deflection_dt=ds.defl_dt, n_deflections=ds.n_deflections, torque_source=pr.torque,
-                         form=pr.form)
+                         form=pr.form, estimate=estimate,
+                         estimate_names=tuple(p for eff in pr.effects for p in eff.parameters))
 
 
 def _bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -330,9 +337,11 @@ def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.nd
     return pred, a.reshape(-1, a.shape[2])
 
 
-def _noise_blocks(pr: _Problem, beta: np.ndarray, bases) -> list[tuple[np.ndarray, np.ndarray]] | None:
+def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
+                  sensitivity: np.ndarray | None = None) -> list[tuple[np.ndarray, np.ndarray]] | None:
     """Per-pose (row indices, covariance) of the deflection noise, or None
-    when the data hold no repeated readings."""
+    when the data hold no repeated readings. ``sensitivity`` (S, 6): d dtheta /
+    d tau of each state (default: the joint compliances)."""
     robot, ds = pr.robot, pr.ds
     if ds.sigma_tracker is None:
         return None
@@ -341,8 +350,9 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases) -> list[tuple[np.ndarra
     sig_i = ds.sigma_current if (pr.torque == "current" and ds.sigma_current is not None) else None
     c = None
     if sig_i is not None:
-        # d dtheta / d tau for each state from the joint-stiffness part of the basis
-        c = beta[:6]
+        # d dtheta / d tau for each state: the joint-stiffness part of the basis,
+        # plus what torque-dependent effects (backlash) add
+        c = np.tile(beta[:6], (ds.n_states, 1)) if sensitivity is None else sensitivity
     for pi in range(len(ds.pose_ids)):
         dl = np.flatnonzero(ds.state_pose[ds.defl_state] == pi)
         if dl.size == 0:
@@ -367,11 +377,11 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases) -> list[tuple[np.ndarra
             for k, s in enumerate(states):
                 var[6 * k:6 * k + 6] = (robot.torque_constants * sig_i) ** 2 / ds.state_n_currents[s]
             for a_, da in enumerate(dl):
-                jm = jac[ds.defl_marker[da]][:, ACTUATED_IN_LINK_MODEL] * c
+                jm = jac[ds.defl_marker[da]][:, ACTUATED_IN_LINK_MODEL]
                 kl = int(np.flatnonzero(states == ds.defl_state[da])[0])
                 kr = int(np.flatnonzero(states == ds.defl_ref[da])[0])
-                g[3 * a_:3 * a_ + 3, 6 * kl:6 * kl + 6] += jm
-                g[3 * a_:3 * a_ + 3, 6 * kr:6 * kr + 6] -= jm
+                g[3 * a_:3 * a_ + 3, 6 * kl:6 * kl + 6] += jm * c[ds.defl_state[da]]
+                g[3 * a_:3 * a_ + 3, 6 * kr:6 * kr + 6] -= jm * c[ds.defl_ref[da]]
             cov += (g * var) @ g.T
         blocks.append((rows, cov))
     return blocks
@@ -419,6 +429,8 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     pr = _Problem(robot, ds, effects, torque, form, complementary, frames)
     exact = form == "exact"
     tau_dependent = torque == "force" and (exact or complementary)
+    #: effects whose basis depends on the current estimate (static_friction's saturation)
+    iterative = any(eff.iterative for eff in effects)
 
     tau = _torques(pr, None)
     ctx = _context(pr, tau)
@@ -440,13 +452,14 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     beta = np.zeros(len(beta_names))
     beta[mask] = np.linalg.lstsq(a[:, mask] / scale[mask], y, rcond=None)[0] / scale[mask]
     iterations = 1
-    if exact or tau_dependent:
+    if exact or tau_dependent or iterative:
         for iterations in range(2, max_iter + 2):
             if tau_dependent:
                 theta_states = np.array([robot.theta(ds.q[ds.state_pose[s]]) for s in range(ds.n_states)])
                 theta_states = theta_states + bases[0] @ beta
                 tau = _torques(pr, theta_states)
-                ctx = _context(pr, tau)
+            if tau_dependent or iterative:
+                ctx = _context(pr, tau, beta if iterative else None)
                 bases = _bases(pr, ctx)
             pred, a = _evaluate(pr, beta, bases, exact=exact)
             r = y - pred.reshape(-1)
@@ -466,7 +479,14 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     sv = np.linalg.svd(scaled, compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv.size and sv[-1] > 0 else float("inf")
     m_inv = np.linalg.pinv(a_k.T @ a_k)
-    blocks = _noise_blocks(pr, beta, bases)
+    sensitivity = np.tile(beta[:6], (ds.n_states, 1))
+    offset = 0
+    for eff in effects:
+        k = len(eff.parameters)
+        if eff.torque_sensitivity is not None:
+            sensitivity = sensitivity + eff.torque_sensitivity(ctx, beta[offset:offset + k])
+        offset += k
+    blocks = _noise_blocks(pr, beta, bases, sensitivity)
     if blocks is not None:
         meat = np.zeros((p, p))
         trace_sigma = 0.0
@@ -508,4 +528,5 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
                      unidentifiable=tuple(unident), beta_names=beta_names, beta=beta, beta_cov=cov,
                      predicted=pred, residuals=resid, rms=float(np.sqrt(rss / n)),
                      max=float(np.max(np.abs(r))), n=n, rss=rss, n_params=p, noise_floor=noise_floor,
-                     expected_rss=expected, condition_number=cond, iterations=iterations, dataset=ds)
+                     expected_rss=expected, condition_number=cond, iterations=iterations, dataset=ds,
+                     design=a_k, noise_blocks=None if blocks is None else tuple(blocks))

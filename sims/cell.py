@@ -85,11 +85,11 @@ class CellTruth:
         if effect == "link_compliance":
             return replace(self, link_compliance=np.array([4.0e-7, 2.5e-7, 6.0e-7, 3.0e-7]))
         if effect == "thermal_drift":
-            return replace(self, drift_velocity=np.array([1.2e-7, -0.8e-7, 1.5e-7]))
+            return replace(self, drift_velocity=np.array([0.6e-7, -0.4e-7, 0.8e-7]))
         if effect == "static_friction":
             return replace(self, static_friction=np.array([60.0, 250.0, 200.0, 25.0, 20.0, 12.0]))
         if effect == "backlash":
-            return replace(self, backlash=np.array([4e-5, 3e-5, 3e-5, 8e-5, 8e-5, 1e-4]))
+            return replace(self, backlash=np.array([6e-5, 5e-5, 5e-5, 1.2e-4, 1.2e-4, 1.5e-4]))
         raise ValueError(f"unknown hidden effect {effect!r}; one of {', '.join(HIDDEN_EFFECTS)}")
 
     def parameters(self, robot: Robot) -> dict[str, dict[str, float | str]]:

@@ -79,7 +79,7 @@ class FrictionPlan:
     #: (load name, wrench on the load point [N, N·m]); "0" is unloaded
     loads: tuple[tuple[str, tuple[float, ...]], ...] = (
         ("0", (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)),
-        ("1", (900.0, -700.0, -1500.0, 150.0, -150.0, 120.0)),
+        ("1", (900.0, -700.0, -1500.0, 200.0, -200.0, 250.0)),
     )
     samples: int = 240              # samples per run
 

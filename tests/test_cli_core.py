@@ -90,3 +90,20 @@ def test_python_dash_m_runs(dataset):
                           timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert np.isfinite(json.loads(proc.stdout)["parameters"]["k1"]["value"])
+
+
+def test_identify_from_runs_gives_compensator_and_friction(tmp_path, capsys):
+    out = tmp_path / "runs"
+    assert main(["sim", "runs", "--seed", "3", "--out", str(out)]) == 0
+    capsys.readouterr()
+    rc = main(["identify", "--robot", str(out / "robot.toml"), "--runs", str(out / "runs.csv"), "--json",
+               "--model", "compensator,coulomb_friction,viscous_friction"])
+    assert rc == 0
+    obj = json.loads(capsys.readouterr().out)
+    truth = json.loads((out / "truth.json").read_text())["parameters"]
+    assert obj["residual"]["unit"] == "N*m"
+    for name in ("C", "l_c", "fc2", "fv2"):
+        assert obj["parameters"][name]["value"] == pytest.approx(truth[name]["value"], rel=0.05), name
+    # friction from runs alone without naming a run effect is refused with the reason
+    assert main(["identify", "--robot", str(out / "robot.toml"), "--runs", str(out / "runs.csv")]) == 2
+    assert "run data alone do not give the joint stiffness" in capsys.readouterr().err

@@ -51,8 +51,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(obj))
     else:
-        print(format_fit(obj, title=f"{inputs.robot.name}: {', '.join(obj['model'])} "
-                                    f"({obj.get('torque', 'current')}-based, {obj.get('form', 'exact')} form)"))
+        how = (f"({obj['torque']}-based, {obj['form']} form)" if "form" in obj
+               else "(run data: joint-2 sweeps and UV/VU runs)")
+        print(format_fit(obj, title=f"{inputs.robot.name}: {', '.join(obj['model'])} {how}"))
         if args.out:
             print(f"calibration written to {args.out}")
     return 0

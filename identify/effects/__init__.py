@@ -1,8 +1,10 @@
 """The physical effects a model can hold (cli.md, "Effects").
 
-Each effect is one module named after it; this table maps names to modules and
-is imported lazily. Effects that only run data can show are described here too,
-so that a request for them on static data is refused with the reason.
+Each effect is one module named after it (its parameters and units, how it
+enters the static and the run model, the data that can show it, and the
+sentence that explains it to a user); this table maps names to modules and is
+imported lazily. Effects that only run data can show are here too, so that a
+request for them on static data is refused with the reason.
 """
 
 from __future__ import annotations
@@ -12,20 +14,25 @@ import importlib
 from elastocal.errors import InputError
 from elastocal.identify.effects.base import Effect
 
-#: effect name -> module that defines EFFECT
+_PACKAGE = "elastocal.identify.effects"
+#: effect name -> module that defines EFFECT (cli.md's table, then elastocal's extensions)
 EFFECT_MODULES = {
-    "joint_stiffness": "elastocal.identify.effects.joint_stiffness",
-    "link_compliance": "elastocal.identify.effects.link_compliance",
-    "thermal_drift": "elastocal.identify.effects.thermal_drift",
-    "backlash": "elastocal.identify.effects.backlash",
-    "compensator": "elastocal.identify.effects.run_only",
-    "gravity": "elastocal.identify.effects.run_only",
-    "coulomb_friction": "elastocal.identify.effects.run_only",
-    "viscous_friction": "elastocal.identify.effects.run_only",
-    "load_dependent_friction": "elastocal.identify.effects.run_only",
-    "complementary_stiffness": "elastocal.identify.effects.complementary_stiffness",
-    "tracker_frame": "elastocal.identify.effects.run_only",
-    "kinematic_errors": "elastocal.identify.effects.run_only",
+    name: f"{_PACKAGE}.{name}"
+    for name in (
+        "joint_stiffness",
+        "compensator",
+        "gravity",
+        "coulomb_friction",
+        "viscous_friction",
+        "load_dependent_friction",
+        "complementary_stiffness",
+        "link_compliance",
+        "thermal_drift",
+        "backlash",
+        "tracker_frame",
+        "kinematic_errors",
+        "static_friction",
+    )
 }
 ALL_EFFECTS = tuple(EFFECT_MODULES)
 
@@ -33,9 +40,7 @@ ALL_EFFECTS = tuple(EFFECT_MODULES)
 def get_effect(name: str) -> Effect:
     if name not in EFFECT_MODULES:
         raise InputError(f"unknown effect {name!r}; known: {', '.join(ALL_EFFECTS)}", source="--model")
-    module = importlib.import_module(EFFECT_MODULES[name])
-    table = getattr(module, "EFFECTS", None)
-    return table[name] if table is not None else module.EFFECT
+    return importlib.import_module(EFFECT_MODULES[name]).EFFECT
 
 
 def parse_model(text: str | None) -> tuple[str, ...]:

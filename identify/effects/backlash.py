@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis
+from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis, strongest
 
 #: torque over which the play is taken up [N·m]
 TAU_BAND_NM = 20.0
@@ -43,10 +43,23 @@ def _basis(ctx: StaticContext) -> StaticBasis:
     return StaticBasis(theta=diagonal_basis(values))
 
 
+def _sensitivity(ctx: StaticContext, values: np.ndarray) -> np.ndarray:
+    """d/dtau of (b/2) tanh(tau/band): current noise near zero torque moves the
+    joint through its play."""
+    sech2 = 1.0 / np.cosh(np.clip(ctx.tau / TAU_BAND_NM, -350.0, 350.0)) ** 2
+    return 0.5 * values * visible_joints(ctx) * sech2 / TAU_BAND_NM
+
+
 def _refusal(ctx: StaticContext) -> str | None:
     if not np.any(visible_joints(ctx)):
         return "no load state reverses the torque of any joint, so no play can show; add loads that do"
     return None
+
+
+def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> str:
+    k = strongest(names, values, stds)
+    return (f"a step in deflection where a load reverses the torque of joint {names[k][1:]} "
+            f"(play {values[k] * 180 / np.pi * 60:.2f} arcmin)")
 
 
 EFFECT = Effect(
@@ -58,6 +71,8 @@ EFFECT = Effect(
     evidence="a step in deflection when a load reverses the torque of a joint",
     static_basis=_basis,
     static_refusal=_refusal,
+    torque_sensitivity=_sensitivity,
+    describe=_describe,
     static_model="each joint angle gains (b_j/2) tanh(tau_j / 20 N·m) besides the spring's c_j tau_j",
     run_model="at a direction reversal the motor turns through the play before the link follows; "
               "it shows in tracked positions, not in currents",

@@ -38,6 +38,16 @@ class StaticContext:
     n_deflections: int
     torque_source: str          # "current" or "force"
     form: str = "exact"         # "exact" or "first-order"
+    #: current estimate of every model parameter (None in the first solve), for
+    #: effects whose basis depends on it (Effect.iterative)
+    estimate: np.ndarray | None = None
+    estimate_names: tuple[str, ...] = ()
+
+    def estimated(self, name: str) -> float | None:
+        """Current estimate of parameter ``name`` (None before the first solve)."""
+        if self.estimate is None or name not in self.estimate_names:
+            return None
+        return float(self.estimate[self.estimate_names.index(name)])
 
 
 @dataclass(frozen=True)
@@ -63,6 +73,14 @@ class Effect:
     #: model value -> reported value and its derivative (for the std)
     report: Optional[Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]] = None
     report_units: tuple[str, ...] | None = None
+    #: the static basis depends on the current estimate (StaticContext.estimate):
+    #: the fit rebuilds it at every iteration
+    iterative: bool = False
+    #: (context, this effect's parameter values) -> (S, 6) what the effect adds to
+    #: d dtheta / d tau of each state (current noise propagates through it)
+    torque_sensitivity: Optional[Callable[[StaticContext, np.ndarray], np.ndarray]] = None
+    #: (parameter names, values, stds) of a fit -> the evidence in these data, in words
+    describe: Optional[Callable[[tuple[str, ...], np.ndarray, np.ndarray], str]] = None
     #: how the effect enters the static model and the run (torque) model, in words
     static_model: str = ""
     run_model: str = ""
@@ -80,3 +98,9 @@ def diagonal_basis(values: np.ndarray) -> np.ndarray:
     idx = np.arange(n)
     out[:, idx, idx] = values
     return out
+
+
+def strongest(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> int:
+    """Index of the parameter the data show most clearly (largest |value/std|)."""
+    z = np.abs(values) / np.where(stds > 0, stds, np.inf)
+    return int(np.argmax(z))

@@ -29,6 +29,13 @@ def _refusal(ctx: StaticContext) -> str | None:
     return None
 
 
+def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> str:
+    speed = float(np.linalg.norm(values))
+    axis = names[int(np.argmax(np.abs(values)))][-1]
+    return (f"deflections grow with the time since the reference reading: {speed * 3.6e6:.2f} mm/h, "
+            f"mostly along {axis}")
+
+
 EFFECT = Effect(
     name="thermal_drift",
     parameters=("vx", "vy", "vz"),
@@ -38,6 +45,7 @@ EFFECT = Effect(
     evidence="deflections grow with the time between the reference and the loaded readings",
     static_basis=_basis,
     static_refusal=_refusal,
+    describe=_describe,
     static_model="each deflection gains v (t_loaded - t_reference)",
     run_model="tracked positions of a run gain v t; joint torques are not affected",
 )

@@ -1,0 +1,184 @@
+"""A :class:`CellIO` over elastocal.drivers: drive streams, the tracker, the cell controller.
+
+* Drives stream at their configured rate from the moment the IO opens; each
+  :meth:`DriverCellIO.poll` drains the streams (gaps the drivers report are
+  passed on and recorded).
+* The tracker measures one reflector at a time: ``poll`` selects the marker
+  and takes measurements at the tracker's configured rate.
+* The cell controller's requests block until the robot is in position, so
+  moves and runs run in a worker thread while ``poll`` keeps sampling;
+  :meth:`move_done` re-raises the worker's device error, if any.
+* Joint moves use the controller's own move speed (its handshake has no speed
+  for joint targets); runs are taught paths (``[[controller.path]]`` in
+  cell.toml), found by their end points and run at the plan's speed.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Sequence
+
+import numpy as np
+
+from elastocal.acquisition.cellio import CellIO, DriveSample, LoadWorld, SampleGap, Samples, TrackerSample
+from elastocal.errors import DeviceTimeout, InputError
+
+#: two joint vectors closer than this are the same pose [rad]
+SAME_Q_RAD = 1e-6
+
+
+class SimWorldLoads:
+    """:class:`LoadWorld` over a simulated world with ``set_load(wrench)`` and ``remove_load()``."""
+
+    def __init__(self, world) -> None:
+        self._world = world
+
+    def hang(self, wrench: Sequence[float] | None) -> None:
+        if wrench is None:
+            self._world.remove_load()
+        else:
+            self._world.set_load(wrench)
+
+
+class DriverCellIO(CellIO):
+    """The procedure's view of a cell whose devices are already open.
+
+    ``drives`` (one per joint, any order), ``tracker`` (or None), ``controller``
+    and the cell config (for rates, taught paths and timeouts). ``world`` is
+    the simulated world when the devices are simulated (loads are hung there
+    on confirmation); None for a real cell. The IO closes the drive streams it
+    started; closing the devices stays with whoever opened them.
+    """
+
+    def __init__(self, robot, config, *, drives, tracker, controller, world=None) -> None:
+        self.robot = robot
+        self.config = config
+        self.clock = time.monotonic_ns
+        self._drives = sorted(drives, key=lambda d: d.joint)
+        if [d.joint for d in self._drives] != list(range(1, 7)):
+            raise InputError("the cell needs one [[drive]] for each of joints 1..6", source=config.source,
+                             column="drive")
+        self._tracker = tracker
+        self._controller = controller
+        if controller is None:
+            raise InputError("the guided procedure needs a [controller] to move the robot", source=config.source,
+                             column="controller")
+        self._world = SimWorldLoads(world) if world is not None else None
+        self._tracker_period_s = 1.0 / config.tracker.rate_hz if config.tracker is not None else 0.01
+        self._selected: str | None = None
+        self._worker: threading.Thread | None = None
+        self._worker_error: BaseException | None = None
+        self._streams = []
+        try:
+            for d in self._drives:
+                self._streams.append(d.stream(config.drive(d.joint).rate_hz))
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------ motion
+    def _launch(self, what: str, fn, *args, **kwargs) -> None:
+        if self._worker is not None and self._worker.is_alive():
+            raise RuntimeError("a move is already in progress")
+        self._worker_error = None
+
+        def work() -> None:
+            try:
+                fn(*args, **kwargs)
+            except BaseException as exc:  # handed to the procedure thread by move_done()
+                self._worker_error = exc
+
+        self._worker = threading.Thread(target=work, name=f"elastocal {what}", daemon=True)
+        self._worker.start()
+
+    def start_move(self, q: Sequence[float], speed_rad_s: float) -> None:
+        self._launch("move", self._controller.move_joints, [float(v) for v in q])
+
+    def start_run(self, start: Sequence[float], end: Sequence[float], speed_rad_s: float) -> None:
+        a, b = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
+        for path in self._controller_config().paths:
+            u, v = np.asarray(path.u), np.asarray(path.v)
+            if np.max(np.abs(u - a)) < SAME_Q_RAD and np.max(np.abs(v - b)) < SAME_Q_RAD:
+                direction = "UV"
+            elif np.max(np.abs(v - a)) < SAME_Q_RAD and np.max(np.abs(u - b)) < SAME_Q_RAD:
+                direction = "VU"
+            else:
+                continue
+            self._launch("run", self._controller.run, path.id, direction, speed_rad_s=float(speed_rad_s))
+            return
+        raise InputError(f"no taught path runs from {_q(a)} to {_q(b)}; add a [[controller.path]] with these "
+                         f"u and v", source=self.config.source, column="controller.path")
+
+    def _controller_config(self):
+        return self.config.controller
+
+    def move_done(self) -> bool:
+        if self._worker is None:
+            return True
+        if self._worker.is_alive():
+            return False
+        self._worker = None
+        if self._worker_error is not None:
+            error, self._worker_error = self._worker_error, None
+            raise error
+        return True
+
+    def world(self) -> LoadWorld | None:
+        return self._world
+
+    # ------------------------------------------------------------ sampling
+    def _measure(self, markers: Sequence[str], duration_s: float) -> list[TrackerSample]:
+        out: list[TrackerSample] = []
+        if self._tracker is None:
+            raise InputError("the plan measures markers but the cell has no [tracker]", source=self.config.source,
+                             column="tracker")
+        end = time.monotonic() + duration_s
+        k = 0
+        while True:
+            m = markers[k % len(markers)]
+            k += 1
+            if self._selected != m:
+                self._tracker.select(m)
+                self._selected = m
+            s = self._tracker.measure()
+            if s.marker != m:
+                raise DeviceTimeout(f"tracker: measured marker {s.marker!r} while {m!r} was selected")
+            out.append(TrackerSample(s.t_ns, m, tuple(float(v) for v in s.tracker_p_marker)))
+            left = end - time.monotonic()
+            if left <= 0:
+                return out
+            time.sleep(min(self._tracker_period_s, left))
+
+    def poll(self, markers: Sequence[str], duration_s: float) -> Samples:
+        if markers:
+            tracker = self._measure(list(markers), duration_s)
+        else:
+            tracker = []
+            time.sleep(duration_s)
+        drives: list[DriveSample] = []
+        gaps: list[SampleGap] = []
+        for d, stream in zip(self._drives, self._streams):
+            batch = stream.read(timeout_s=self.config.drive(d.joint).timeout_s)
+            for s in batch.samples:
+                drives.append(DriveSample(d.joint, s.t_ns, s.position_rad, s.velocity_rad_s, s.current_a, s.status))
+            for g in batch.gaps:
+                gaps.append(SampleGap(g.device, g.start_ns, g.end_ns, g.missing, g.reason))
+        return Samples(tuple(drives), tuple(tracker), tuple(gaps))
+
+    def close(self) -> None:
+        streams, self._streams = self._streams, []
+        first: BaseException | None = None
+        for s in streams:
+            try:
+                s.close()
+            except BaseException as exc:  # noqa: BLE001 - re-raised below
+                first = first or exc
+        if self._worker is not None:
+            self._worker.join(timeout=self._controller_config().move_timeout_s)
+        if first is not None:
+            raise first
+
+
+def _q(q: np.ndarray) -> str:
+    return "[" + ", ".join(f"{v:.4f}" for v in q) + "]"

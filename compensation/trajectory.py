@@ -1,0 +1,120 @@
+"""Compensated joint trajectories (Yang §6, and exact).
+
+Given a planned joint path ``q(s)`` and the process wrench ``W(s)`` on the load
+point, find commands ``q_c(s)`` that put the tool where the plan puts it.
+
+Which pose is "the plan" (``reference``):
+
+* ``"unloaded"`` (default): the pose the robot reaches running ``q`` *without*
+  the process load. The controller's own kinematics (or the teach-in, or a
+  geometric calibration) is taken to be right at the unloaded state, gravity
+  sag included; elastocal removes what the process load adds. The deflection
+  to remove is the difference of the full static model between the
+  process-loaded and the unloaded state: ``c ⊙ (tau(theta, W) - tau(theta_0, 0))``
+  with ``tau = J^T W - g - M e2``.
+* ``"rigid"``: the pose of the rigid kinematic model at ``q + offset``: gravity
+  and compensator deflection are removed as well (a controller that knows
+  nothing of its own sag).
+
+Forms:
+
+* ``"first-order"`` (Yang): ``q_c = q - dtheta`` with ``dtheta`` evaluated at
+  the planned configuration, ``c ⊙ J(q)^T W`` (unloaded reference) or
+  ``c ⊙ tau(q, W)`` (rigid reference).
+* ``"exact"``: the command whose loaded equilibrium *is* the target
+  configuration ``theta*`` (unloaded equilibrium at ``q``, found by fixed-point
+  iteration, or ``q + offset``). With joint springs the pose matches exactly
+  when the link angles do, so the command is explicit once ``theta*`` is known:
+  ``q_c = theta* - offset - c ⊙ tau(theta*, W)``.
+
+With the rigid reference both forms coincide for a joint-spring model.
+:func:`predicted_residual` solves the loaded equilibrium at the commands to
+check what is left.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from elastocal.compensation.model import CompensationModel, StaticKernel
+from elastocal.errors import InputError
+
+FORMS = ("exact", "first-order")
+REFERENCES = ("unloaded", "rigid")
+
+
+@dataclass(frozen=True, eq=False)
+class CompensatedPath:
+    """A compensated joint path."""
+
+    form: str
+    reference: str
+    q_planned: np.ndarray       # (n, 6) [rad]
+    wrench: np.ndarray          # (n, 6) process wrench on the load point [N, N·m]
+    q_command: np.ndarray       # (n, 6) compensated commands [rad]
+    theta_target: np.ndarray    # (n, 6) link angles the plan asks for [rad]
+    tcp_deflection: np.ndarray  # (n, 3) predicted load-point deflection before compensation [m]
+
+    @property
+    def dtheta(self) -> np.ndarray:
+        """Correction ``q_planned - q_command`` (n, 6) [rad]."""
+        return self.q_planned - self.q_command
+
+    def __len__(self) -> int:
+        return len(self.q_planned)
+
+
+def _check_inputs(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, form: str,
+                  reference: str) -> tuple[np.ndarray, np.ndarray]:
+    if form not in FORMS:
+        raise InputError(f"form must be one of {', '.join(FORMS)}, got {form!r}", source="--form")
+    if reference not in REFERENCES:
+        raise InputError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}",
+                         source="--reference")
+    q = np.asarray(q, dtype=float)
+    if q.ndim != 2 or q.shape[1] != 6:
+        raise ValueError("q must be (n, 6)")
+    w = np.asarray(wrench, dtype=float)
+    if w.shape == (6,):
+        w = np.tile(w, (len(q), 1))
+    if w.shape != q.shape:
+        raise ValueError("wrench must be (6,) or (n, 6)")
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(w))):
+        raise InputError("path and wrench must be finite")
+    return q, w
+
+
+def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, *, form: str = "exact",
+                    reference: str = "unloaded") -> CompensatedPath:
+    """Compensated commands for the planned path ``q`` (n, 6) under ``wrench``
+    ((6,) constant or (n, 6) per sample). The predicted deflection is the exact
+    one (loaded equilibrium) for ``form="exact"`` and ``J dtheta`` for
+    ``form="first-order"``."""
+    q, w = _check_inputs(model, q, wrench, form, reference)
+    k = StaticKernel(model)
+    plan = q + k.offsets
+    target = k.equilibrium(q, np.zeros_like(w)) if reference == "unloaded" else plan
+    if form == "first-order":
+        jac = k.jacobians(plan)
+        if reference == "unloaded":
+            dtheta = k.c * np.einsum("nij,ni->nj", jac, w)
+        else:
+            dtheta = k.c * k.torque(plan, w)
+        cmd = q - dtheta
+        deflection = np.einsum("nij,nj->ni", jac[:, :3], dtheta)
+    else:
+        cmd = target - k.offsets - k.c * k.torque(target, w)
+        theta_loaded = k.equilibrium(q, w, start=target + (q - cmd))
+        deflection = k.positions(theta_loaded) - k.positions(target)
+    return CompensatedPath(form=form, reference=reference, q_planned=q, wrench=w, q_command=cmd,
+                           theta_target=target, tcp_deflection=deflection)
+
+
+def predicted_residual(model: CompensationModel, path: CompensatedPath) -> np.ndarray:
+    """Load-point deviation from the target (n, 3) [m] the model predicts when the
+    compensated commands run under the process wrench."""
+    k = StaticKernel(model)
+    theta = k.equilibrium(path.q_command, path.wrench, start=path.theta_target)
+    return k.positions(theta) - k.positions(path.theta_target)

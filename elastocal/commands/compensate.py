@@ -1,0 +1,119 @@
+"""`elastocal compensate`: compensated joint trajectory for a planned path (cli.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import numpy as np
+
+from elastocal.errors import InputError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--robot", required=True, help="robot description (robot.toml)")
+    parser.add_argument("--calibration", required=True, help="calibration JSON (formats.md §4)")
+    parser.add_argument("--path", required=True, help="planned path CSV: t,q1..q6 and optionally fx..mz")
+    parser.add_argument("--out", required=True, help="compensated path CSV to write")
+    parser.add_argument("--wrench", help="constant process wrench fx,fy,fz,mx,my,mz on the load point "
+                                         "[N, N*m, base axes]")
+    parser.add_argument("--form", default="exact", choices=("exact", "first-order"),
+                        help="exact (default): the loaded robot reaches the plan; first-order: q - dtheta (Yang)")
+    parser.add_argument("--reference", default="unloaded", choices=("unloaded", "rigid"),
+                        help="what the plan means: the pose the robot reaches without the process load "
+                             "(default) or the rigid kinematic pose (removes gravity sag too)")
+    parser.add_argument("--krl", metavar="FILE", help="also write a KUKA KRL program (.src)")
+    parser.add_argument("--rapid", metavar="FILE", help="also write an ABB RAPID module (.mod)")
+    parser.add_argument("--validate", action="store_true",
+                        help="run the planned and compensated paths on the simulated cell (default truth) and "
+                             "report the tool-point errors")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def _parse_wrench(text: str) -> np.ndarray:
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 6:
+        raise InputError(f"expected 6 comma-separated numbers fx,fy,fz,mx,my,mz, got {len(parts)}", source="--wrench")
+    try:
+        w = np.array([float(p) for p in parts])
+    except ValueError:
+        raise InputError(f"not numbers: {text!r}", source="--wrench") from None
+    if not np.all(np.isfinite(w)):
+        raise InputError("values must be finite", source="--wrench")
+    return w
+
+
+def _stats(d: np.ndarray) -> dict:
+    n = np.linalg.norm(d, axis=1)
+    return {"rms": float(np.sqrt(np.mean(n ** 2))), "max": float(np.max(n)), "unit": "m"}
+
+
+def run(args: argparse.Namespace) -> int:
+    from elastocal.compensation.files import read_path, write_compensated_csv, write_krl, write_rapid
+    from elastocal.compensation.model import CompensationModel
+    from elastocal.compensation.trajectory import compensate_path, predicted_residual
+    from elastocal.identify.calibration import read_calibration
+    from elastocal.identify.robot import load_robot
+
+    robot = load_robot(args.robot)
+    cal = read_calibration(args.calibration)
+    model = CompensationModel.from_calibration(robot, cal, source=args.calibration)
+    planned = read_path(args.path, robot)
+    if args.wrench is not None and planned.wrench is not None:
+        raise InputError("the path has wrench columns fx..mz; give the wrench there or with --wrench, not both",
+                         source="--wrench")
+    if args.wrench is None and planned.wrench is None:
+        raise InputError("no process wrench: add fx..mz columns to the path or give --wrench "
+                         "(0,0,0,0,0,0 for none)", source=args.path)
+    wrench = planned.wrench if planned.wrench is not None else np.tile(_parse_wrench(args.wrench), (len(planned), 1))
+    result = compensate_path(model, planned.q, wrench, form=args.form, reference=args.reference)
+    outside = (result.q_command < robot.lower) | (result.q_command > robot.upper)
+    if np.any(outside):
+        i, j = (int(v) for v in np.argwhere(outside)[0])
+        raise InputError(f"the compensated q{j + 1} = {result.q_command[i, j]:.5f} rad leaves the joint limits",
+                         source=args.path, row=i + 2, column=f"q{j + 1}")
+    residual = predicted_residual(model, result)
+    write_compensated_csv(args.out, planned.t, result)
+    if args.krl:
+        write_krl(args.krl, planned.t, result)
+    if args.rapid:
+        write_rapid(args.rapid, planned.t, result)
+    obj = {"n": len(result), "form": result.form, "reference": result.reference, "out": args.out,
+           "deflection": _stats(result.tcp_deflection), "residual": _stats(residual),
+           "dtheta_max": {f"q{j + 1}": float(v) for j, v in enumerate(np.max(np.abs(result.dtheta), axis=0))},
+           "uses_gravity": model.uses_gravity, "uses_compensator": model.uses_compensator}
+    if args.krl:
+        obj["krl"] = args.krl
+    if args.rapid:
+        obj["rapid"] = args.rapid
+    if args.validate:
+        from elastocal.compensation.ik import PlannedPath
+        from elastocal.compensation.validate import validate_on_sim
+        from elastocal.sims.cell import CellTruth, SimCell
+
+        if robot.compensator is not None and robot.compensator.kind != "hydropneumatic":
+            raise InputError("--validate simulates the HH-150 cell (hydro-pneumatic compensator); this robot's "
+                             "compensator is a spring", source="--validate")
+        cell = SimCell(robot, CellTruth())
+        check = validate_on_sim(cell, model, PlannedPath(t=planned.t, q=planned.q), wrench, reference=args.reference)
+        obj["validation"] = check.summary()
+    if args.json:
+        print(json.dumps(obj))
+        return 0
+    mm = 1e3
+    print(f"{len(result)} points, {result.form} compensation, reference: {result.reference} pose")
+    print(f"  predicted tool deflection before compensation: max {obj['deflection']['max'] * mm:.3f} mm, "
+          f"rms {obj['deflection']['rms'] * mm:.3f} mm")
+    print(f"  predicted after compensation:                  max {obj['residual']['max'] * mm:.4f} mm")
+    print("  largest correction: " + ", ".join(
+        f"{k} {math.degrees(v):.4f} deg" for k, v in obj["dtheta_max"].items()))
+    if not model.uses_gravity:
+        print("  (the robot description has no link masses: gravity and compensator left out of the model)")
+    print(f"wrote {args.out}" + (f", {args.krl}" if args.krl else "") + (f", {args.rapid}" if args.rapid else ""))
+    if args.validate:
+        v = obj["validation"]
+        print("simulated cell (default truth), tool-point error along the path:")
+        for key, label in (("uncompensated", "planned path"), ("first_order", "first-order"), ("exact", "exact")):
+            print(f"  {label:<14} max {v[key]['max'] * mm:9.4f} mm   rms {v[key]['rms'] * mm:9.4f} mm")
+    return 0

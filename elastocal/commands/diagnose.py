@@ -1,0 +1,153 @@
+"""`elastocal diagnose`: where the model fails and which missing effect explains it (cli.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+
+from elastocal.commands._inputs import add_input_arguments, load_inputs
+from elastocal.errors import InputError
+from elastocal.identify.effects import parse_model
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_input_arguments(parser)
+
+
+def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str):
+    """(static Diagnosis or None, run Diagnosis or None) for the loaded inputs."""
+    from elastocal.identify.diagnose import diagnose_static
+
+    static = None
+    runs = None
+    if inputs.static is not None:
+        static = diagnose_static(inputs.robot, inputs.static, model=model, torque=torque, form=form)
+    if inputs.runs is not None:
+        from elastocal.identify.diagnose import diagnose_runs
+
+        stiffness = None
+        if static is not None:
+            stiffness = [p.value for p in static.fit.parameters if p.name.startswith("k")]
+            stiffness = stiffness if len(stiffness) == 6 else None
+        runs = diagnose_runs(inputs.robot, inputs.runs, model=model, stiffness=stiffness)
+    if static is None and runs is None:
+        raise InputError("nothing to diagnose: give a static table and/or runs", source="--static")
+    return static, runs
+
+
+def _um(x: float | None) -> str:
+    return "-" if x is None else f"{x * 1e6:.1f} µm"
+
+
+def _p(p: float | None) -> str:
+    if p is None:
+        return "-"
+    return "p < 1e-300" if p == 0.0 else f"p {p:.1g}"
+
+
+def identify_command(args: argparse.Namespace, model: tuple[str, ...]) -> str:
+    parts = ["elastocal", "identify"]
+    if getattr(args, "log", None):
+        parts.append(args.log)
+    for flag in ("robot", "static", "runs"):
+        value = getattr(args, flag, None)
+        if value:
+            parts += [f"--{flag}", value]
+    parts += ["--model", ",".join(model)]
+    if getattr(args, "torque", "current") != "current":
+        parts += ["--torque", args.torque]
+    if getattr(args, "form", "exact") != "exact":
+        parts += ["--form", args.form]
+    return " ".join(shlex.quote(p) for p in parts)
+
+
+def format_static(diag, args: argparse.Namespace) -> str:
+    fit = diag.fit
+    lines = [f"static: {', '.join(diag.model)} ({diag.torque}-based, {diag.form} form), "
+             f"{fit.n} deflection components"]
+    floor = fit.noise_floor
+    if floor is None:
+        lines.append(f"  residual {_um(fit.rms)} rms; no repeated readings, so the noise floor is unknown")
+    elif diag.verdict is not None:
+        lines.append(f"  residual {_um(fit.rms)} rms, noise floor {_um(floor)}: the model misses something.")
+    elif diag.unexplained:
+        lines.append(f"  residual {_um(fit.rms)} rms, noise floor {_um(floor)}: above the floor, "
+                     "and no candidate effect explains it.")
+    else:
+        lines.append(f"  residual {_um(fit.rms)} rms, noise floor {_um(floor)}: "
+                     "residual at the noise floor; no missing effect found.")
+    width = max([len(c.effect) for c in diag.candidates] + [10])
+    for k, c in enumerate(diag.candidates, start=1):
+        change = f"{fit.rms * 1e6:.1f} → {c.rms_after * 1e6:.1f} µm"
+        if c.significant:
+            words = f"ΔBIC {c.delta_bic:.0f}   {_p(c.p_value)}   {c.evidence}"
+        else:
+            words = f"not significant (ΔBIC {c.delta_bic:+.0f}, {_p(c.p_value)})"
+        lines.append(f"  {k}. {c.effect:<{width}}  {change:<20}  {words}")
+        if c.unidentifiable:
+            lines.append(f"     {' ' * width}  unidentifiable here: {', '.join(c.unidentifiable)} "
+                         f"(rank {c.rank} of {c.n_model_parameters}, condition number {c.condition_number:.3g})")
+    for u in diag.unexplained:
+        lines.append(f"  unexplained: {u}")
+    if diag.not_testable:
+        lines.append("  not testable from these data:")
+        for n in diag.not_testable:
+            lines.append(f"    {n.effect}: {n.reason}")
+    if diag.verdict is not None:
+        w = diag.where
+        pose = w.group("pose")
+        worst = sorted(range(len(pose.labels)), key=lambda i: -pose.rms[i])[:3]
+        lines.append("  where it fails: poses " + ", ".join(f"{pose.labels[i]} ({_um(pose.rms[i])})" for i in worst))
+        lines.append(f"  add it: {identify_command(args, (*diag.model, diag.verdict))}")
+    return "\n".join(lines)
+
+
+def format_runs(diag, args: argparse.Namespace) -> str:
+    lines = [f"runs: {', '.join(diag.model)}, {diag.n} torque samples"]
+    if diag.residual_rms is not None:
+        lines.append(f"  torque residual {diag.residual_rms:.3g} N*m rms over the parts tested")
+    width = max([len(c.effect) for c in diag.candidates] + [10])
+    for k, c in enumerate(diag.candidates, start=1):
+        change = f"{c.rms_before:.3g} → {c.rms_after:.3g} N*m"
+        if c.significant:
+            words = f"ΔBIC {c.delta_bic:.0f}   {_p(c.p_value)}   {c.evidence}"
+        else:
+            words = f"not significant (ΔBIC {c.delta_bic:+.0f}, {_p(c.p_value)})"
+        lines.append(f"  {k}. {c.effect:<{width}}  {change:<24}  {words}")
+    if diag.verdict is None:
+        lines.append("  no missing effect found in the run data.")
+    if diag.not_testable:
+        lines.append("  not testable from these runs:")
+        for n in diag.not_testable:
+            lines.append(f"    {n.effect}: {n.reason}")
+    if diag.verdict is not None:
+        lines.append(f"  add it: {identify_command(args, (*diag.model, diag.verdict))}")
+    return "\n".join(lines)
+
+
+def diagnosis_json(static, runs) -> dict:
+    """The ``diagnose --json`` object: the static diagnosis (cli.md) when there
+    is one, with the run diagnosis under ``runs``; the run diagnosis alone otherwise."""
+    if static is not None:
+        obj = static.to_json()
+        if runs is not None:
+            obj["runs"] = runs.to_json()
+        return obj
+    return runs.to_json()
+
+
+def run(args: argparse.Namespace) -> int:
+    inputs = load_inputs(args)
+    model = parse_model(args.model)
+    static, runs = diagnose_inputs(inputs, model, args.torque, args.form)
+    if args.json:
+        print(json.dumps(diagnosis_json(static, runs)))
+        return 0
+    out = [f"{inputs.robot.name}"]
+    if static is not None:
+        out.append(format_static(static, args))
+    if runs is not None:
+        out.append(format_runs(runs, args))
+    print("\n".join(out))
+    return 0

@@ -1,0 +1,315 @@
+"""Gravity-compensator parameters from joint-2 currents over a sweep (Yang §4.1, Klimchik §III).
+
+Joint 2 moves slowly through a range, forward and backward, the other joints
+held. At one q2 the load torque joint 2 carries is the same both ways and
+friction changes sign (formats.md sign: ``xi i = tau_load - f sign(dq)``), so
+the mean of the two directions is friction-free::
+
+    xi2 (i_fwd + i_bwd)/2 = tau2_load = [J^T W]_2 - g2(theta) - M(q2)
+
+``M`` is the compensator's balancing torque (Y31-32): hydro-pneumatic
+``M = C b sqrt(a^2+h^2) cos(alpha - q2) / (l (l_c - l))`` (Y11, Y34) or spring
+``M = K_c (1 - s0/s) a L sin(alpha - q2)`` (K7); formulas and geometry are the
+robot description's :class:`~elastocal.identify.robot.CompensatorSpec`.
+
+Gravity ``g2`` comes either from the robot model (link masses in robot.toml,
+Pinocchio RNEA) or, when the masses are unknown, is identified at the same
+time: ``g(theta) = Y(theta) pi`` is linear in the links' inertial parameters
+(Pinocchio's joint-torque regressor at zero speed and acceleration); only the
+combinations the sweeps excite are kept (an SVD of the stacked joint-2 rows).
+One sweep excites two of them (the distal body's mass moment about axis 2);
+sweeps at two or more q3 separate link 2's from link 3's. The compensator is
+then told apart from gravity only by the shape of ``M(q2)``, which is not a
+sinusoid of q2: wide sweeps (about 120 degrees or more) are needed, and the
+reported standard deviations say how well it worked.
+
+All fits are least squares on the friction-free mean torques, with the
+covariance ``s^2 (J^T J)^-1`` from the residuals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import pinocchio as pin
+from scipy.optimize import least_squares
+
+from elastocal.errors import InputError, UnidentifiableError
+from elastocal.identify.robot import LOAD_FRAME, Robot
+
+#: relative singular value below which a gravity combination counts as not excited
+GRAVITY_RANK_TOL = 1e-8
+
+
+@dataclass(frozen=True, eq=False)
+class SweepMeans:
+    """Friction-free joint-2 torque along the forward/backward sweeps."""
+
+    theta: np.ndarray        # (n, 6) link-side configuration at each forward sample
+    q2: np.ndarray           # (n,) compensator coordinate (link-side q2) [rad]
+    torque: np.ndarray       # (n,) xi2 (i_fwd + i_bwd)/2 [N·m]
+    friction: np.ndarray     # (n,) xi2 (i_bwd - i_fwd)/2 at forward speed: joint-2 friction [N·m]
+    wrench: np.ndarray       # (n, 6) external wrench on the load point [N, N·m]
+    sweep: np.ndarray        # (n,) index of the sweep (same held joints and load)
+
+
+@dataclass(frozen=True, eq=False)
+class CompensatorFit:
+    """Identified compensator parameters (C, l_c or K_c, s0)."""
+
+    kind: str                        # "hydropneumatic" or "spring"
+    names: tuple[str, str]
+    units: tuple[str, str]
+    values: np.ndarray               # (2,)
+    covariance: np.ndarray           # (2, 2)
+    gravity: str                     # "model" (robot masses) or "identified"
+    gravity_values: np.ndarray       # (r,) excited gravity combinations [N·m]; empty with "model"
+    gravity_covariance: np.ndarray   # (r, r)
+    q2: np.ndarray                   # (n,) [rad]
+    balancing_torque: np.ndarray     # (n,) M measured: tau2^0 - xi2 i2 with gravity as used [N·m]
+    residuals: np.ndarray            # (n,) measured minus modelled joint-2 torque [N·m]
+    friction: np.ndarray             # (n,) joint-2 friction torque along the sweeps [N·m]
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance))
+
+    @property
+    def rms(self) -> float:
+        return float(np.sqrt(np.mean(self.residuals ** 2)))
+
+    def parameters(self) -> dict[str, dict[str, float | str]]:
+        """formats.md §4 entries for the compensator parameters."""
+        return {n: {"value": float(v), "std": float(s), "unit": u}
+                for n, v, s, u in zip(self.names, self.values, self.std, self.units)}
+
+
+# --------------------------------------------------------------- sweep means
+#: held joints of two runs closer than this belong to one sweep [rad]
+HELD_TOL_RAD = 1e-3
+
+
+def _sweep_groups(q: np.ndarray, direction: np.ndarray, load: np.ndarray, run: np.ndarray) -> list[np.ndarray]:
+    """Sample indices of each sweep: the ``+``/``-`` runs with the same load whose
+    held joints (all but joint 2) agree within HELD_TOL_RAD."""
+    held = np.delete(q, 1, axis=1)
+    groups: list[tuple[str, np.ndarray, list[int]]] = []
+    for r in dict.fromkeys(run[np.isin(direction, ("+", "-"))]):
+        idx = np.flatnonzero(run == r)
+        ld, h = str(load[idx[0]]), np.median(held[idx], axis=0)
+        for g_load, g_held, members in groups:
+            if g_load == ld and np.max(np.abs(g_held - h)) < HELD_TOL_RAD:
+                members.extend(idx.tolist())
+                break
+        else:
+            groups.append((ld, h, idx.tolist()))
+    return [np.array(members) for _, _, members in groups]
+
+
+def _contiguous_runs(q: np.ndarray, direction: np.ndarray, load: np.ndarray) -> np.ndarray:
+    """Run labels from contiguous samples of one direction, load and held configuration."""
+    held = np.delete(q, 1, axis=1)
+    new = np.ones(len(q), dtype=bool)
+    new[1:] = ((direction[1:] != direction[:-1]) | (load[1:] != load[:-1])
+               | (np.max(np.abs(np.diff(held, axis=0)), axis=1) >= HELD_TOL_RAD))
+    return np.cumsum(new).astype(str)
+
+
+def sweep_means(robot: Robot, q: np.ndarray, currents: np.ndarray, direction: np.ndarray, load: np.ndarray,
+                wrench: np.ndarray | None = None, *, run: np.ndarray | None = None,
+                stiffness: Sequence[float] | None = None, source: str | None = None) -> SweepMeans:
+    """Pair forward (``+``) and backward (``-``) samples of each sweep at equal q2.
+
+    Runs (``run`` labels; default: contiguous samples of one direction, load
+    and held configuration) with the
+    same held joints (all but joint 2, within 1 mrad) and the same load form one
+    sweep. The backward torque is interpolated in q2 at the forward
+    samples inside the common range. ``stiffness`` (6,) [N·m/rad], when given,
+    puts the joints at their deflected angles ``q + offset + xi i / k``.
+    """
+    q = np.asarray(q, dtype=float)
+    currents = np.asarray(currents, dtype=float)
+    direction = np.asarray(direction, dtype=str)
+    load = np.asarray(load, dtype=str)
+    n = len(q)
+    w = np.zeros((n, 6)) if wrench is None else np.array(wrench, dtype=float)
+    unknown = ~np.all(np.isfinite(w), axis=1)
+    if np.any(unknown & (load != "0")):
+        bad = int(np.flatnonzero(unknown & (load != "0"))[0])
+        raise InputError(f"load {load[bad]} has no wrench; the sweep model needs the payload's wrench "
+                         "(fx..mz) or load 0", source=source, column="fx")
+    w[unknown] = 0.0
+    xi = robot.torque_constants
+    run = _contiguous_runs(q, direction, load) if run is None else np.asarray(run, dtype=str)
+    groups = _sweep_groups(q, direction, load, run)
+    theta, q2s, torque, friction, wrenches, sweep = [], [], [], [], [], []
+    for g, idx in enumerate(groups):
+        fwd = idx[direction[idx] == "+"]
+        bwd = idx[direction[idx] == "-"]
+        if len(fwd) < 2 or len(bwd) < 2:
+            continue
+        if not (np.all(np.isfinite(currents[fwd, 1])) and np.all(np.isfinite(currents[bwd, 1]))):
+            raise InputError("a joint-2 sweep has empty currents; the compensator needs i2", source=source,
+                             column="i2")
+        tau_f = xi[1] * currents[fwd, 1]
+        tau_b = xi[1] * currents[bwd, 1]
+        qb = q[bwd, 1]
+        order = np.argsort(qb, kind="stable")
+        qb, tb = qb[order], tau_b[order]
+        inside = (q[fwd, 1] >= qb[0]) & (q[fwd, 1] <= qb[-1])
+        fwd, tau_f = fwd[inside], tau_f[inside]
+        tb_at = np.interp(q[fwd, 1], qb, tb)
+        mean = (tau_f + tb_at) / 2.0
+        th = robot.theta(q[fwd])
+        if stiffness is not None:
+            k = np.asarray(stiffness, dtype=float)
+            i_mean = currents[fwd].copy()
+            i_mean[:, 1] = mean / xi[1]
+            th = th + xi * i_mean / k
+        theta.append(th)
+        q2s.append(th[:, 1] - robot.joints[1].offset)
+        torque.append(mean)
+        friction.append((tb_at - tau_f) / 2.0)
+        wrenches.append(w[fwd])
+        sweep.append(np.full(len(fwd), g))
+    if not torque:
+        raise InputError("no joint-2 sweep run both forward (+) and backward (-) under the same load and "
+                         "held joints", source=source, column="direction")
+    return SweepMeans(theta=np.vstack(theta), q2=np.concatenate(q2s), torque=np.concatenate(torque),
+                      friction=np.concatenate(friction), wrench=np.vstack(wrenches), sweep=np.concatenate(sweep))
+
+
+# --------------------------------------------------------------- the fit
+def _external_torque2(robot: Robot, theta: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+    out = np.zeros(len(theta))
+    nz = np.any(wrench != 0.0, axis=1)
+    for k in np.flatnonzero(nz):
+        jac = robot.jacobians(theta[k], [LOAD_FRAME])[0]
+        out[k] = (jac.T @ wrench[k])[1]
+    return out
+
+
+def _gravity_regressor2(robot: Robot, theta: np.ndarray) -> np.ndarray:
+    """Joint-2 rows of Pinocchio's torque regressor at rest: g2 = Y2 pi."""
+    model = robot.model
+    data = model.createData()
+    zero = np.zeros(model.nv)
+    return np.array([pin.computeJointTorqueRegressor(model, data, th, zero, zero)[1].copy() for th in theta])
+
+
+def _excited_basis(regressor: np.ndarray) -> np.ndarray:
+    scale = np.linalg.norm(regressor, axis=0)
+    used = scale > 0
+    _, s, vt = np.linalg.svd(regressor[:, used], full_matrices=False)
+    rank = int(np.sum(s > GRAVITY_RANK_TOL * s[0])) if s.size and s[0] > 0 else 0
+    basis = np.zeros((regressor.shape[1], rank))
+    basis[used] = vt[:rank].T
+    return basis
+
+
+def _linear_start(spec, q2: np.ndarray, y: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Starting parameters: exact linear LS for the spring; a scan of l_c with C
+    linear for the hydro-pneumatic compensator."""
+    if spec.kind == "spring":
+        a, big_l, alpha = spec.geo("a"), spec.geo("L"), spec.geo("alpha")
+        g = a * big_l * np.sin(alpha - q2)
+        s = spec.spring_length(q2)
+        x = np.column_stack([-g, g / s, -phi]) if phi.size else np.column_stack([-g, g / s])
+        beta, *_ = np.linalg.lstsq(x, y, rcond=None)
+        kc = beta[0]
+        return np.array([kc, beta[1] / kc if kc != 0 else 0.0])
+    length = spec.hydro_length(q2)
+    l_max = float(np.max(length))
+    best = (np.inf, None)
+    for gap in np.geomspace(1e-3, 5.0, 400):
+        lc = l_max + gap
+        h = spec.torque(q2, (1.0, lc))
+        x = np.column_stack([-h, -phi]) if phi.size else h[:, None] * -1.0
+        beta, *_ = np.linalg.lstsq(x, y, rcond=None)
+        rss = float(np.sum((y - x @ beta) ** 2))
+        if rss < best[0]:
+            best = (rss, np.array([beta[0], lc]))
+    return best[1]
+
+
+def identify_compensator(robot: Robot, means: SweepMeans, *, gravity: str = "model",
+                         initial: Sequence[float] | None = None) -> CompensatorFit:
+    """Compensator parameters from friction-free sweep torques.
+
+    ``gravity="model"``: g2 from the robot's link masses (they must be given);
+    ``gravity="identify"``: the excited gravity combinations are fitted too.
+    """
+    spec = robot.compensator
+    if spec is None:
+        raise InputError("the robot description has no [compensator]", source=robot.source)
+    if gravity not in ("model", "identify"):
+        raise ValueError("gravity must be 'model' or 'identify'")
+    if gravity == "model" and not robot.has_masses:
+        raise InputError("the robot description gives no link masses: identify the gravity with the "
+                         "compensator (sweeps at two or more q3)", source=robot.source)
+    theta, q2, meas = means.theta, means.q2, means.torque
+    ext = _external_torque2(robot, theta, means.wrench)
+    if gravity == "model":
+        g2 = np.array([robot.gravity_torque(th)[1] for th in theta])
+        y = meas - ext + g2              # = -M(q2)
+        phi = np.zeros((len(q2), 0))
+    else:
+        reg = _gravity_regressor2(robot, theta)
+        basis = _excited_basis(reg)
+        phi = reg @ basis                 # g2 = phi beta
+        y = meas - ext                    # = -phi beta - M(q2)
+    n_grav = phi.shape[1]
+    start = np.asarray(initial, dtype=float) if initial is not None else _linear_start(spec, q2, y, phi)
+    if n_grav:
+        rest = y + spec.torque(q2, start)
+        beta0, *_ = np.linalg.lstsq(-phi, rest, rcond=None)
+        start = np.concatenate([start, beta0])
+    if len(q2) <= 2 + n_grav:
+        raise UnidentifiableError(f"{len(q2)} sweep samples cannot determine {2 + n_grav} parameters")
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        return y - (-spec.torque(q2, x[:2]) - phi @ x[2:])
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        return np.column_stack([spec.torque_derivatives(q2, x[:2]), phi])
+
+    lower = np.full(2 + n_grav, -np.inf)
+    if spec.kind == "hydropneumatic":
+        lower[1] = float(np.max(spec.hydro_length(q2))) + 1e-6
+    sol = least_squares(residual, np.maximum(start, lower + 1e-9), jac=jacobian, bounds=(lower, np.inf),
+                        x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
+    res = sol.fun
+    jac = jacobian(sol.x)
+    dof = len(res) - len(sol.x)
+    s2 = float(res @ res) / dof
+    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    if not np.all(np.isfinite(cov[:2, :2])) or np.linalg.cond(jac / np.linalg.norm(jac, axis=0)) > 1e10:
+        raise UnidentifiableError("the sweeps cannot separate the compensator from gravity; sweep joint 2 "
+                                  "over a wider range")
+    balancing = -(y + phi @ sol.x[2:])  # measured M: tau2^0 - xi2 i2 with the gravity used
+    units = tuple(spec.parameter_units[n] for n in spec.parameter_names)
+    return CompensatorFit(kind=spec.kind, names=spec.parameter_names, units=units, values=sol.x[:2].copy(),
+                          covariance=cov[:2, :2].copy(), gravity="model" if gravity == "model" else "identified",
+                          gravity_values=sol.x[2:].copy(), gravity_covariance=cov[2:, 2:].copy(), q2=q2,
+                          balancing_torque=balancing, residuals=res.copy(), friction=means.friction)
+
+
+def compensator_from_run_table(robot: Robot, table, *, gravity: str = "auto",
+                               stiffness: Sequence[float] | None = None) -> CompensatorFit:
+    """:func:`identify_compensator` on the ``+``/``-`` sweeps of a run table.
+
+    ``gravity="auto"`` uses the robot's link masses when it has them and
+    identifies the gravity otherwise.
+    """
+    if gravity == "auto":
+        gravity = "model" if robot.has_masses else "identify"
+    sweeps = np.isin(table.direction, ("+", "-"))
+    if not np.any(sweeps):
+        raise InputError("the table has no joint-2 sweeps (direction + and -)", source=table.source,
+                         column="direction")
+    sub = table.subset(sweeps)
+    means = sweep_means(robot, sub.q, sub.currents, sub.direction, sub.load, sub.wrench, run=sub.run,
+                        stiffness=stiffness, source=table.source)
+    return identify_compensator(robot, means, gravity=gravity)

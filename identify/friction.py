@@ -1,0 +1,302 @@
+"""Joint friction from UV/VU runs (Yang §6, eq. 48, and beyond).
+
+The same slow path is run forward (UV) and backward (VU). At one point of the
+path the load torque a joint carries is the same both ways, friction opposes
+the motion and so changes sign (formats.md sign: ``xi i = tau_load - f``)::
+
+    xi (i_UV - i_VU) / 2 = -sign(dq_UV) f          (Y48, in torque)
+    xi (i_UV + i_VU) / 2 = tau_load
+
+with the friction model, per joint,
+
+    f = fc + fv |dq| + fl |tau_load|               (Coulomb, viscous, load-dependent)
+
+``fv`` needs runs at two or more speeds, ``fl`` runs at two or more load
+levels; both are linear, so each joint is one small least-squares problem on
+the matched UV/VU samples, with the parameter covariance from the residuals.
+No robot model is needed: gravity, payload and compensator cancel in the
+half-difference.
+
+A term the data cannot separate (one speed only, say) is left out for that
+joint (its value NaN, listed in :attr:`FrictionFit.unidentified`), never
+guessed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from elastocal.errors import InputError
+
+#: friction terms, their parameter prefixes (formats.md §4) and units
+FRICTION_TERMS = ("coulomb", "viscous", "load_dependent")
+TERM_PREFIX = {"coulomb": "fc", "viscous": "fv", "load_dependent": "fl"}
+TERM_UNIT = {"coulomb": "N*m", "viscous": "N*m*s/rad", "load_dependent": "1"}
+#: effect names of cli.md for each term
+TERM_EFFECT = {"coulomb": "coulomb_friction", "viscous": "viscous_friction",
+               "load_dependent": "load_dependent_friction"}
+#: a scaled design worse conditioned than this cannot separate its terms
+MAX_CONDITION = 1e4
+
+
+@dataclass(frozen=True, eq=False)
+class PathMatch:
+    """Where each point of path A lies on the polyline of path B."""
+
+    index: np.ndarray      # (n,) segment start in B
+    fraction: np.ndarray   # (n,) position on the segment, 0..1
+    distance: np.ndarray   # (n,) joint-space distance from the polyline [rad]
+
+    def interpolate(self, values_b: np.ndarray) -> np.ndarray:
+        v = np.asarray(values_b, dtype=float)
+        f = self.fraction.reshape((-1,) + (1,) * (v.ndim - 1))
+        return (1.0 - f) * v[self.index] + f * v[self.index + 1]
+
+
+def match_path(q_a: np.ndarray, q_b: np.ndarray) -> PathMatch:
+    """Project each sample of ``q_a`` (n, d) on the polyline through ``q_b`` (m, d)."""
+    qa = np.asarray(q_a, dtype=float)
+    qb = np.asarray(q_b, dtype=float)
+    if len(qb) < 2:
+        raise InputError("a run needs at least 2 samples to be matched")
+    _, nearest = cKDTree(qb).query(qa)
+    best_idx = np.zeros(len(qa), dtype=int)
+    best_frac = np.zeros(len(qa))
+    best_dist = np.full(len(qa), np.inf)
+    for seg_start in (nearest - 1, nearest):
+        k = np.clip(seg_start, 0, len(qb) - 2)
+        p0, p1 = qb[k], qb[k + 1]
+        d = p1 - p0
+        dd = np.einsum("ij,ij->i", d, d)
+        frac = np.where(dd > 0, np.einsum("ij,ij->i", qa - p0, d) / np.where(dd > 0, dd, 1.0), 0.0)
+        frac = np.clip(frac, 0.0, 1.0)
+        dist = np.linalg.norm(qa - (p0 + frac[:, None] * d), axis=1)
+        better = dist < best_dist
+        best_idx[better], best_frac[better], best_dist[better] = k[better], frac[better], dist[better]
+    return PathMatch(index=best_idx, fraction=best_frac, distance=best_dist)
+
+
+@dataclass(frozen=True, eq=False)
+class FrictionSamples:
+    """Matched UV/VU samples: the half difference and half sum of Y48, in torque."""
+
+    friction: np.ndarray   # (n, 6) -sign(dq_UV) xi (i_UV - i_VU)/2 [N·m]; NaN where the joint does not move
+    speed: np.ndarray      # (n, 6) (|dq_UV| + |dq_VU|)/2 [rad/s]
+    load_torque: np.ndarray  # (n, 6) xi (i_UV + i_VU)/2 [N·m]
+    pair: np.ndarray       # (n,) index of the UV/VU pair
+    pairs: tuple[tuple[str, str], ...]  # (UV run, VU run)
+
+
+@dataclass(frozen=True, eq=False)
+class FrictionFit:
+    """Per-joint friction parameters with their covariance."""
+
+    terms: tuple[str, ...]           # fitted terms, order of values' columns
+    values: np.ndarray               # (6, len(terms)); NaN where not identified
+    covariance: np.ndarray           # (6, len(terms), len(terms))
+    n: np.ndarray                    # (6,) matched samples used per joint
+    residual_rms: np.ndarray         # (6,) [N·m]; NaN for a joint that did not move
+    samples: FrictionSamples
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.einsum("jii->ji", self.covariance))
+
+    def term(self, name: str) -> np.ndarray:
+        """Values (6,) of one term; NaN where not fitted or not identified."""
+        if name not in self.terms:
+            return np.full(6, np.nan)
+        return self.values[:, self.terms.index(name)]
+
+    @property
+    def coulomb(self) -> np.ndarray:
+        return self.term("coulomb")
+
+    @property
+    def viscous(self) -> np.ndarray:
+        return self.term("viscous")
+
+    @property
+    def load_dependent(self) -> np.ndarray:
+        return self.term("load_dependent")
+
+    @property
+    def unidentified(self) -> tuple[str, ...]:
+        """Parameter names (fc1, fv3, ...) the data could not determine."""
+        out = []
+        for k, term in enumerate(self.terms):
+            for j in range(6):
+                if not np.isfinite(self.values[j, k]):
+                    out.append(f"{TERM_PREFIX[term]}{j + 1}")
+        return tuple(out)
+
+    def parameters(self) -> dict[str, dict[str, float | str]]:
+        """Identified parameters under formats.md §4 names (fc1.., fv1.., fl1..)."""
+        out: dict[str, dict[str, float | str]] = {}
+        std = self.std
+        for k, term in enumerate(self.terms):
+            for j in range(6):
+                if np.isfinite(self.values[j, k]):
+                    out[f"{TERM_PREFIX[term]}{j + 1}"] = {"value": float(self.values[j, k]),
+                                                          "std": float(std[j, k]), "unit": TERM_UNIT[term]}
+        return out
+
+    def torque(self, dq: np.ndarray, load_torque: np.ndarray) -> np.ndarray:
+        """Friction torque ``sign(dq) (fc + fv |dq| + fl |tau|)`` (n, 6) with the
+        identified terms (unidentified ones count as zero)."""
+        dq = np.atleast_2d(dq)
+        tau = np.atleast_2d(load_torque)
+        size = np.zeros_like(dq, dtype=float)
+        for name, x in (("coulomb", np.ones_like(dq)), ("viscous", np.abs(dq)), ("load_dependent", np.abs(tau))):
+            size += np.nan_to_num(self.term(name))[None, :] * x
+        return np.sign(dq) * size
+
+
+def _run_speed(dq: np.ndarray) -> float:
+    return float(np.median(np.max(np.abs(dq), axis=1)))
+
+
+def _finite_difference_speed(q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    if len(q) < 2 or np.any(np.diff(t) <= 0):
+        raise InputError("a run without dq columns needs increasing times to derive the joint speeds")
+    return np.gradient(q, t, axis=0)
+
+
+def pair_runs(run: np.ndarray, direction: np.ndarray, load: np.ndarray, dq: np.ndarray,
+              *, source: str | None = None) -> tuple[tuple[str, str], ...]:
+    """Pair each UV run with the VU run of the same load whose speed is closest."""
+    run = np.asarray(run, dtype=str)
+    uv_runs = [r for r in dict.fromkeys(run[direction == "UV"])]
+    vu_runs = [r for r in dict.fromkeys(run[direction == "VU"])]
+    if not uv_runs:
+        raise InputError("no UV runs: friction needs the same path run forward (UV) and backward (VU)",
+                         source=source, column="direction")
+    pairs = []
+    for r in uv_runs:
+        rm = run == r
+        ld = load[rm][0]
+        candidates = [v for v in vu_runs if load[run == v][0] == ld]
+        if not candidates:
+            raise InputError(f"UV run {r} (load {ld}) has no VU run under the same load", source=source,
+                             column="run")
+        speed = _run_speed(dq[rm])
+        best = min(candidates, key=lambda v: abs(np.log(max(_run_speed(dq[run == v]), 1e-12) / max(speed, 1e-12))))
+        pairs.append((r, best))
+    return tuple(pairs)
+
+
+def friction_samples(q: np.ndarray, dq: np.ndarray, currents: np.ndarray, run: np.ndarray, direction: np.ndarray,
+                     load: np.ndarray, torque_constants: Sequence[float], *, t: np.ndarray | None = None,
+                     min_speed_rad_s: float = 1e-3, source: str | None = None) -> FrictionSamples:
+    """Match the UV and VU runs point by point along the path (Y48)."""
+    q = np.asarray(q, dtype=float)
+    currents = np.asarray(currents, dtype=float)
+    run = np.asarray(run, dtype=str)
+    direction = np.asarray(direction, dtype=str)
+    load = np.asarray(load, dtype=str)
+    xi = np.asarray(torque_constants, dtype=float)
+    dq = np.array(dq, dtype=float)
+    for r in dict.fromkeys(run):
+        rm = run == r
+        if not np.all(np.isfinite(dq[rm])):
+            if t is None:
+                raise InputError(f"run {r} has no joint speeds", source=source, column="dq1")
+            dq[rm] = _finite_difference_speed(q[rm], np.asarray(t, dtype=float)[rm])
+    pairs = pair_runs(run, direction, load, dq, source=source)
+    fr, sp, tl, pair_idx = [], [], [], []
+    for k, (ru, rv) in enumerate(pairs):
+        mu, mv = run == ru, run == rv
+        if not np.all(np.isfinite(currents[mu])) or not np.all(np.isfinite(currents[mv])):
+            raise InputError(f"runs {ru}/{rv} have empty currents; friction needs i1..i6", source=source,
+                             column="i1")
+        qv = q[mv]
+        match = match_path(q[mu], qv)
+        spacing = float(np.median(np.linalg.norm(np.diff(qv, axis=0), axis=1)))
+        on_path = match.distance <= 3.0 * spacing + 1e-6
+        i_u, d_u = currents[mu][on_path], dq[mu][on_path]
+        sub = PathMatch(match.index[on_path], match.fraction[on_path], match.distance[on_path])
+        i_v, d_v = sub.interpolate(currents[mv]), sub.interpolate(dq[mv])
+        s = np.sign(d_u)
+        moving = (np.abs(d_u) >= min_speed_rad_s) & (np.abs(d_v) >= min_speed_rad_s) & (np.sign(d_v) == -s)
+        half_diff = -s * xi * (i_u - i_v) / 2.0
+        fr.append(np.where(moving, half_diff, np.nan))
+        sp.append(np.where(moving, (np.abs(d_u) + np.abs(d_v)) / 2.0, np.nan))
+        tl.append(xi * (i_u + i_v) / 2.0)
+        pair_idx.append(np.full(len(i_u), k))
+    return FrictionSamples(friction=np.vstack(fr), speed=np.vstack(sp), load_torque=np.vstack(tl),
+                           pair=np.concatenate(pair_idx), pairs=pairs)
+
+
+def _fit_joint(y: np.ndarray, columns: list[np.ndarray], names: list[str]) -> tuple[dict, dict, float]:
+    """Least squares with terms dropped while the scaled design cannot separate them."""
+    keep = list(range(len(columns)))
+    while True:
+        x = np.column_stack([columns[k] for k in keep])
+        scale = np.linalg.norm(x, axis=0)
+        scale[scale == 0] = 1.0
+        xs = x / scale
+        cond = np.linalg.cond(xs) if len(keep) > 1 else 1.0
+        if cond <= MAX_CONDITION or len(keep) == 1:
+            break
+        # drop the term best explained by the others (largest variance inflation)
+        inv = np.linalg.pinv(xs.T @ xs)
+        worst = max(range(1, len(keep)), key=lambda c: inv[c, c])  # never drop Coulomb (column 0)
+        keep.pop(worst)
+    beta, *_ = np.linalg.lstsq(xs, y, rcond=None)
+    beta = beta / scale
+    res = y - x @ beta
+    dof = len(y) - len(keep)
+    s2 = float(res @ res) / dof if dof > 0 else np.nan
+    cov = s2 * np.linalg.pinv(x.T @ x)
+    values = {names[k]: float(beta[i]) for i, k in enumerate(keep)}
+    covs = {(names[a], names[b]): float(cov[i, j]) for i, a in enumerate(keep) for j, b in enumerate(keep)}
+    return values, covs, float(np.sqrt(np.mean(res ** 2)))
+
+
+def identify_friction(samples: FrictionSamples, *, terms: Sequence[str] = FRICTION_TERMS,
+                      min_samples: int = 5) -> FrictionFit:
+    """Per-joint friction ``fc + fv |dq| + fl |tau|`` from matched UV/VU samples."""
+    terms = tuple(terms)
+    for term in terms:
+        if term not in FRICTION_TERMS:
+            raise InputError(f"unknown friction term {term!r}; one of {', '.join(FRICTION_TERMS)}")
+    if "coulomb" not in terms:
+        raise InputError("the friction model needs the Coulomb term")
+    terms = tuple(t for t in FRICTION_TERMS if t in terms)
+    nt = len(terms)
+    values = np.full((6, nt), np.nan)
+    cov = np.full((6, nt, nt), np.nan)
+    n = np.zeros(6, dtype=int)
+    rms = np.full(6, np.nan)
+    for j in range(6):
+        ok = np.isfinite(samples.friction[:, j])
+        n[j] = int(ok.sum())
+        if n[j] < max(min_samples, nt + 1):
+            continue
+        y = samples.friction[ok, j]
+        cols = {"coulomb": np.ones(n[j]), "viscous": samples.speed[ok, j],
+                "load_dependent": np.abs(samples.load_torque[ok, j])}
+        vals, covs, rms[j] = _fit_joint(y, [cols[t] for t in terms], list(terms))
+        for a, ta in enumerate(terms):
+            if ta in vals:
+                values[j, a] = vals[ta]
+                for b, tb in enumerate(terms):
+                    if tb in vals:
+                        cov[j, a, b] = covs[(ta, tb)]
+    return FrictionFit(terms=terms, values=values, covariance=cov, n=n, residual_rms=rms, samples=samples)
+
+
+def friction_from_run_table(table, torque_constants: Sequence[float], *, terms: Sequence[str] = FRICTION_TERMS,
+                            min_speed_rad_s: float = 1e-3) -> FrictionFit:
+    """:func:`identify_friction` on the UV/VU runs of a run table (formats.md §3)."""
+    uvvu = np.isin(table.direction, ("UV", "VU"))
+    if not np.any(uvvu):
+        raise InputError("the table has no UV/VU runs", source=table.source, column="direction")
+    sub = table.subset(uvvu)
+    samples = friction_samples(sub.q, sub.dq, sub.currents, sub.run, sub.direction, sub.load, torque_constants,
+                               t=sub.t, min_speed_rad_s=min_speed_rad_s, source=table.source)
+    return identify_friction(samples, terms=terms)

@@ -1,0 +1,248 @@
+"""Simulated CiA 402 drives: canopen ``LocalNode`` s on a timed CAN bus.
+
+Each :class:`SimCanopenDrive` is a ``canopen.LocalNode`` built from the
+packaged EDS (``elastocal_drive.eds``): it answers SDO with the live values of
+its joint (position 0x6064, velocity 0x606C, torque 0x6077, current 0x6078,
+statusword 0x6041, error code 0x603F), runs the CiA 402 state machine on
+controlword 0x6040 writes, sends EMCY on a fault, and on every SYNC transmits
+its enabled synchronous TPDOs (canopen's LocalNode does not do that by itself:
+:class:`SimCanopenNetwork` subscribes to SYNC, takes one
+:meth:`~elastocal.sims.world.SimWorld.sample` of the world per SYNC and calls
+``PdoMap.transmit()`` for each node).
+
+Units on the wire, as a real drive: position in encoder increments
+(0x608F increments per motor revolution, 0x6091 motor revolutions per joint
+revolution), velocity in increments/s, current in per-mille of the rated
+current 0x6075 (mA), torque in per-mille of the rated motor torque 0x6076 (mN·m).
+
+Fault injection (tests): :meth:`SimCanopenDrive.go_silent`,
+:meth:`~SimCanopenDrive.fault`, :meth:`~SimCanopenDrive.send_malformed`,
+:meth:`~SimCanopenDrive.disable`.
+"""
+
+from __future__ import annotations
+
+import math
+import pathlib
+import threading
+import time
+from importlib import resources
+from typing import Sequence
+
+import can
+import canopen
+import numpy as np
+
+from elastocal.sims.canbus import BusStats, SimCanBus
+from elastocal.sims.world import SimWorld, WorldSample
+
+SW_SWITCH_ON_DISABLED = 0x0250
+SW_READY_TO_SWITCH_ON = 0x0231
+SW_SWITCHED_ON = 0x0233
+SW_OPERATION_ENABLED = 0x0237
+SW_FAULT = 0x0218
+
+
+def eds_path() -> pathlib.Path:
+    """The packaged EDS file of the simulated drive."""
+    return pathlib.Path(str(resources.files("elastocal.sims") / "elastocal_drive.eds"))
+
+
+class SimCanopenDrive:
+    """One simulated CiA 402 drive (node ``node_id``) for joint ``joint`` of ``world``."""
+
+    def __init__(self, node_id: int, joint: int, world: SimWorld, *, gear_ratio: float = 100.0,
+                 rated_current_ma: int = 10000, rated_torque_mnm: int = 20000,
+                 encoder_increments: int = 2**20, serial: int = 0, tpdo2: bool = False) -> None:
+        self.node_id = node_id
+        self.joint = joint
+        self.world = world
+        self.node = canopen.LocalNode(node_id, str(eds_path()))
+        self._lock = threading.Lock()
+        self._state = SW_OPERATION_ENABLED
+        self._error_code = 0
+        self._silent_until = 0.0
+        self._malformed = 0
+        self._last_controlword = 0
+        self.gear_num = int(round(gear_ratio * 100))
+        self.gear_den = 100
+        self.rated_current_ma = int(rated_current_ma)
+        self.rated_torque_mnm = int(rated_torque_mnm)
+        self.encoder_increments = int(encoder_increments)
+        self.counts_per_rad = self.encoder_increments * self.gear_num / self.gear_den / (2 * math.pi)
+        self.gear_ratio = self.gear_num / self.gear_den
+        xi = float(world.robot.torque_constants[joint - 1])
+        self.torque_constant = xi
+        store = self.node.set_data
+        store(0x1018, 4, int(serial).to_bytes(4, "little"))
+        store(0x6091, 1, self.gear_num.to_bytes(4, "little"))
+        store(0x6091, 2, self.gear_den.to_bytes(4, "little"))
+        store(0x6075, 0, self.rated_current_ma.to_bytes(4, "little"))
+        store(0x6076, 0, self.rated_torque_mnm.to_bytes(4, "little"))
+        store(0x608F, 1, self.encoder_increments.to_bytes(4, "little"))
+        if tpdo2:
+            store(0x1801, 1, (0x280 + node_id).to_bytes(4, "little"))
+        self.node.add_read_callback(self._on_read)
+        self.node.add_write_callback(self._on_write)
+
+    # ------------------------------------------------------ fault injection
+    def go_silent(self, duration_s: float | None = None) -> None:
+        """Stop answering SYNC and SDO for ``duration_s`` (None: until :meth:`resume`)."""
+        with self._lock:
+            self._silent_until = math.inf if duration_s is None else time.monotonic() + duration_s
+
+    def resume(self) -> None:
+        with self._lock:
+            self._silent_until = 0.0
+
+    def silent(self) -> bool:
+        with self._lock:
+            return time.monotonic() < self._silent_until
+
+    def fault(self, code: int = 0x2310) -> None:
+        """Go to the Fault state and send EMCY ``code`` (0x2310: continuous over-current)."""
+        with self._lock:
+            self._state = SW_FAULT
+            self._error_code = code
+        if self.node.has_network():
+            self.node.emcy.send(code, 0x01 | 0x02)
+
+    def disable(self) -> None:
+        """Leave Operation enabled (as a controller switching the drive off would)."""
+        with self._lock:
+            self._state = SW_SWITCHED_ON
+
+    def send_malformed(self, count: int = 1) -> None:
+        """Truncate the next ``count`` TPDOs to 3 bytes."""
+        with self._lock:
+            self._malformed += count
+
+    @property
+    def statusword(self) -> int:
+        with self._lock:
+            return self._state
+
+    # ------------------------------------------------------------- values
+    def raw_values(self, s: WorldSample) -> dict[int, int]:
+        """Object values in drive units for a world sample."""
+        j = self.joint - 1
+        current_a = float(s.currents_a[j])
+        joint_torque = self.torque_constant * current_a
+        motor_torque_mnm = joint_torque / self.gear_ratio * 1000.0
+
+        def clamp16(v: float) -> int:
+            return int(max(-32768, min(32767, round(v))))
+
+        return {
+            0x6041: self.statusword,
+            0x6064: int(round(float(s.q[j]) * self.counts_per_rad)),
+            0x606C: int(round(float(s.dq[j]) * self.counts_per_rad)),
+            0x6077: clamp16(motor_torque_mnm / self.rated_torque_mnm * 1000.0),
+            0x6078: clamp16(current_a * 1000.0 / self.rated_current_ma * 1000.0),
+        }
+
+    def _on_read(self, index: int, subindex: int, od) -> int | None:
+        if index in (0x6041, 0x6064, 0x606C, 0x6077, 0x6078):
+            return self.raw_values(self.world.sample())[index]
+        if index == 0x603F:
+            with self._lock:
+                return self._error_code
+        return None
+
+    def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
+        if index != 0x6040:
+            return
+        cw = int.from_bytes(data, "little")
+        with self._lock:
+            rising_reset = bool(cw & 0x80) and not (self._last_controlword & 0x80)
+            self._last_controlword = cw
+            if self._state == SW_FAULT:
+                if rising_reset:
+                    self._state = SW_SWITCH_ON_DISABLED
+                    self._error_code = 0
+                return
+            if cw & 0x82 == 0x00:                      # disable voltage
+                self._state = SW_SWITCH_ON_DISABLED
+            elif cw & 0x87 == 0x06:                    # shutdown
+                self._state = SW_READY_TO_SWITCH_ON
+            elif cw & 0x8F == 0x07:                    # switch on / disable operation
+                self._state = SW_SWITCHED_ON
+            elif cw & 0x8F == 0x0F and self._state in (SW_SWITCHED_ON, SW_OPERATION_ENABLED):
+                self._state = SW_OPERATION_ENABLED
+
+    # --------------------------------------------------------------- SYNC
+    def on_sync(self, sample: WorldSample) -> None:
+        if self.silent():
+            return
+        values = self.raw_values(sample)
+        for pdo in self.node.tpdo.map.values():
+            if not pdo.enabled or pdo.trans_type is None or not 1 <= pdo.trans_type <= 240:
+                continue
+            for var in pdo.map:
+                if var.index in values:
+                    var.raw = values[var.index]
+            with self._lock:
+                truncate = self._malformed > 0
+                if truncate:
+                    self._malformed -= 1
+            if truncate:
+                self.node.network.send_message(pdo.cob_id, bytes(pdo.data[:3]))
+            else:
+                pdo.transmit()
+
+
+class SimCanopenNetwork:
+    """The simulated drives sharing one CAN channel, on a :class:`SimCanBus`."""
+
+    def __init__(self, interface: str, channel: str, drives: Sequence[SimCanopenDrive], *,
+                 bitrate: int = 1_000_000, reply_delay_s: float = 50e-6, **bus_kwargs) -> None:
+        self.interface = interface
+        self.channel = channel
+        self.drives = {d.node_id: d for d in drives}
+        if len(self.drives) != len(drives):
+            raise ValueError("two simulated drives share a node id")
+        self.world = drives[0].world if drives else None
+        if interface == "virtual":
+            bus_kwargs.setdefault("preserve_timestamps", True)
+        inner = can.Bus(interface=interface, channel=channel, **bus_kwargs)
+        delays = {d.node_id: reply_delay_s for d in drives}
+        self.bus = SimCanBus(inner, bitrate=bitrate, reply_delay_s=lambda n: delays.get(n, reply_delay_s),
+                             filter_own=(interface == "udp_multicast"))
+        self.network = canopen.Network(self.bus)
+        try:
+            for d in drives:
+                self.network.add_node(d.node)
+                d.node.tpdo.read(from_od=True)
+                self._guard_sdo(d)
+            self.network.subscribe(0x80, self._on_sync)
+            self.network.connect()
+        except BaseException:
+            self.bus.shutdown()
+            raise
+
+    @staticmethod
+    def _guard_sdo(drive: SimCanopenDrive) -> None:
+        """Make the SDO server of a silent node drop requests instead of answering."""
+        server = drive.node.sdo
+        original = server.on_request
+
+        def on_request(can_id, data, timestamp):
+            if drive.silent():
+                return
+            original(can_id, data, timestamp)
+
+        drive.node.network.unsubscribe(server.rx_cobid, original)
+        drive.node.network.subscribe(server.rx_cobid, on_request)
+
+    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if self.world is None:
+            return
+        sample = self.world.sample()
+        for d in self.drives.values():
+            d.on_sync(sample)
+
+    def stats(self) -> BusStats:
+        return self.bus.stats()
+
+    def close(self) -> None:
+        self.network.disconnect()

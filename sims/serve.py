@@ -1,0 +1,293 @@
+"""Start every simulated device of a cell: in Python or as ``elastocal sim serve``.
+
+In Python (tests, the demo, the guided procedure)::
+
+    from elastocal.sims.serve import SimulatedCell, example_cell_config
+
+    with SimulatedCell(example_cell_config()).start() as sim:
+        sim.config          # the cell config with the real ports and pty paths
+        sim.urls            # {"drive J1": "canopen://virtual/elastocal-sim?node=1", ...}
+        sim.world.set_load([0, 0, -1500, 0, 0, 0])   # the operator hangs a load
+        with open_cell(sim.config) as cell: ...
+
+CiA 402 drives become canopen ``LocalNode`` s on the config's CAN channel
+(``virtual`` in-process, ``udp_multicast`` across processes), Modbus drives and
+the cell controller pymodbus servers on 127.0.0.1 (port 0: an ephemeral port)
+or on a pseudo-terminal pair (``modbus+rtu``), the tracker a line server on
+TCP or on a pseudo-terminal (``tracker+serial``). All read one
+:class:`~elastocal.sims.world.SimWorld`. Everything started is stopped by
+:meth:`SimulatedCell.close` (or the ``with`` block).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import signal
+import sys
+import threading
+import time
+from dataclasses import replace
+from importlib import resources
+
+from elastocal.drivers.config import CellConfig, DeviceUrl, load_cell_config, parse_cell_config
+from elastocal.errors import InputError
+from elastocal.sims.canbus import BusStats
+from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork
+from elastocal.sims.modbus_server import ModbusServerThread, PtyPair, SimCellController, SimModbusDrive
+from elastocal.sims.tracker_server import SimTracker
+from elastocal.sims.world import SimWorld
+
+LOOPBACK = ("127.0.0.1", "localhost")
+SIM_CAN_INTERFACES = ("virtual", "udp_multicast")
+UDP_GROUP = "239.74.163.2"
+
+
+def example_cell_path() -> pathlib.Path:
+    """The packaged simulated cell (``sims/data/sim_cell.toml``)."""
+    return pathlib.Path(str(resources.files("elastocal.sims") / "data" / "sim_cell.toml"))
+
+
+def example_cell_config(*, can_channel: str | None = None, **sim_overrides) -> CellConfig:
+    """The packaged simulated cell; ``can_channel`` renames its virtual CAN
+    channel (so several simulated cells can run in one process) and
+    ``sim_overrides`` replace fields of its ``[sim]`` section."""
+    path = example_cell_path()
+    config = parse_cell_config(path.read_text(encoding="utf-8"), source=str(path), base_dir=path.parent)
+    if can_channel is not None:
+        config = replace(config, drives=tuple(replace(d, url=d.url.with_path(can_channel)) if d.url.scheme == "canopen"
+                                              else d for d in config.drives))
+    if sim_overrides:
+        config = replace(config, sim=replace(config.sim, **sim_overrides))
+    return config
+
+
+def _endpoint(url: DeviceUrl) -> tuple:
+    if url.scheme == "modbus+tcp":
+        if url.host not in LOOPBACK:
+            raise InputError(f"{url.text}: simulated devices listen on 127.0.0.1 only")
+        return ("tcp", url.host, url.port, url.text if url.port == 0 else None)
+    return ("rtu", url.path)
+
+
+class SimulatedCell:
+    """All simulated devices of ``config`` (see the module docstring)."""
+
+    def __init__(self, config: CellConfig, *, robot=None, tpdo2: bool = False) -> None:
+        self.source_config = config
+        self.robot = robot if robot is not None else config.load_robot()
+        markers = config.tracker.markers if config.tracker is not None else None
+        self.world = SimWorld.from_config(self.robot, config.sim, markers)
+        self._tpdo2 = tpdo2
+        self.canopen_drives: dict[int, SimCanopenDrive] = {}
+        self.can_networks: dict[tuple[str, str], SimCanopenNetwork] = {}
+        self.modbus_drives: dict[int, SimModbusDrive] = {}
+        self.modbus_servers: dict[tuple, ModbusServerThread] = {}
+        self.controller: SimCellController | None = None
+        self.tracker: SimTracker | None = None
+        self._ptys: list[PtyPair] = []
+        self.config: CellConfig = config
+        self._started = False
+
+    # ------------------------------------------------------------- start
+    def start(self) -> "SimulatedCell":
+        if self._started:
+            return self
+        self._started = True
+        try:
+            self._start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def _start(self) -> None:
+        cfg = self.source_config
+        sim = cfg.sim
+        # CANopen drives, one network per channel
+        groups: dict[tuple[str, str, int], list[SimCanopenDrive]] = {}
+        for d in cfg.drives:
+            if d.url.scheme != "canopen":
+                continue
+            iface = d.url.can_interface
+            if iface not in SIM_CAN_INTERFACES:
+                raise InputError(f"{d.url.text}: simulated drives run on {' or '.join(SIM_CAN_INTERFACES)}, "
+                                 f"not {iface!r}")
+            node = d.url.int_param("node", 1, low=1, high=127)
+            drive = SimCanopenDrive(node, d.joint, self.world, gear_ratio=sim.gear_ratios[d.joint - 1],
+                                    serial=1000 + d.joint, tpdo2=self._tpdo2)
+            self.canopen_drives[d.joint] = drive
+            bitrate = d.url.int_param("bitrate", 1_000_000, low=10_000, high=1_000_000)
+            groups.setdefault((iface, d.url.can_channel, bitrate), []).append(drive)
+        for (iface, channel, bitrate), drives in groups.items():
+            kwargs = {}
+            port = next((d.url.param("port") for d in cfg.drives if d.url.scheme == "canopen"
+                         and d.url.can_channel == channel and d.url.param("port")), None)
+            if iface == "udp_multicast" and port is not None:
+                kwargs["port"] = int(port)
+            self.can_networks[(iface, channel)] = SimCanopenNetwork(
+                iface, channel, drives, bitrate=bitrate, reply_delay_s=sim.can_reply_delay_s, **kwargs)
+
+        # Modbus devices, one server per endpoint
+        endpoints: dict[tuple, list] = {}
+        resolved_drives = {d.joint: d for d in cfg.drives}
+        for d in cfg.drives:
+            if d.url.scheme.startswith("modbus"):
+                sd = SimModbusDrive(d, self.world, reply_delay_s=sim.modbus_reply_delay_s)
+                self.modbus_drives[d.joint] = sd
+                endpoints.setdefault(_endpoint(d.url), []).append(("drive", d.joint, sd.device, d.url))
+        if cfg.controller is not None:
+            self.controller = SimCellController(cfg.controller, self.world, reply_delay_s=sim.modbus_reply_delay_s)
+            endpoints.setdefault(_endpoint(cfg.controller.url), []).append(
+                ("controller", 0, self.controller.device, cfg.controller.url))
+        new_urls: dict[tuple[str, int], DeviceUrl] = {}
+        for key, members in endpoints.items():
+            units = [m[2].id for m in members]
+            if len(set(units)) != len(units):
+                raise InputError(f"two simulated Modbus devices on {members[0][3].text} use one unit id")
+            if key[0] == "tcp":
+                server = ModbusServerThread([m[2] for m in members], tcp=(key[1], key[2])).start()
+                for kind, joint, _, url in members:
+                    new_urls[(kind, joint)] = url.with_port(server.port)
+            else:
+                pair = PtyPair()
+                self._ptys.append(pair)
+                baud = members[0][3].int_param("baud", 115200, low=300, high=10_000_000)
+                server = ModbusServerThread([m[2] for m in members], serial=pair.device_end, baudrate=baud).start()
+                for kind, joint, _, url in members:
+                    new_urls[(kind, joint)] = url.with_path(pair.host_end)
+            self.modbus_servers[key] = server
+        for (kind, joint), url in new_urls.items():
+            if kind == "drive":
+                resolved_drives[joint] = replace(resolved_drives[joint], url=url)
+        controller = cfg.controller
+        if controller is not None and ("controller", 0) in new_urls:
+            controller = replace(controller, url=new_urls[("controller", 0)])
+
+        # tracker
+        tracker_cfg = cfg.tracker
+        if tracker_cfg is not None:
+            self.tracker = SimTracker(self.world, reply_delay_s=sim.tracker_reply_delay_s)
+            url = tracker_cfg.url
+            if url.scheme == "tracker+tcp":
+                if url.host not in LOOPBACK:
+                    raise InputError(f"{url.text}: simulated devices listen on 127.0.0.1 only")
+                port = self.tracker.serve_tcp(url.host, url.port)
+                tracker_cfg = replace(tracker_cfg, url=url.with_port(port))
+            else:
+                path = self.tracker.serve_pty()
+                tracker_cfg = replace(tracker_cfg, url=url.with_path(path))
+
+        self.config = replace(cfg, drives=tuple(resolved_drives[d.joint] for d in cfg.drives),
+                              tracker=tracker_cfg, controller=controller)
+
+    # ------------------------------------------------------------- info
+    @property
+    def urls(self) -> dict[str, str]:
+        """Device name -> resolved URL."""
+        out = {d.name: d.url.text for d in self.config.drives}
+        if self.config.tracker is not None:
+            out["tracker"] = self.config.tracker.url.text
+        if self.config.controller is not None:
+            out["controller"] = self.config.controller.url.text
+        return out
+
+    def can_stats(self) -> dict[str, BusStats]:
+        """Frames, bits and load of each simulated CAN bus, by ``interface/channel``."""
+        return {f"{i}/{c}": n.stats() for (i, c), n in self.can_networks.items()}
+
+    # ------------------------------------------------------------- stop
+    def close(self) -> None:
+        errors = []
+        for closer in ([n.close for n in self.can_networks.values()]
+                       + [s.close for s in self.modbus_servers.values()]
+                       + ([self.controller.close] if self.controller is not None else [])
+                       + ([self.tracker.close] if self.tracker is not None else [])
+                       + [p.close for p in self._ptys]):
+            try:
+                closer()
+            except Exception as exc:  # noqa: BLE001 - re-raised below
+                errors.append(exc)
+        self.can_networks.clear()
+        self.modbus_servers.clear()
+        self._ptys.clear()
+        self.controller = None
+        self.tracker = None
+        if errors:
+            raise errors[0]
+
+    def __enter__(self) -> "SimulatedCell":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ------------------------------------------------------------------- CLI
+def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
+    """Flags of ``elastocal sim serve``."""
+    parser.add_argument("--cell", metavar="CELL.toml",
+                        help="cell config to serve (default: the packaged simulated HH-150 cell)")
+    parser.add_argument("--can", choices=("udp_multicast", "as-configured"), default="udp_multicast",
+                        help="CAN bus of the simulated drives: udp_multicast (reachable from other "
+                             "processes; default) or as the config says (virtual = this process only)")
+    parser.add_argument("--write-cell", metavar="PATH",
+                        help="write the cell config with the actual ports and device paths here, "
+                             "for `elastocal devices --cell PATH`")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S seconds (default: until interrupted)")
+    parser.add_argument("--json", action="store_true", help="print the device URLs as one JSON object")
+
+
+def _to_udp(config: CellConfig) -> CellConfig:
+    drives = []
+    for d in config.drives:
+        if d.url.scheme == "canopen" and d.url.can_interface == "virtual":
+            d = replace(d, url=d.url.with_host("udp_multicast").with_path(UDP_GROUP))
+        drives.append(d)
+    return replace(config, drives=tuple(drives))
+
+
+def run_serve(args: argparse.Namespace) -> int:
+    """``elastocal sim serve``: serve the simulated devices until interrupted (or ``--duration``)."""
+    if args.duration is not None and not args.duration > 0:
+        raise InputError(f"--duration must be > 0, got {args.duration}")
+    config = load_cell_config(args.cell) if args.cell else example_cell_config()
+    if args.can == "udp_multicast":
+        config = _to_udp(config)
+    stop = threading.Event()
+    previous = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
+    if previous is not None:
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        with SimulatedCell(config) as sim:
+            if args.write_cell:
+                try:
+                    pathlib.Path(args.write_cell).write_text(sim.config.to_toml(), encoding="utf-8")
+                except OSError as exc:
+                    raise InputError(f"cannot write: {exc.strerror}", source=args.write_cell) from None
+            if args.json:
+                print(json.dumps({"urls": sim.urls, "cell": args.write_cell}), flush=True)
+            else:
+                print(f"simulated cell {sim.config.name!r} serving (Ctrl-C stops):")
+                for name, url in sim.urls.items():
+                    print(f"  {name:12s} {url}")
+                if any(d.url.scheme == "canopen" and d.url.can_interface == "virtual" for d in sim.config.drives):
+                    print("  note: CAN 'virtual' reaches this process only; use --can udp_multicast for others")
+                if args.write_cell:
+                    print(f"  cell config with these URLs: {args.write_cell}")
+                sys.stdout.flush()
+            end = None if args.duration is None else time.monotonic() + args.duration
+            try:
+                while not stop.is_set():
+                    remaining = None if end is None else end - time.monotonic()
+                    if remaining is not None and remaining <= 0:
+                        break
+                    stop.wait(0.5 if remaining is None else min(0.5, remaining))
+            except KeyboardInterrupt:
+                pass
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    return 0

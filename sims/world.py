@@ -1,0 +1,329 @@
+"""The simulated world every simulated device of a cell reads from.
+
+:class:`SimWorld` holds what the physical cell would: the commanded joint
+coordinates ``q`` (moving toward a requested pose at a finite speed, on a
+straight joint-space line), the external wrench on the load point (the load the
+operator hangs), and time (``time.monotonic_ns``, t = 0 at creation). Its
+physics is :class:`elastocal.sims.cell.SimCell`; its noise comes from one
+seeded ``numpy.random.Generator``.
+
+The whole API:
+
+* commands (the simulated cell controller calls them):
+  :meth:`move_to` ``(q, speed_rad_s)`` and :meth:`run` ``(u, v, speed_rad_s)``
+  (approach ``u`` at the move speed, then a slow constant-speed run to ``v``);
+  both return the motion's duration and refuse while the robot moves;
+* the operator: :meth:`set_load` ``(wrench)`` and :meth:`remove_load`
+  (only at rest);
+* readings (the simulated devices call them): :meth:`sample` (q, dq and noisy
+  motor currents at a time; friction during motion from
+  ``SimCell.motion_currents``, static friction on load changes from
+  ``SimCell.equilibrium(reference=...)``) and :meth:`read_tracker` (a marker
+  through ``SimCell.read_tracker``, drift and noise included);
+* waiting: :meth:`is_moving`, :meth:`wait_idle`, :meth:`q_now`.
+
+A motion is planned before it starts: the equilibria and friction currents
+along the path are computed on a grid (a few hundred Pinocchio solves) and
+interpolated in time, so devices can be read at 1 kHz.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import numpy as np
+
+from elastocal.errors import InputError
+from elastocal.sims.cell import CellTruth, Equilibrium, SimCell
+
+#: grid spacing of a planned motion along its largest joint move [rad]
+PLAN_STEP_RAD = 0.004
+PLAN_MAX_POINTS = 301
+
+
+@dataclass(frozen=True)
+class WorldSample:
+    """The robot as the drives see it at ``t_ns``."""
+
+    t_ns: int
+    q: np.ndarray            # commanded (motor-side) joint coordinates [rad]
+    dq: np.ndarray           # joint velocities [rad/s]
+    currents_a: np.ndarray   # motor currents with noise [A] (xi i = load torque carried)
+    moving: bool
+
+
+@dataclass(frozen=True)
+class _Segment:
+    t0_ns: int
+    duration_s: float
+    q0: np.ndarray
+    q1: np.ndarray
+    s_grid: np.ndarray                 # path parameter of the grid points, 0..1
+    theta: np.ndarray                  # (n, 6) deflected joint angles at the grid
+    link_angles: np.ndarray            # (n, 4)
+    gear_torque: np.ndarray            # (n, 6) static gear torque
+    currents: np.ndarray               # (n, 6) noise-free currents during the motion (friction on)
+    wrench: np.ndarray
+
+    @property
+    def dq(self) -> np.ndarray:
+        if self.duration_s <= 0:
+            return np.zeros(6)
+        return (self.q1 - self.q0) / self.duration_s
+
+    def s_at(self, t_ns: int) -> float:
+        if self.duration_s <= 0:
+            return 1.0
+        return min(max((t_ns - self.t0_ns) / 1e9 / self.duration_s, 0.0), 1.0)
+
+    def end_ns(self) -> int:
+        return self.t0_ns + int(round(self.duration_s * 1e9))
+
+
+def _interp_rows(grid: np.ndarray, values: np.ndarray, s: float) -> np.ndarray:
+    i = int(np.searchsorted(grid, s, side="right")) - 1
+    i = min(max(i, 0), len(grid) - 2)
+    w = (s - grid[i]) / (grid[i + 1] - grid[i])
+    return values[i] * (1.0 - w) + values[i + 1] * w
+
+
+class SimWorld:
+    """Shared, thread-safe state of the simulated cell (see the module docstring)."""
+
+    def __init__(self, cell: SimCell, *, start_q: Sequence[float], markers: Sequence[str] | None = None,
+                 seed: int = 0, move_speed_rad_s: float = 0.5, run_speed_rad_s: float = 0.05,
+                 clock_ns=time.monotonic_ns) -> None:
+        self.cell = cell
+        self.robot = cell.robot
+        self.markers = tuple(markers) if markers is not None else tuple(cell.robot.marker_names)
+        for m in self.markers:
+            self.robot.frame_id(m)
+        self.move_speed_rad_s = float(move_speed_rad_s)
+        self.run_speed_rad_s = float(run_speed_rad_s)
+        self._clock_ns = clock_ns
+        self._t0_ns = clock_ns()
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.RLock()
+        self._idle = threading.Condition(self._lock)
+        self._planning = False
+        q = self._check_q(start_q, "start_q")
+        self._wrench = np.zeros(6)
+        self._segments: tuple[_Segment, ...] = ()
+        self._rest_q = q
+        self._reference = cell.equilibrium(q, self._wrench)
+        self._rest_eq = self._reference
+
+    @classmethod
+    def from_config(cls, robot, sim, markers: Sequence[str] | None = None) -> "SimWorld":
+        """A world for :class:`elastocal.drivers.config.SimConfig` ``sim``."""
+        truth = CellTruth(coulomb=np.array(sim.coulomb_nm), viscous=np.array(sim.viscous_nm_s_rad),
+                          load_friction=np.array(sim.load_friction), tracker_noise_m=sim.tracker_noise_m,
+                          current_noise_a=sim.current_noise_a)
+        try:
+            truth = truth.with_hidden(sim.hidden)
+        except ValueError as exc:
+            raise InputError(str(exc), column="sim.hidden") from None
+        return cls(SimCell(robot, truth), start_q=sim.start_q, markers=markers, seed=sim.seed,
+                   move_speed_rad_s=sim.move_speed_rad_s, run_speed_rad_s=sim.run_speed_rad_s)
+
+    # ------------------------------------------------------------- time
+    def now_ns(self) -> int:
+        return self._clock_ns()
+
+    def t_s(self, t_ns: int | None = None) -> float:
+        """World time [s] since creation."""
+        return ((self._clock_ns() if t_ns is None else t_ns) - self._t0_ns) / 1e9
+
+    # --------------------------------------------------------- commands
+    def _check_q(self, q: Sequence[float], name: str) -> np.ndarray:
+        q = np.asarray(q, dtype=float).reshape(-1)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise InputError(f"{name}: expected 6 finite joint values, got {q}")
+        if np.any(q < self.robot.lower) or np.any(q > self.robot.upper):
+            raise InputError(f"{name}: {np.round(q, 4).tolist()} is outside the joint limits")
+        return q
+
+    def _plan(self, q0: np.ndarray, q1: np.ndarray, speed: float, wrench: np.ndarray, t0_ns: int) -> _Segment:
+        dist = float(np.max(np.abs(q1 - q0)))
+        duration = dist / speed
+        n = int(min(max(math.ceil(dist / PLAN_STEP_RAD) + 1, 2), PLAN_MAX_POINTS))
+        s_grid = np.linspace(0.0, 1.0, n)
+        dq = (q1 - q0) / duration if duration > 0 else np.zeros(6)
+        thetas, links, gears, currents = [], [], [], []
+        t = self.cell.truth
+        for s in s_grid:
+            q = q0 + (q1 - q0) * s
+            eq = self.cell.equilibrium(q, wrench)
+            tau = eq.gear_torque
+            sign = np.sign(dq)
+            friction = t.coulomb * sign + t.viscous * dq + t.load_friction * np.abs(tau) * sign
+            thetas.append(eq.theta)
+            links.append(eq.link_angles)
+            gears.append(tau)
+            currents.append((tau - friction) / self.robot.torque_constants)
+        return _Segment(t0_ns=t0_ns, duration_s=duration, q0=q0, q1=q1, s_grid=s_grid, theta=np.array(thetas),
+                        link_angles=np.array(links), gear_torque=np.array(gears), currents=np.array(currents),
+                        wrench=wrench.copy())
+
+    def _start(self, legs: list[tuple[np.ndarray, float]]) -> float:
+        with self._lock:
+            if self._planning or self._moving_locked(self._clock_ns()):
+                raise InputError("the robot is moving; wait until it stops")
+            self._planning = True
+            q0 = self._rest_q
+            wrench = self._wrench.copy()
+        try:
+            planned = []
+            q = q0
+            for target, speed in legs:
+                if np.max(np.abs(target - q)) > 0:
+                    planned.append(self._plan(q, target, speed, wrench, 0))
+                    q = target
+            end_eq = self.cell.equilibrium(q, wrench)
+        except BaseException:
+            with self._lock:
+                self._planning = False
+            raise
+        with self._lock:
+            t = self._clock_ns()
+            segments = []
+            for seg in planned:
+                seg = replace(seg, t0_ns=t)
+                segments.append(seg)
+                t = seg.end_ns()
+            self._segments = tuple(segments)
+            self._rest_q = q
+            self._reference = end_eq
+            self._rest_eq = end_eq
+            self._planning = False
+            self._idle.notify_all()
+            return sum(s.duration_s for s in segments)
+
+    def move_to(self, q: Sequence[float], speed_rad_s: float | None = None) -> float:
+        """Move to ``q`` at ``speed_rad_s`` on the fastest joint; returns the duration [s]."""
+        target = self._check_q(q, "target")
+        speed = self.move_speed_rad_s if speed_rad_s is None else float(speed_rad_s)
+        if not speed > 0:
+            raise InputError(f"speed must be > 0, got {speed}")
+        return self._start([(target, speed)])
+
+    def run(self, u: Sequence[float], v: Sequence[float], speed_rad_s: float | None = None) -> float:
+        """Approach ``u`` (move speed), then run slowly and steadily to ``v``; returns the duration [s]."""
+        a = self._check_q(u, "path start")
+        b = self._check_q(v, "path end")
+        speed = self.run_speed_rad_s if speed_rad_s is None else float(speed_rad_s)
+        if not speed > 0:
+            raise InputError(f"speed must be > 0, got {speed}")
+        return self._start([(a, self.move_speed_rad_s), (b, speed)])
+
+    # --------------------------------------------------------- operator
+    def set_load(self, wrench: Sequence[float]) -> None:
+        """Hang a load: ``wrench`` (fx, fy, fz, mx, my, mz) on the load point, base axes [N, N·m].
+
+        Static friction (a hidden effect) may absorb part of the change; the
+        reference is the equilibrium the robot stopped in."""
+        w = np.asarray(wrench, dtype=float).reshape(-1)
+        if w.shape != (6,) or not np.all(np.isfinite(w)):
+            raise InputError(f"wrench: expected 6 finite values, got {wrench!r}")
+        with self._lock:
+            if self._planning or self._moving_locked(self._clock_ns()):
+                raise InputError("cannot change the load while the robot moves")
+            q = self._rest_q
+            reference = self._reference
+        eq = self.cell.equilibrium(q, w, reference=reference)
+        with self._lock:
+            self._wrench = w
+            self._rest_eq = eq
+
+    def remove_load(self) -> None:
+        self.set_load(np.zeros(6))
+
+    def wrench(self) -> np.ndarray:
+        with self._lock:
+            return self._wrench.copy()
+
+    # ----------------------------------------------------------- state
+    def _moving_locked(self, t_ns: int) -> bool:
+        return bool(self._segments) and t_ns < self._segments[-1].end_ns()
+
+    def is_moving(self, t_ns: int | None = None) -> bool:
+        with self._lock:
+            return self._planning or self._moving_locked(self._clock_ns() if t_ns is None else t_ns)
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Block until the robot stands still (True) or ``timeout_s`` passes (False)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self._lock:
+                if not self._planning and not self._moving_locked(self._clock_ns()):
+                    return True
+                end = self._segments[-1].end_ns() if self._segments else self._clock_ns()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            wait = max(min(remaining, (end - self._clock_ns()) / 1e9), 0.001)
+            with self._idle:
+                self._idle.wait(wait)
+
+    def _segment_at(self, t_ns: int) -> _Segment | None:
+        for seg in self._segments:
+            if t_ns < seg.end_ns():
+                return seg if t_ns >= seg.t0_ns else None
+        return None
+
+    def q_now(self, t_ns: int | None = None) -> np.ndarray:
+        t = self._clock_ns() if t_ns is None else t_ns
+        with self._lock:
+            seg = self._segment_at(t)
+            if seg is None:
+                return self._rest_q.copy() if not self._moving_locked(t) else self._segments[0].q0.copy()
+            return seg.q0 + (seg.q1 - seg.q0) * seg.s_at(t)
+
+    def sample(self, t_ns: int | None = None) -> WorldSample:
+        """q, dq and noisy motor currents at ``t_ns`` (default: now)."""
+        t = self._clock_ns() if t_ns is None else t_ns
+        with self._lock:
+            seg = self._segment_at(t)
+            if seg is None:
+                if self._moving_locked(t):   # before the first segment of a plan started
+                    seg = self._segments[0]
+                    t = seg.t0_ns
+                else:
+                    eq = self._rest_eq
+                    currents = self.cell.read_currents(eq, self._rng)
+                    return WorldSample(t, self._rest_q.copy(), np.zeros(6), currents, False)
+            s = seg.s_at(t)
+            q = seg.q0 + (seg.q1 - seg.q0) * s
+            i = _interp_rows(seg.s_grid, seg.currents, s)
+            noise = self._rng.normal(0.0, self.cell.truth.current_noise_a, size=6)
+            return WorldSample(t, q, seg.dq, i + noise, True)
+
+    def equilibrium_at(self, t_ns: int | None = None) -> Equilibrium:
+        """The (interpolated during motion) equilibrium of the robot at ``t_ns``."""
+        t = self._clock_ns() if t_ns is None else t_ns
+        with self._lock:
+            seg = self._segment_at(t)
+            if seg is None:
+                if not self._moving_locked(t):
+                    return self._rest_eq
+                seg = self._segments[0]
+                t = seg.t0_ns
+            s = seg.s_at(t)
+            q = seg.q0 + (seg.q1 - seg.q0) * s
+            return Equilibrium(q=q, theta=_interp_rows(seg.s_grid, seg.theta, s),
+                               link_angles=_interp_rows(seg.s_grid, seg.link_angles, s),
+                               gear_torque=_interp_rows(seg.s_grid, seg.gear_torque, s),
+                               wrench=seg.wrench, friction_torque=np.zeros(6))
+
+    def read_tracker(self, marker: str, t_ns: int | None = None) -> np.ndarray:
+        """A tracker reading of ``marker`` at ``t_ns`` [m], base (= tracker) frame."""
+        if marker not in self.markers:
+            raise InputError(f"unknown marker {marker!r}; the cell has {', '.join(self.markers)}")
+        t = self._clock_ns() if t_ns is None else t_ns
+        eq = self.equilibrium_at(t)
+        with self._lock:
+            return self.cell.read_tracker(eq, [marker], self.t_s(t), self._rng)[0]

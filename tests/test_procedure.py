@@ -1,0 +1,276 @@
+"""The procedure engine on the virtual cell (SimCell physics on a virtual clock):
+static identification from the log, abort and resume, settle timeouts,
+friction runs and sweeps, the operator interface, plan files."""
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
+from elastocal.acquisition.export import load_log, read_log
+from elastocal.acquisition.plan import (
+    CheckSpec,
+    FrictionSpec,
+    LoadSpec,
+    SettleSpec,
+    SweepSpec,
+    load_plan,
+    parse_plan,
+    plan_toml,
+)
+from elastocal.acquisition.procedures import build_steps, run_procedures
+from elastocal.acquisition.ui import Aborted, AutoUI, TerminalUI, progress_line
+from elastocal.errors import DeviceTimeout, InputError
+from elastocal.identify.robot import bundled_robot
+from elastocal.identify.static import identify_static
+from elastocal.sims.cell import CellTruth, SimCell
+from elastocal.sims.static import random_poses
+
+TIMING = VirtualTiming(drive_rate_hz=250.0, tracker_rate_hz=250.0)
+LOADS = (LoadSpec("L1", mass_kg=60.0), LoadSpec("L2", mass_kg=110.0),
+         LoadSpec("L3", force_n=(650.0, -300.0, -400.0), description="cable pull through the force gauge"))
+SETTLE = SettleSpec(speed_rad_s=2e-3, spread_m=60e-6, window_s=0.15, timeout_s=20.0)
+Q_A = (0.2, 0.3, -0.4, 0.3, 1.0, 0.2)
+Q_B = (0.5, 0.55, -0.2, 0.6, 1.2, 0.5)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return bundled_robot()
+
+
+@pytest.fixture(scope="module")
+def poses(robot):
+    return random_poses(robot, 8, np.random.default_rng(11))
+
+
+def static_plan(poses, **kw):
+    return parse_plan(plan_toml(poses=poses, loads=LOADS, markers=("R1", "R2", "R3"), repeats=2, reading_s=0.04,
+                                speed_rad_s=0.6, settle=SETTLE, **kw), source="plan.toml")
+
+
+def virtual_io(robot, seed=5, timing=TIMING):
+    return VirtualCellIO(SimCell(robot, CellTruth()), seed=seed, timing=timing)
+
+
+class AbortAt(AutoUI):
+    """Answers yes, then aborts at prompt number ``n`` (1-based)."""
+
+    def __init__(self, n):
+        super().__init__(quiet=True)
+        self.n = n
+
+    def confirm(self, text):
+        super().confirm(text)
+        if len(self.prompts) == self.n:
+            raise Aborted(f"aborted by the operator at: {text}")
+        return "yes"
+
+
+def check_stiffness(fit):
+    truth = np.array(CellTruth().stiffness)
+    k = fit.values([f"k{j}" for j in range(1, 7)])
+    err = np.abs(k - truth) / truth
+    assert np.all(err[:3] < 0.02), err
+    assert np.all(err[3:] < 0.05), err
+
+
+def test_static_procedure_log_identifies_stiffness(robot, poses, tmp_path):
+    plan = static_plan(poses)
+    out = run_procedures(virtual_io(robot), plan, tmp_path / "log.mcap")
+    assert out.status == "completed" and out.steps_done == out.steps_total == len(poses)
+    contents = read_log(tmp_path / "log.mcap")
+    assert contents.complete and not contents.truncated
+    kinds = [e["kind"] for e in contents.events]
+    assert kinds[0] == "procedure_start" and kinds[-1] == "procedure_end"
+    assert contents.end_status == "completed"
+    # every pose: settle before each hold, 2 repeats x 3 markers x (1 + 3 loads) readings
+    assert kinds.count("reading") == len(poses) * 2 * 3 * 4
+    assert kinds.count("settle") == len(poses) * 4
+    assert all(e["settled"] for e in contents.events if e["kind"] == "settle")
+    answers = [e for e in contents.events if e["kind"] == "answer"]
+    assert answers and all(a["answer"] == "yes" and a["automatic"] for a in answers)
+    loads = [e for e in contents.events if e["kind"] == "load" and e["load"] == "L2"]
+    assert loads[0]["wrench"] == pytest.approx([0, 0, -110.0 * 9.81, 0, 0, 0])
+    log_robot, static, runs = load_log(tmp_path / "log.mcap")
+    assert runs is None and log_robot.name == robot.name
+    assert len(static) == len(poses) * 4 * 2 * 3
+    fit = identify_static(log_robot, static, torque="current", form="exact")
+    check_stiffness(fit)
+
+
+def test_abort_then_resume_gives_the_same_steps_once(robot, poses, tmp_path):
+    plan = static_plan(poses[:4])
+    first = tmp_path / "first.mcap"
+    # prompt 1: clear the cell; each pose asks 4 (unload, L1, L2, L3): abort in pose 3
+    out = run_procedures(virtual_io(robot), plan, first, ui=AbortAt(1 + 4 * 2 + 2))
+    assert out.status == "aborted" and out.steps_done == 2
+    old = read_log(first)
+    assert old.complete and old.end_status == "aborted"
+    assert old.completed_steps == ("static/P1", "static/P2") and old.incomplete_steps == ("static/P3",)
+    assert [e["answer"] for e in old.events if e["kind"] == "answer"][-1] == "abort"
+    _, partial, _ = load_log(first)
+    assert sorted(set(partial.pose)) == ["P1", "P2"]  # the interrupted pose is left out whole
+
+    second = tmp_path / "second.mcap"
+    out2 = run_procedures(virtual_io(robot, seed=6), plan, second, resume_from=first)
+    assert out2.status == "completed" and out2.steps_resumed == 2 and out2.steps_done == 4
+    new = read_log(second)
+    assert new.completed_steps == ("static/P1", "static/P2", "static/P3", "static/P4")
+    assert new.sessions[0]["resumed_from"] == str(first)
+    _, static, _ = load_log(second)
+    # the copied poses are bit for bit the ones of the first log
+    for p in ("P1", "P2"):
+        a, b = partial.subset(partial.pose == p), static.subset(static.pose == p)
+        np.testing.assert_array_equal(a.xyz, b.xyz)
+        np.testing.assert_array_equal(a.currents, b.currents)
+        np.testing.assert_array_equal(a.t, b.t)
+    assert sorted(set(static.pose)) == ["P1", "P2", "P3", "P4"]
+    with pytest.raises(InputError, match="another plan"):
+        run_procedures(virtual_io(robot), static_plan(poses[:3]), tmp_path / "third.mcap", resume_from=first)
+    with pytest.raises(InputError, match="--out a new file"):
+        run_procedures(virtual_io(robot), plan, first, resume_from=first, overwrite=True)
+
+
+def test_settle_timeout_is_a_recorded_device_error(robot, poses, tmp_path):
+    strict = SettleSpec(speed_rad_s=2e-3, spread_m=1e-6, window_s=0.1, timeout_s=1.0)  # below the noise
+    plan = parse_plan(plan_toml(poses=poses[:1], loads=LOADS[:1], markers=("R1",), settle=strict))
+    with pytest.raises(DeviceTimeout, match="did not settle within 1 s"):
+        run_procedures(virtual_io(robot), plan, tmp_path / "log.mcap")
+    contents = read_log(tmp_path / "log.mcap")
+    assert contents.complete and contents.end_status == "failed"
+    fault = [e for e in contents.events if e["kind"] == "fault"]
+    assert fault and fault[0]["error"] == "DeviceTimeout"
+    settle = [e for e in contents.events if e["kind"] == "settle"][-1]
+    assert settle["settled"] is False and settle["spread_m"] > 1e-6
+    assert contents.completed_steps == ()
+
+
+def test_friction_runs_and_sweep_make_a_run_table(robot, tmp_path):
+    marker_timing = VirtualTiming(drive_rate_hz=200.0, tracker_rate_hz=100.0)
+    friction = (FrictionSpec("F1", start=Q_A, end=Q_B, speeds_rad_s=(0.1, 0.25), loads=("0", "L1"), marker="R1"),)
+    sweep = SweepSpec(q=(0.0, 0.0, -0.3, 0.0, 0.8, 0.0), q2_from=-0.2, q2_to=0.6, speed_rad_s=0.2)
+    text = plan_toml(poses=[], loads=LOADS[:1], markers=(), settle=SETTLE, friction=friction, sweep=sweep,
+                     speed_rad_s=1.0)
+    plan = parse_plan(text)
+    assert plan.procedures == ("friction", "sweep")
+    out = run_procedures(virtual_io(robot, timing=marker_timing), plan, tmp_path / "runs.mcap")
+    assert out.status == "completed" and out.steps_total == 4 + 1
+    _, static, runs = load_log(tmp_path / "runs.mcap")
+    assert static is None
+    ids = list(dict.fromkeys(runs.run))
+    assert ids == ["F1-1-UV", "F1-1-VU", "F1-2-UV", "F1-2-VU", "F1-3-UV", "F1-3-VU", "F1-4-UV", "F1-4-VU",
+                   "sweep-1+", "sweep-1-"]
+    for r in ids:
+        rows = runs.run == r
+        q = runs.q[rows]
+        t = runs.t[rows]
+        assert np.all(np.diff(t) > 0)
+        direction = runs.direction[rows][0]
+        if r.startswith("F1"):
+            span = (np.array(Q_B) - np.array(Q_A)) * (1 if direction == "UV" else -1)
+            # the run goes from one end to the other, along the path
+            assert np.allclose(q[-1] - q[0], span, atol=0.02)
+            speed = 0.1 if r.split("-")[1] in ("1", "3") else 0.25
+            moving = np.abs(runs.dq[rows][:, 0]) > 0
+            assert np.max(np.abs(runs.dq[rows][moving])) == pytest.approx(speed, rel=0.05)
+            assert runs.load[rows][0] == ("0" if r.split("-")[1] in ("1", "2") else "L1")
+            # the followed marker is in the rows where the tracker measured (100 of 200 Hz)
+            has = runs.marker[rows] == "R1"
+            assert 0.3 < has.mean() < 0.7 and np.all(np.isfinite(runs.xyz[rows][has]))
+        else:
+            assert direction == ("+" if r.endswith("+") else "-")
+            assert np.ptp(q[:, 1]) == pytest.approx(0.8, abs=0.02) and np.ptp(q[:, 0]) == 0.0
+    # loaded runs carry the nominal weight
+    assert np.allclose(runs.wrench[runs.load == "L1"][:, 2], -60.0 * 9.81)
+    # friction shows: joint-1 current differs between UV and VU at the same place
+    uv, vu = runs.run == "F1-1-UV", runs.run == "F1-1-VU"
+    i_uv = np.interp(0.35, runs.q[uv][:, 0], runs.currents[uv][:, 0])
+    i_vu = np.interp(0.35, runs.q[vu][::-1, 0], runs.currents[vu][::-1, 0])
+    assert np.isfinite(i_uv) and np.isfinite(i_vu)
+
+
+def test_check_procedure_is_short(robot, poses, tmp_path):
+    friction = (FrictionSpec("F1", start=Q_A, end=Q_B, speeds_rad_s=(0.2, 0.3)),)
+    text = plan_toml(poses=poses[:4], loads=LOADS, markers=("R1", "R2"), repeats=2, reading_s=0.04,
+                     speed_rad_s=0.6, settle=SETTLE, friction=friction,
+                     check=CheckSpec(poses=("P1", "P3"), load="L2", friction="F1"))
+    plan = parse_plan(text)
+    steps = build_steps(plan, ("check",))
+    assert [s.id for s in steps] == ["check/P1", "check/P3", "check/F1"]
+    out = run_procedures(virtual_io(robot), plan, tmp_path / "check.mcap", procedures=("check",))
+    assert out.status == "completed"
+    _, static, runs = load_log(tmp_path / "check.mcap")
+    assert sorted(set(static.pose)) == ["P1", "P3"] and sorted(set(static.load)) == ["0", "L2"]
+    assert list(dict.fromkeys(runs.run)) == ["check-F1-UV", "check-F1-VU"]
+
+
+def test_terminal_ui_prompts_progress_and_abort():
+    answers = iter(["", "what?\n", "yes\n", "a\n"])
+    out = io.StringIO()
+    ui = TerminalUI(out, read_line=lambda: next(answers))
+    assert ui.confirm("hang load L2, 66 kg, on the load point") == "yes"
+    assert ui.confirm("remove load L2") == "yes"   # an unknown answer is asked again
+    with pytest.raises(Aborted, match="remove every load"):
+        ui.confirm("remove every load")
+    text = out.getvalue()
+    assert ">>> hang load L2, 66 kg, on the load point; press Enter (a + Enter aborts): " in text
+    assert "answer Enter to go on or 'a' to abort" in text
+
+    def eof():
+        raise EOFError
+
+    with pytest.raises(Aborted):
+        TerminalUI(io.StringIO(), read_line=eof).confirm("hang load L1")
+    line = progress_line(3, 12, "static pose P4", 83.0, 190.0, width=12)
+    assert line == "[###---------] 3/12  static pose P4  1:23 elapsed, ~3:10 left"
+    ui.progress(3, 12, "static pose P4", 83.0, 190.0)
+    ui.progress(3, 12, "static pose P4", 84.0, 189.0)  # not a terminal: one line per step
+    assert out.getvalue().count("3/12") == 1
+
+
+def test_progress_and_time_left_shown_during_a_procedure(robot, poses, tmp_path):
+    out = io.StringIO()
+    plan = static_plan(poses[:2])
+    run_procedures(virtual_io(robot), plan, tmp_path / "log.mcap", ui=AutoUI(out))
+    text = out.getvalue()
+    assert "0/2  static pose P1" in text and "1/2  static pose P2" in text
+    assert "2/2  static pose P2 done" in text and "left" in text
+    assert ">>> remove load L1, then hang load L2, 110 kg, on the load point; step out of the cell: yes (--yes)" in text
+
+
+def test_plan_file_errors_name_file_and_key(tmp_path):
+    good = plan_toml(poses=[Q_A], loads=LOADS[:1], markers=("R1",))
+    assert parse_plan(good).static.poses[0].q == Q_A
+    cases = [
+        (good.replace('id = "L1"', 'id = "0"'), "load[1].id"),
+        (good.replace("q = [0.2,", "q = [20.0,"), "degrees"),
+        (good.replace('markers = ["R1"]', 'markers = "R1"'), "static.markers"),
+        (good + '\n[check]\nposes = ["P9"]\nload = "L1"\n', "unknown pose 'P9'"),
+        (good.replace("mass_kg = 60.0", "mass_kg = 60.0\nforce_n = [1.0, 2.0, 3.0]"), "either mass_kg"),
+        (good.replace("repeats = 3", "repeats = 0"), "static.repeats"),
+        (good + "\n[speling]\n", "unknown key"),
+        ("name = [", "not valid TOML"),
+    ]
+    for text, expected in cases:
+        with pytest.raises(InputError, match=expected.replace("[", r"\[").replace("]", r"\]")) as exc:
+            parse_plan(text, source="plan.toml")
+        assert str(exc.value).startswith("plan.toml")
+    path = tmp_path / "plan.toml"
+    path.write_text(good.replace('markers = ["R1"]', 'markers = ["R9"]'))
+    with pytest.raises(InputError, match="unknown marker 'R9'"):
+        load_plan(path).validate_for(bundled_robot())
+    with pytest.raises(InputError, match="cannot read"):
+        load_plan(tmp_path / "missing.toml")
+
+
+def test_plan_json_free_roundtrip(poses):
+    """plan_toml writes what parse_plan reads, loads and settle included."""
+    plan = static_plan(poses[:2])
+    assert [p.id for p in plan.static.poses] == ["P1", "P2"]
+    assert plan.static.poses[1].loads == ("L1", "L2", "L3")
+    assert plan.loads[2].wrench((0, 0, -9.81)) == (650.0, -300.0, -400.0, 0.0, 0.0, 0.0)
+    assert plan.settle == SETTLE
+    assert json.dumps(plan.static.poses[0].q)  # plain floats
