@@ -97,7 +97,7 @@ def test_identify_from_runs_gives_compensator_and_friction(tmp_path, capsys):
     assert main(["sim", "runs", "--seed", "3", "--out", str(out)]) == 0
     capsys.readouterr()
     rc = main(["identify", "--robot", str(out / "robot.toml"), "--runs", str(out / "runs.csv"), "--json",
-               "--model", "compensator,coulomb_friction,viscous_friction"])
+               "--model", "compensator,coulomb_friction,viscous_friction,load_dependent_friction"])
     assert rc == 0
     obj = json.loads(capsys.readouterr().out)
     truth = json.loads((out / "truth.json").read_text())["parameters"]
