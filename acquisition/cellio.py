@@ -101,6 +101,9 @@ class CellIO(abc.ABC):
         """The simulated world to hang loads in, None for a real cell."""
         return None
 
+    def start(self) -> None:
+        """Start acquiring (called once the log is ready, just before the first step)."""
+
     def close(self) -> None:
         """Stop moving and release the devices."""
 

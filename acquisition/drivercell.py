@@ -1,6 +1,6 @@
 """A :class:`CellIO` over elastocal.drivers: drive streams, the tracker, the cell controller.
 
-* Drives stream at their configured rate from the moment the IO opens; each
+* Drives stream at their configured rate from :meth:`DriverCellIO.start`; each
   :meth:`DriverCellIO.poll` drains the streams (gaps the drivers report are
   passed on and recorded).
 * The tracker measures one reflector at a time: ``poll`` selects the marker
@@ -70,9 +70,14 @@ class DriverCellIO(CellIO):
         self._worker: threading.Thread | None = None
         self._worker_error: BaseException | None = None
         self._streams = []
+
+    def start(self) -> None:
+        """Start the drive streams (they buffer every sample until polled)."""
+        if self._streams:
+            return
         try:
             for d in self._drives:
-                self._streams.append(d.stream(config.drive(d.joint).rate_hz))
+                self._streams.append(d.stream(self.config.drive(d.joint).rate_hz))
         except BaseException:
             self.close()
             raise
@@ -151,6 +156,8 @@ class DriverCellIO(CellIO):
             time.sleep(min(self._tracker_period_s, left))
 
     def poll(self, markers: Sequence[str], duration_s: float) -> Samples:
+        if not self._streams:
+            raise RuntimeError("DriverCellIO.poll before start()")
         if markers:
             tracker = self._measure(list(markers), duration_s)
         else:

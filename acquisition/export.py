@@ -19,7 +19,7 @@ import json
 import operator
 import pathlib
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import IO, Iterator
 
 import numpy as np
@@ -83,28 +83,21 @@ def _ends_with_magic(f: IO[bytes]) -> bool:
     return tail == MCAP0_MAGIC
 
 
-@dataclass
 class LogReader:
     """Messages of a (possibly truncated) elastocal log, in file order.
 
-    After iterating, ``complete`` tells whether the MCAP footer was reached
-    and ``truncated`` whether the file ended inside a record (a killed writer).
+    After iterating, ``complete`` tells whether the file ended with its MCAP
+    footer and closing magic, and ``truncated`` whether it ended inside a
+    record (a killed writer).
     """
-
-    path: pathlib.Path
-    complete: bool = False
-    truncated: bool = False
-    end_offset: int = 0
-    topics: dict[int, str] = field(default_factory=dict)
-    schemas: dict[int, str] = field(default_factory=dict)
 
     def __init__(self, path: str | pathlib.Path) -> None:
         self.path = pathlib.Path(path)
         self.complete = False
         self.truncated = False
         self.end_offset = 0
-        self.topics = {}
-        self.schemas = {}
+        self.topics: dict[int, str] = {}
+        self.schemas: dict[int, str] = {}
 
     def _records(self) -> Iterator[object]:
         try:
@@ -168,11 +161,7 @@ class LogReader:
             self.topics[record.id] = record.topic
 
     def _topic(self, message: Message) -> str:
-        try:
-            return self.topics[message.channel_id]
-        except KeyError:
-            raise InputError(f"message on channel {message.channel_id} before its channel record",
-                             source=str(self.path)) from None
+        return self._topic_of(message.channel_id)
 
     def raw_messages(self) -> Iterator[tuple[str, Message]]:
         """(topic, message) pairs with undecoded payloads."""

@@ -30,11 +30,12 @@ UNLOADED = "0"
 @dataclass(frozen=True)
 class SettleSpec:
     """When the cell counts as at rest: every joint slower than ``speed_rad_s``
-    and every coordinate of every marker within ``spread_m`` (max - min) over
-    the last ``window_s``; give up (DeviceTimeout) after ``timeout_s``."""
+    and the standard deviation of every coordinate of the watched marker below
+    ``spread_m`` over the last ``window_s``; give up (DeviceTimeout) after
+    ``timeout_s``."""
 
     speed_rad_s: float = 2e-3
-    spread_m: float = 50e-6
+    spread_m: float = 20e-6
     window_s: float = 0.3
     timeout_s: float = 60.0
 

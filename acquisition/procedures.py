@@ -73,10 +73,13 @@ class Outcome:
 class SettleDetector:
     """Rest detection over a sliding window of raw samples.
 
-    Settled when, over the last ``window_s`` since :meth:`reset`, every drive
-    sample's speed is below ``speed_rad_s`` and every coordinate of every
-    watched marker spans less than ``spread_m`` (max - min, at least 3
-    samples of each marker).
+    Settled when, over the last ``window_s`` since :meth:`reset`, every joint
+    is slower than ``speed_rad_s`` and the spread (standard deviation) of every
+    coordinate of every watched marker is below ``spread_m`` (at least 3
+    samples of each marker; a standard deviation, unlike max - min, does not
+    grow with the tracker's rate). A joint's speed over the window is the larger of its largest
+    reported speed and its position span divided by the window (so drives that
+    report no velocity are judged by their positions).
     """
 
     def __init__(self, speed_rad_s: float, spread_m: float, window_s: float) -> None:
@@ -89,12 +92,16 @@ class SettleDetector:
         self._since_ns = t_ns
         self._drive_t: list[int] = []
         self._drive_v: list[float] = []
+        self._drive_j: list[int] = []
+        self._drive_p: list[float] = []
         self._tracker: dict[str, tuple[list[int], list[tuple[float, float, float]]]] = {}
 
     def add(self, samples: Samples) -> None:
         for d in samples.drives:
             self._drive_t.append(d.t_ns)
-            self._drive_v.append(abs(d.velocity_rad_s) if d.velocity_rad_s is not None else math.nan)
+            self._drive_v.append(abs(d.velocity_rad_s) if d.velocity_rad_s is not None else 0.0)
+            self._drive_j.append(d.joint)
+            self._drive_p.append(d.position_rad)
         for s in samples.tracker:
             ts, ps = self._tracker.setdefault(s.marker, ([], []))
             ts.append(s.t_ns)
@@ -106,6 +113,8 @@ class SettleDetector:
             keep = [i for i, t in enumerate(self._drive_t) if t >= cut]
             self._drive_t = [self._drive_t[i] for i in keep]
             self._drive_v = [self._drive_v[i] for i in keep]
+            self._drive_j = [self._drive_j[i] for i in keep]
+            self._drive_p = [self._drive_p[i] for i in keep]
         for m, (ts, ps) in list(self._tracker.items()):
             if ts and min(ts) < cut:
                 keep = [i for i, t in enumerate(ts) if t >= cut]
@@ -114,7 +123,12 @@ class SettleDetector:
     def status(self, now_ns: int, markers: Sequence[str]) -> tuple[bool, float | None, float | None]:
         """(settled, max joint speed, max marker spread) over the window."""
         self._trim(now_ns)
-        speed = max(self._drive_v) if self._drive_v else None
+        speed = None
+        if self._drive_v:
+            joints = np.asarray(self._drive_j)
+            pos = np.asarray(self._drive_p)
+            span = max(float(np.ptp(pos[joints == j])) for j in set(self._drive_j))
+            speed = max(max(self._drive_v), span / (self.window_ns * 1e-9))
         spread = None
         enough = True
         for m in markers:
@@ -123,7 +137,7 @@ class SettleDetector:
                 enough = False
                 continue
             arr = np.asarray(ps)
-            s = float(np.max(arr.max(axis=0) - arr.min(axis=0)))
+            s = float(np.max(arr.std(axis=0)))
             spread = s if spread is None else max(spread, s)
         covered = now_ns - self._since_ns >= self.window_ns
         ok = (covered and enough and speed is not None and not math.isnan(speed) and speed < self.speed_rad_s
@@ -157,6 +171,7 @@ class Session:
         self._done = 0
         self._last_progress_ns = 0
         self._last_label = "starting"
+        self._latest_drive_ns: dict[int, int] = {}
 
     # ------------------------------------------------------------ recording
     def event(self, kind: str, **fields) -> int:
@@ -175,10 +190,25 @@ class Session:
         for g in samples.gaps:
             self.event("gap", device=g.device, window_ns=[g.start_ns, g.end_ns], missing=g.missing, text=g.reason)
         self.detector.add(samples)
+        for d in samples.drives:
+            if d.t_ns > self._latest_drive_ns.get(d.joint, -1):
+                self._latest_drive_ns[d.joint] = d.t_ns
         now = self.io.clock()
         if now - self._last_progress_ns >= PROGRESS_EVERY_S * 1e9:
             self.show_progress(now)
         return samples
+
+    def drain(self, t_ns: int, timeout_s: float = 2.0) -> None:
+        """Poll until every drive has delivered its samples up to ``t_ns`` (drive
+        samples may arrive a little after they were acquired), so a reading's
+        window is complete in the log before the step that holds it ends."""
+        t0 = self.io.clock()
+        while len(self._latest_drive_ns) < 6 or min(self._latest_drive_ns.values()) < t_ns:
+            if (self.io.clock() - t0) * 1e-9 > timeout_s:
+                late = [j for j in range(1, 7) if self._latest_drive_ns.get(j, -1) < t_ns]
+                raise DeviceTimeout(f"drive(s) {', '.join(f'J{j}' for j in late)} sent no sample for "
+                                    f"{timeout_s:g} s")
+            self.poll([], 0.005)
 
     # ------------------------------------------------------------ progress
     def show_progress(self, now_ns: int | None = None) -> None:
@@ -209,6 +239,11 @@ class Session:
         self.step = None
         self.show_progress(now)
 
+    @property
+    def done(self) -> int:
+        """Steps done in this log (run now or copied from the resumed one)."""
+        return self._done
+
     def skip_step(self, step: Step) -> None:
         """A step already done in the log being resumed."""
         self._remaining_s -= step.estimate_s
@@ -235,9 +270,8 @@ class Session:
             return
         spec = self.plan.load(load_id)
         if spec is None:
-            text = ("remove every load from the load point" if self.load_state != UNLOADED else "")
-            if self.load_state is not None and self.load_state != UNLOADED:
-                text = f"remove load {self.load_state} from the load point"
+            text = ("remove every load from the load point" if self.load_state is None
+                    else f"remove load {self.load_state} from the load point")
         else:
             text = spec.instruction()
             if self.load_state not in (None, UNLOADED):
@@ -308,8 +342,7 @@ class Session:
                 if not any(s.marker == m and t0 <= s.t_ns <= t1 for s in samples.tracker):
                     raise DeviceTimeout(f"the tracker gave no reading of marker {m} in {reading_s:g} s at "
                                         f"pose {pose.id}, load {load_id}")
-                if not any(t0 <= d.t_ns <= t1 for d in samples.drives):
-                    raise DeviceTimeout(f"the drives gave no sample in {reading_s:g} s at pose {pose.id}")
+                self.drain(t1)
                 self.event("reading", pose=pose.id, load=load_id, marker=m, repeat=r, q=list(pose.q),
                            wrench=wrench, window_ns=[t0, t1])
         self.event("hold_end", pose=pose.id, load=load_id)
@@ -371,8 +404,7 @@ def build_steps(plan: Plan, procedures: Sequence[str], *, person_s: float = PERS
         return Step(id=f"{proc}/{pose.id}", procedure=proc, label=f"{proc} pose {pose.id}", estimate_s=est,
                     needs_person=True, action=action)
 
-    def pair_step(proc: str, f: FrictionSpec, k: int, speed: float, load_id: str, step_id: str,
-                  run_prefix: str) -> Step:
+    def pair_step(proc: str, f: FrictionSpec, speed: float, load_id: str, step_id: str, run_prefix: str) -> Step:
         move_speed = plan.static.speed_rad_s if plan.static else max(f.speeds_rad_s) * 4
         est = (_move_s(last_q[0], f.start, move_speed) + 2 * _move_s(f.start, f.end, speed) + 3 * settle_s
                + (person_s if load_id != UNLOADED else 0.0))
@@ -401,7 +433,7 @@ def build_steps(plan: Plan, procedures: Sequence[str], *, person_s: float = PERS
                     for speed in f.speeds_rad_s:
                         for _ in range(f.repeats):
                             k += 1
-                            steps.append(pair_step(proc, f, k, speed, load_id, f"friction/{f.id}/{k}",
+                            steps.append(pair_step(proc, f, speed, load_id, f"friction/{f.id}/{k}",
                                                    f"{f.id}-{k}"))
         elif proc == "sweep":
             w = plan.sweep
@@ -433,7 +465,7 @@ def build_steps(plan: Plan, procedures: Sequence[str], *, person_s: float = PERS
                 steps.append(static_step("check", plan.pose(pid), (c.load,)))
             if c.friction is not None:
                 f = next(x for x in plan.friction if x.id == c.friction)
-                steps.append(pair_step("check", f, 1, f.speeds_rad_s[0], f.loads[0], f"check/{f.id}",
+                steps.append(pair_step("check", f, f.speeds_rad_s[0], f.loads[0], f"check/{f.id}",
                                        f"check-{f.id}"))
         else:
             raise InputError(f"unknown procedure {proc!r}", source=plan.source, column="procedures")
@@ -459,6 +491,25 @@ def _copy_completed(old_path: str | pathlib.Path, rec: Recorder, last_done_event
     rec.flush()
 
 
+def _procedures(plan: Plan, procedures: Sequence[str] | None) -> tuple[str, ...]:
+    procs = tuple(procedures) if procedures else plan.procedures
+    for p in procs:
+        if p not in plan.procedures and not (p == "check" and plan.check is not None):
+            raise InputError(f"procedure {p!r} is not in the plan", source=plan.source, column="procedures")
+    return procs
+
+
+def _check_out(out_path: str | pathlib.Path, overwrite: bool, resume_from) -> None:
+    out = pathlib.Path(out_path)
+    if out.exists() and not overwrite:
+        raise InputError("already exists; choose another --out or remove it", source=str(out))
+    if resume_from is not None:
+        if not pathlib.Path(resume_from).is_file():
+            raise InputError("cannot read: no such log", source=str(resume_from))
+        if pathlib.Path(resume_from).resolve() == out.resolve():
+            raise InputError("--resume must name the interrupted log, --out a new file", source=str(out))
+
+
 def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: OperatorUI | None = None,
                    procedures: Sequence[str] | None = None, resume_from: str | pathlib.Path | None = None,
                    cell_text: str = "", cell_name: str = "cell", cell_path: str | None = None,
@@ -474,18 +525,14 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
     ui = ui if ui is not None else AutoUI(quiet=True)
     robot = io.robot
     plan.validate_for(robot)
-    procs = tuple(procedures) if procedures else plan.procedures
-    for p in procs:
-        if p not in plan.procedures and not (p == "check" and plan.check is not None):
-            raise InputError(f"procedure {p!r} is not in the plan", source=plan.source, column="procedures")
+    procs = _procedures(plan, procedures)
     steps = build_steps(plan, procs, person_s=0.0 if ui.automatic else PERSON_S)
     robot_text = robot_text if robot_text is not None else robot.to_toml()
     out_path = pathlib.Path(out_path)
     done_before: set[str] = set()
     last_done_event = -1
+    _check_out(out_path, overwrite, resume_from)
     if resume_from is not None:
-        if pathlib.Path(resume_from).resolve() == out_path.resolve():
-            raise InputError("--resume must name the interrupted log, --out a new file", source=str(out_path))
         old = read_log(resume_from)
         if old.plan is None or old.plan.sha256 != plan.sha256:
             raise InputError("the log was recorded with another plan; resume with the same plan.toml",
@@ -507,6 +554,7 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
         if resume_from is not None and last_done_event >= 0:
             _copy_completed(resume_from, rec, last_done_event)
             rec.event("resume", text=str(resume_from), completed_steps=sorted(done_before))
+        io.start()
         session = Session(io, rec, ui, plan, steps, world)
         session.event("procedure_start", procedure=",".join(procs), steps=len(steps))
         remaining = [s for s in steps if s.id not in done_before]
@@ -525,13 +573,13 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
             session.step = None
             session.event("procedure_end", status="aborted", text=str(exc))
             ui.close()
-            return Outcome(str(out_path), "aborted", len(steps), session._done, len(done_before),
+            return Outcome(str(out_path), "aborted", len(steps), session.done, len(done_before),
                            time.monotonic() - started, str(exc))
         except KeyboardInterrupt:
             session.step = None
             session.event("procedure_end", status="aborted", text="interrupted (Ctrl-C)")
             ui.close()
-            return Outcome(str(out_path), "aborted", len(steps), session._done, len(done_before),
+            return Outcome(str(out_path), "aborted", len(steps), session.done, len(done_before),
                            time.monotonic() - started, "interrupted (Ctrl-C)")
         except DeviceError as exc:
             session.event("fault", error=type(exc).__name__, text=str(exc))
@@ -541,7 +589,7 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
             raise
         session.event("procedure_end", status="completed")
         ui.close()
-    return Outcome(str(out_path), "completed", len(steps), session._done, len(done_before),
+    return Outcome(str(out_path), "completed", len(steps), session.done, len(done_before),
                    time.monotonic() - started)
 
 
@@ -571,6 +619,12 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
         ui = AutoUI(quiet=True) if yes else TerminalUI()
     robot_path = cell_config.robot_path()
     robot = cell_config.load_robot()
+    plan.validate_for(robot)
+    _procedures(plan, procedures)
+    _check_out(out_path, overwrite, resume_from)
+    if yes and world is None and not simulate:
+        raise InputError("--yes answers the prompts of a simulated cell only; a person confirms every load "
+                         "change on a real cell", source="--yes")
     with contextlib.ExitStack() as stack:
         config = cell_config
         if simulate:
@@ -578,9 +632,6 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
 
             sim = stack.enter_context(SimulatedCell(cell_config))
             config, world = sim.config, sim.world
-        if yes and world is None:
-            raise InputError("--yes answers the prompts of a simulated cell only; a person confirms every load "
-                             "change on a real cell", source="--yes")
         devices = stack.enter_context(open_cell(config))
         io = stack.enter_context(DriverCellIO(robot, config, drives=list(devices.drives.values()),
                                               tracker=devices.tracker, controller=devices.controller,

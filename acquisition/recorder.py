@@ -17,6 +17,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import json
+import math
 import pathlib
 import threading
 import time
@@ -35,11 +36,16 @@ def _dumps(obj: dict) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
 
 
-def _finite_or_none(x: float | None) -> float | None:
-    if x is None:
-        return None
+def _finite_or_none(x):
+    """``x`` as a JSON-safe value: None for None and non-finite floats; lists cleaned
+    element by element (a non-finite element makes the whole list None)."""
+    if x is None or isinstance(x, (bool, str, int, dict)):
+        return x
+    if isinstance(x, (list, tuple)):
+        out = [_finite_or_none(v) for v in x]
+        return None if any(v is None for v in out) else out
     x = float(x)
-    return x if x == x and abs(x) != float("inf") else None
+    return x if math.isfinite(x) else None
 
 
 class Recorder:
@@ -175,8 +181,10 @@ class Recorder:
             self._maybe_flush(now)
 
     def event(self, kind: str, **fields: Any) -> int:
-        """Record a procedure event stamped now; flushes the file. Returns its time [ns]."""
-        msg = {"kind": kind, **{k: v for k, v in fields.items() if v is not None}}
+        """Record a procedure event stamped now; flushes the file. Returns its time [ns].
+        Fields that are None or not finite numbers are left out."""
+        clean = {k: _finite_or_none(v) for k, v in fields.items()}
+        msg = {"kind": kind, **{k: v for k, v in clean.items() if v is not None}}
         with self._lock:
             now = self.clock()
             self._write(lf.TOPIC_EVENT, now, msg, now)

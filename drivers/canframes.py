@@ -9,6 +9,8 @@ second.
 
 from __future__ import annotations
 
+import functools
+
 import can
 
 SYNC_COB_ID = 0x80
@@ -17,44 +19,89 @@ TPDO_FUNCTIONS = (0x3, 0x5, 0x7, 0x9)
 TAIL_BITS = 1 + 2 + 7 + 3  # CRC delimiter, ACK slot + delimiter, EOF, intermission
 
 
-def _crc15(bits: list[int]) -> int:
+def _crc15_table() -> tuple[int, ...]:
+    table = []
+    for byte in range(256):
+        crc = byte << 7
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x4599) if crc & 0x4000 else crc << 1
+            crc &= 0x7FFF
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC15 = _crc15_table()
+
+
+def _stuff_step(state: int, bit: int) -> tuple[int, int]:
+    """Bit stuffing as a state machine: ``state = 4 * last bit + (run length - 1)``, runs of 1..4."""
+    last, run = divmod(state, 4)
+    run = run + 2 if bit == last else 1
+    if run == 5:                                      # a complementary stuff bit starts a new run
+        return 4 * (1 - bit), 1
+    return 4 * bit + run - 1, 0
+
+
+def _stuff_tables():
+    bit_table = tuple(tuple(_stuff_step(state, b) for b in (0, 1)) for state in range(8))
+    byte_table = []
+    for state in range(8):
+        row = []
+        for byte in range(256):
+            st, n = state, 0
+            for i in range(7, -1, -1):
+                st, k = bit_table[st][(byte >> i) & 1]
+                n += k
+            row.append((st, n))
+        byte_table.append(tuple(row))
+    return bit_table, tuple(byte_table)
+
+
+_STUFF_BIT, _STUFF_BYTE = _stuff_tables()
+
+
+def _crc15(value: int, nbits: int) -> int:
+    """CRC-15 (CAN, polynomial 0x4599) of the ``nbits`` low bits of ``value``, most significant first."""
     crc = 0
-    for b in bits:
-        nxt = b ^ ((crc >> 14) & 1)
-        crc = (crc << 1) & 0x7FFF
-        if nxt:
-            crc ^= 0x4599
+    lead = nbits % 8
+    for i in range(lead - 1, -1, -1):                 # leading bits one at a time
+        bit = (value >> (nbits - lead + i)) & 1
+        crc = ((crc << 1) ^ 0x4599 if bit ^ (crc >> 14) else crc << 1) & 0x7FFF
+    for shift in range(nbits - lead - 8, -1, -8):     # then whole bytes through the table
+        byte = (value >> shift) & 0xFF
+        crc = ((crc << 8) & 0x7FFF) ^ _CRC15[((crc >> 7) ^ byte) & 0xFF]
     return crc
 
 
+@functools.lru_cache(maxsize=8192)
 def frame_bits(can_id: int, dlc: int, data: bytes = b"", *, extended: bool = False, remote: bool = False) -> int:
     """Bits a classic CAN frame occupies on the bus, stuff bits and intermission included."""
-    bits: list[int] = [0]  # SOF
     if extended:
-        bits += [(can_id >> (28 - i)) & 1 for i in range(11)]        # base id
-        bits += [1, 1]                                               # SRR, IDE
-        bits += [(can_id >> (17 - i)) & 1 for i in range(18)]        # id extension
-        bits += [1 if remote else 0, 0, 0]                           # RTR, r1, r0
+        value = ((can_id >> 18) & 0x7FF) << 2 | 0b11                  # SOF 0, base id, SRR, IDE
+        value = (value << 18 | (can_id & 0x3FFFF)) << 3 | (4 if remote else 0)   # id extension, RTR, r1, r0
+        nbits = 1 + 11 + 2 + 18 + 3
     else:
-        bits += [(can_id >> (10 - i)) & 1 for i in range(11)]
-        bits += [1 if remote else 0, 0, 0]                           # RTR, IDE, r0
-    bits += [(dlc >> (3 - i)) & 1 for i in range(4)]
+        value = (can_id & 0x7FF) << 3 | (4 if remote else 0)           # SOF 0, id, RTR, IDE, r0
+        nbits = 1 + 11 + 3
+    value = value << 4 | (dlc & 0xF)
+    nbits += 4
     if not remote:
-        for byte in bytes(data)[:dlc]:
-            bits += [(byte >> (7 - i)) & 1 for i in range(8)]
-    crc = _crc15(bits)
-    bits += [(crc >> (14 - i)) & 1 for i in range(15)]
+        payload = bytes(data)[:dlc]
+        value = value << (8 * len(payload)) | int.from_bytes(payload, "big")
+        nbits += 8 * len(payload)
+    value = value << 15 | _crc15(value, nbits)
+    nbits += 15
+    # bit stuffing: after five equal bits a complementary bit is inserted (and counts in the next run)
+    state = 0                                         # after the start of frame: one 0
     stuffed = 0
-    run_bit, run_len = bits[0], 1
-    for b in bits[1:]:
-        if b == run_bit:
-            run_len += 1
-            if run_len == 5:
-                stuffed += 1
-                run_bit, run_len = 1 - b, 1   # the stuff bit starts a new run
-        else:
-            run_bit, run_len = b, 1
-    return len(bits) + stuffed + TAIL_BITS
+    rest = nbits - 1
+    for i in range(rest % 8 - 1, -1, -1):
+        state, n = _STUFF_BIT[state][(value >> (rest - rest % 8 + i)) & 1]
+        stuffed += n
+    for shift in range(rest - rest % 8 - 8, -1, -8):
+        state, n = _STUFF_BYTE[state][(value >> shift) & 0xFF]
+        stuffed += n
+    return nbits + stuffed + TAIL_BITS
 
 
 def worst_frame_bits(dlc: int, *, extended: bool = False) -> int:

@@ -55,7 +55,7 @@ SYNC_OVERFLOW = 240
 #: how long after its SYNC a cycle stays open for TPDOs still in the receive queue
 CLOSE_DELAY_S = 0.05
 #: the SYNC producer never sends two SYNCs closer than this fraction of the period
-MIN_INTERVAL = 0.95
+MIN_INTERVAL = 0.85
 
 STATUS_OBJECT = 0x6041
 POSITION_OBJECT = 0x6064
@@ -113,6 +113,8 @@ class _Member:
         self.stream = stream
         self.first_cycle = first_cycle
         self.last_good_ns = time.monotonic_ns()
+        self.last_cycle = 2**62       # the last cycle it is streamed in (set when it leaves)
+        self.settled = first_cycle    # the last cycle delivered or recorded missing
         self.pending = 0
         self.pending_reason = ""
 
@@ -150,6 +152,7 @@ class CanopenLink:
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise DeviceError(f"cannot open CAN {self.interface}/{self.channel}: {exc}") from exc
         self.network = canopen.Network(bus)
+        self.network.NOTIFIER_CYCLE = 0.1     # so that closing does not wait a second
         self.network.connect()
         self._lock = threading.Lock()
         self._members: dict[int, _Member] = {}
@@ -203,13 +206,25 @@ class CanopenLink:
             self._thread.start()
         return member
 
-    def leave(self, node_id: int) -> None:
+    def leave(self, node_id: int, *, settle: bool = True) -> None:
+        """Stop streaming ``node_id``; with ``settle``, first deliver the cycles
+        that were still open (waiting :data:`CLOSE_DELAY_S` for their TPDOs)."""
         with self._lock:
-            member = self._members.pop(node_id, None)
+            member = self._members.get(node_id)
+            if member is None:
+                return
+            member.last_cycle = self._cycle_index      # no SYNC after this one is expected of it
+        if settle and threading.current_thread() is not self._thread:
+            time.sleep(CLOSE_DELAY_S)
+        with self._lock:
+            if settle:
+                for cycle in list(self._cycles):
+                    if self._members.get(node_id) is member:
+                        self._settle(member, cycle)
+            self._members.pop(node_id, None)
             last = not self._members
             thread = self._thread
-        if member is not None:
-            member.flush_gap(time.monotonic_ns())
+        member.flush_gap(time.monotonic_ns())
         if last and thread is not None and thread is not threading.current_thread():
             self._stop.set()
             thread.join(timeout=5.0)
@@ -231,45 +246,52 @@ class CanopenLink:
                     return
             self.late_tpdos += 1
 
+    def _settle(self, member: _Member, cycle: _Cycle) -> None:
+        """Deliver ``member``'s sample of a closed cycle, or record it missing."""
+        if cycle.index <= member.first_cycle or cycle.index > member.last_cycle or cycle.index <= member.settled:
+            return
+        member.settled = cycle.index
+        replies = [cycle.replies.get((member.node_id, cob)) for cob in member.cob_ids]
+        if any(r is None for r in replies):
+            ok = member.missed(cycle.t_ns, "no TPDO in the SYNC cycle")
+        elif any(isinstance(r, str) for r in replies):
+            ok = member.missed(cycle.t_ns, next(r for r in replies if isinstance(r, str)))
+        else:
+            values: dict = {}
+            for r in replies:
+                values.update(r)
+            ok = member.drive.deliver(member, cycle.t_ns, values)
+        if not ok:
+            self._members.pop(member.node_id, None)
+
     def _close_cycle(self, cycle: _Cycle) -> None:
-        failed = []
         for member in list(self._members.values()):
-            if cycle.index <= member.first_cycle:
-                continue
-            replies = [cycle.replies.get((member.node_id, cob)) for cob in member.cob_ids]
-            if any(r is None for r in replies):
-                ok = member.missed(cycle.t_ns, "no TPDO in the SYNC cycle")
-            elif any(isinstance(r, str) for r in replies):
-                ok = member.missed(cycle.t_ns, next(r for r in replies if isinstance(r, str)))
-            else:
-                values: dict = {}
-                for r in replies:
-                    values.update(r)
-                ok = member.drive.deliver(member, cycle.t_ns, values)
-            if not ok:
-                failed.append(member.node_id)
-        for node_id in failed:
-            self._members.pop(node_id, None)
+            self._settle(member, cycle)
 
     def _sync_loop(self, rate_hz: float) -> None:
+        """Send SYNC ``k`` at ``start + k / rate``; a SYNC more than a period late is
+        skipped (and recorded as a gap of every member), and after a late SYNC the
+        next waits at least ``MIN_INTERVAL`` periods so the late cycle's TPDOs fit."""
         period_ns = int(round(1e9 / rate_hz))
         keep = max(2, int(math.ceil(CLOSE_DELAY_S * rate_hz)))
-        next_ns = time.monotonic_ns()
-        oversleep_ns = 0.0     # running estimate of how late time.sleep wakes up
+        next_ns = time.monotonic_ns()          # the nominal schedule
+        last_sent = next_ns - period_ns
+        oversleep_ns = 0.0                     # running estimate of how late time.sleep wakes up
         while not self._stop.is_set():
+            send_at = max(next_ns, last_sent + int(MIN_INTERVAL * period_ns))
             now = time.monotonic_ns()
-            if now < next_ns - oversleep_ns:
-                wake = next_ns - oversleep_ns
+            if now < send_at - oversleep_ns:
+                wake = send_at - oversleep_ns
                 time.sleep((wake - now) / 1e9)
                 woke = time.monotonic_ns()
                 oversleep_ns += 0.1 * ((woke - wake) - oversleep_ns)
                 oversleep_ns = min(max(oversleep_ns, 0.0), 0.2 * period_ns)
                 continue
-            late = (now - next_ns) // period_ns
+            late = max(0, (now - next_ns) // period_ns)
             with self._lock:
                 if not self._members:
                     break
-                if late >= 1:     # the producer fell behind: those SYNCs were never sent
+                if late >= 1:     # the producer fell behind: those SYNCs are never sent
                     self.syncs_skipped += late
                     for m in list(self._members.values()):
                         for _ in range(late):
@@ -292,8 +314,8 @@ class CanopenLink:
                         m.stream.fail(DeviceError(f"CAN {self.interface}/{self.channel}: cannot send SYNC: {exc}"))
                     self._members.clear()
                 break
+            last_sent = t_ns
             next_ns += period_ns * (late + 1)
-            next_ns = max(next_ns, t_ns + int(MIN_INTERVAL * period_ns))
         # let the last windows close, then deliver them
         time.sleep(CLOSE_DELAY_S)
         with self._lock:
@@ -333,7 +355,7 @@ class CanopenDrive(Drive):
         try:
             self.node = self.link.network.add_node(self.node_id, str(self._eds))
             self.node.sdo.RESPONSE_TIMEOUT = self.timeout_s
-            self.node.sdo.MAX_RETRIES = 0
+            self.node.sdo.MAX_RETRIES = 1     # one attempt; the base class retries
             self.node.emcy.add_callback(self._on_emcy)
             self._read_factors()
         except BaseException:
@@ -454,7 +476,7 @@ class CanopenDrive(Drive):
             member.flush_gap(time.monotonic_ns())
             member.stream.fail(DeviceFault(
                 f"{self.name} (node {self.node_id}): EMCY 0x{entry.code:04X} ({entry.get_desc() or 'no description'})"))
-            self.link.leave(self.node_id)
+            self.link.leave(self.node_id, settle=False)
 
     _member: _Member | None = None
 
@@ -505,12 +527,17 @@ class CanopenDrive(Drive):
         link = self.link
         cob_id = pdo.cob_id
 
+        layout = [(v.index, v.od, v.offset // 8, v.length // 8) for v in pdo.map if v.length]
+        if any(v.offset % 8 or v.length % 8 for v in pdo.map if v.length):
+            raise InputError(f"{self.name}: TPDO 0x{cob_id:03X} maps objects that are not byte-aligned")
+
         def on_pdo(pdo_map) -> None:
-            if len(pdo_map.data) != nbytes:
-                link.on_tpdo(node_id, cob_id, f"malformed TPDO 0x{cob_id:03X} ({len(pdo_map.data)} of "
+            data = bytes(pdo_map.data)
+            if len(data) != nbytes:
+                link.on_tpdo(node_id, cob_id, f"malformed TPDO 0x{cob_id:03X} ({len(data)} of "
                                               f"{nbytes} bytes)", pdo_map.timestamp)
                 return
-            link.on_tpdo(node_id, cob_id, {var.index: var.raw for var in pdo_map.map if var.length},
+            link.on_tpdo(node_id, cob_id, {index: od.decode_raw(data[a:a + n]) for index, od, a, n in layout},
                          pdo_map.timestamp)
 
         return on_pdo

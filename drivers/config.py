@@ -43,7 +43,8 @@ UNITS: dict[str, tuple[str, float]] = {
     "A": ("current", 1.0), "mA": ("current", 1e-3),
     "rad": ("angle", 1.0), "mrad": ("angle", 1e-3), "urad": ("angle", 1e-6),
     "deg": ("angle", math.pi / 180.0),
-    "rad/s": ("angular_velocity", 1.0), "deg/s": ("angular_velocity", math.pi / 180.0),
+    "rad/s": ("angular_velocity", 1.0), "mrad/s": ("angular_velocity", 1e-3),
+    "deg/s": ("angular_velocity", math.pi / 180.0),
     "N*m": ("torque", 1.0), "1": ("count", 1.0),
 }
 #: quantity each named drive register must have

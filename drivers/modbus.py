@@ -119,6 +119,8 @@ class ModbusLink:
             except ModbusIOException as exc:
                 if not self.client.connected:
                     raise DeviceDisconnected(f"modbus {self.where}: {what}: connection lost") from exc
+                # a late reply must not answer the next request: start the next one on a fresh connection
+                self.client.close()
                 raise DeviceTimeout(f"modbus {self.where}: {what}: no valid reply within "
                                     f"{self.timeout_s:g} s") from exc
             except (ModbusException, ValueError, IndexError) as exc:

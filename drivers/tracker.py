@@ -17,9 +17,13 @@ Stream policy (nothing is delivered that the protocol does not vouch for):
   :class:`ProtocolError`;
 * a lost connection is re-opened (``retries`` attempts within ``timeout_s``
   each) and the stream restarted; the measurements missed meanwhile are a gap
-  (their count from the sequence numbers); failing that, the stream ends with
-  :class:`DeviceDisconnected`; ``timeout_s`` without any line is treated the
-  same way and ends with :class:`DeviceTimeout`.
+  (counted from the tracker's clock); failing that, the stream ends with
+  :class:`DeviceDisconnected`; ``timeout_s`` without any line ends it with
+  :class:`DeviceTimeout`.
+
+A command that timed out may still be answered later: the next command first
+re-opens the connection (TCP) or the port (serial, input flushed), so a late
+reply never answers a newer request.
 
 ``t_ns`` of a streamed sample is the tracker's own measurement time mapped
 onto ``time.monotonic_ns()`` (offset = the smallest receive delay seen), so
@@ -97,6 +101,7 @@ class _SerialTransport:
         self.where = path
         try:
             self.port = serial.Serial(path, baudrate=baud, timeout=0.05, write_timeout=timeout_s)
+            self.port.reset_input_buffer()
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceDisconnected(f"tracker {path}: cannot open: {exc}") from exc
 
@@ -152,6 +157,7 @@ class LineTracker(Tracker):
         self._reader: threading.Thread | None = None
         self._stop_reader = threading.Event()
         self._buffer = b""
+        self._resync = False
         self._call("open", self._open)
         try:
             self._call("select", self._select, self.markers[0])
@@ -168,6 +174,9 @@ class LineTracker(Tracker):
 
     def _open(self) -> None:
         self._shutdown_transport()
+        self._resync = False
+        while not self._replies.empty():
+            self._replies.get_nowait()
         self._transport = self._make_transport()
         self._buffer = b""
         self._stop_reader.clear()
@@ -344,8 +353,8 @@ class LineTracker(Tracker):
 
     # ---------------------------------------------------------- commands
     def _command(self, command: str, expect: str) -> tuple[str, int]:
-        if self._transport is None:
-            raise DeviceDisconnected("tracker: not connected")
+        if self._resync or self._transport is None:
+            self._open()
         with self._cmd_lock:
             while not self._replies.empty():
                 self._replies.get_nowait()
@@ -354,6 +363,7 @@ class LineTracker(Tracker):
             while True:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
+                    self._resync = True
                     raise DeviceTimeout(f"tracker: no reply to {command!r} within {self.timeout_s:g} s")
                 try:
                     item = self._replies.get(timeout=remaining)

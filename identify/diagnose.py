@@ -20,8 +20,11 @@ secant form by default) and tested against the model:
 * **BIC** of the same Gaussian likelihood: ``delta_bic = -W + q ln n`` (n the
   number of deflection components); negative favours the effect.
 
-Without repeated readings the noise is unknown: the test is the classical F
-test (``W/q ~ F(q, n - p)``) and ``delta_bic = n ln(rss1/rss0) + q ln n``.
+Without repeated readings the noise level is unknown: the tests then assume
+the structure of tracker noise (deflections of one marker share the reference
+reading) at the level that makes the model's own residual what noise leaves,
+which keeps the false-alarm rate near its nominal value but costs power; no
+noise floor is reported.
 
 The verdict (cli.md) is the best candidate when its p < 0.01 and its
 delta_bic < -10, else None. With q ln n in the BIC, a candidate of 3 to 6
@@ -33,12 +36,19 @@ Residual structure no candidate explains is reported when the final model
 (``excess_p_value`` < 0.001, a Satterthwaite scaled chi-square of the
 residual sum of squares): which poses, markers, joint angles, loads or times the
 excess follows.
+
+A parameter-free effect (complementary_stiffness) is embedded as lambda times
+its change of the prediction: lambda = 0 is tested, delta_bic taken at 1.
+
+Run data (:func:`diagnose_runs`): friction terms on the UV/VU half-differences,
+compensator and gravity on the joint-2 sweep means, each a likelihood-ratio
+test with the noise variance estimated per joint.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -185,6 +195,13 @@ class Diagnosis:
     unexplained: tuple[str, ...]
     where: Where = field(repr=False)              # of the model as given
     where_final: Where = field(repr=False)
+    #: False without repeated readings: the tests then assume tracker noise at
+    #: the level the model's residual shows, and no noise floor is reported
+    noise_known: bool = True
+
+    @property
+    def noise_floor(self) -> float | None:
+        return self.fit.noise_floor if self.noise_known else None
 
     @property
     def verdict_candidate(self) -> Candidate | None:
@@ -197,13 +214,14 @@ class Diagnosis:
             "torque": self.torque,
             "form": self.form,
             "residual": {"rms": f.rms, "max": f.max, "n": f.n, "unit": "m"},
-            "noise_floor": f.noise_floor,
+            "noise_floor": self.noise_floor,
             "candidates": [c.to_json() for c in self.candidates],
             "verdict": self.verdict,
             "not_testable": [{"effect": n.effect, "reason": n.reason} for n in self.not_testable],
             "final": {"model": list(self.final.model),
                       "residual": {"rms": self.final.rms, "max": self.final.max, "n": self.final.n, "unit": "m"},
-                      "noise_floor": self.final.noise_floor, "excess_p_value": self.excess_p_value},
+                      "noise_floor": self.final.noise_floor if self.noise_known else None,
+                      "excess_p_value": self.excess_p_value},
             "unexplained": list(self.unexplained),
             "where": self.where.to_json(),
         }
@@ -218,46 +236,39 @@ def _finite(x: float | None) -> float | None:
 class _Noise:
     """Noise covariance of a fit's residual space: (I - H) Sigma."""
 
-    cov: object               # (n, n) sparse Sigma, or None (i.i.d., unknown level)
-    basis: np.ndarray         # (n, p) orthonormal basis of the design's columns
-    level: float              # variance scale of the i.i.d. fallback [m^2]
-    resid_var: np.ndarray     # (n,) diag((I - H) Sigma)
-    mean: float               # tr((I - H) Sigma)
-    var: float                # var of the rss under noise: 2 tr(((I - H) Sigma)^2)
-
-    def sigma_times(self, x: np.ndarray) -> np.ndarray:
-        return self.cov @ x if self.cov is not None else self.level * x
+    cov: scipy.sparse.csr_matrix  # (n, n) Sigma
+    basis: np.ndarray             # (n, p) orthonormal basis of the design's columns
+    resid_var: np.ndarray         # (n,) diag((I - H) Sigma)
+    mean: float                   # tr((I - H) Sigma)
+    var: float                    # var of the rss under noise: 2 tr(((I - H) Sigma)^2)
 
 
 def _noise(fit: StaticFit) -> _Noise:
+    """The noise algebra of a fit that has a noise model (repeated readings)."""
+    if fit.noise_blocks is None:
+        raise ValueError("the fit has no noise model (no repeated readings)")
     n = fit.n
-    a = fit.design if fit.design is not None else np.zeros((n, 0))
+    a = fit.design
     if a.shape[1]:
         u, s, _ = np.linalg.svd(a, full_matrices=False)
         basis = u[:, s > s[0] * 1e-12]
     else:
         basis = np.zeros((n, 0))
-    if fit.noise_blocks is not None:
-        rows = np.concatenate([r for r, _ in fit.noise_blocks])
-        blocks = [c for _, c in fit.noise_blocks]
-        perm = scipy.sparse.block_diag(blocks, format="csr")
-        # place the blocks at their rows
-        order = np.empty(n, dtype=int)
-        order[rows] = np.arange(len(rows))
-        cov = perm[order][:, order]
-        diag = cov.diagonal()
-        sb = cov @ basis                            # Sigma Q
-        bsb = basis.T @ sb                          # Q' Sigma Q
-        resid_var = diag - np.einsum("ij,ij->i", basis, sb)
-        mean = float(diag.sum() - np.trace(bsb))
-        tr_s2 = float(sum((c * c).sum() for c in blocks))
-        s2b = cov @ sb                              # Sigma^2 Q
-        var = 2.0 * (tr_s2 - 2.0 * float(np.einsum("ij,ij->", basis, s2b)) + float((bsb * bsb).sum()))
-        return _Noise(cov, basis, 1.0, resid_var, mean, max(var, 1e-300))
-    p = basis.shape[1]
-    level = fit.rss / max(n - p, 1)
-    resid_var = level * (1.0 - np.einsum("ij,ij->i", basis, basis))
-    return _Noise(None, basis, level, resid_var, level * (n - p), 2.0 * level**2 * (n - p))
+    rows = np.concatenate([r for r, _ in fit.noise_blocks])
+    blocks = [c for _, c in fit.noise_blocks]
+    stacked = scipy.sparse.block_diag(blocks, format="csr")
+    order = np.empty(n, dtype=int)          # place the blocks at their rows
+    order[rows] = np.arange(len(rows))
+    cov = stacked[order][:, order]
+    diag = cov.diagonal()
+    sb = cov @ basis                        # Sigma Q
+    bsb = basis.T @ sb                      # Q' Sigma Q
+    resid_var = diag - np.einsum("ij,ij->i", basis, sb)
+    mean = float(diag.sum() - np.trace(bsb))
+    tr_s2 = float(sum((c * c).sum() for c in blocks))
+    s2b = cov @ sb                          # Sigma^2 Q
+    var = 2.0 * (tr_s2 - 2.0 * float(np.einsum("ij,ij->", basis, s2b)) + float((bsb * bsb).sum()))
+    return _Noise(cov, basis, resid_var, mean, max(var, 1e-300))
 
 
 def excess_p_value(fit: StaticFit) -> float | None:
@@ -293,9 +304,10 @@ def _bins(values: np.ndarray, n_bins: int, unit: str, fmt: str) -> tuple[np.ndar
     return np.array([remap[i] for i in idx]), tuple(labels[i] for i in used)
 
 
-def where_it_fails(robot: Robot, fit: StaticFit, *, n_bins: int = 6) -> Where:
+def where_it_fails(robot: Robot, fit: StaticFit, *, n_bins: int = 6, noise: bool = True) -> Where:
     """Residual summaries of a static fit by pose, marker, load state, joint
-    angle (each of q1..q6), load size and time."""
+    angle (each of q1..q6), load size and time; with ``noise`` (and repeated
+    readings), what noise alone leaves in each group."""
     ds = fit.dataset
     pose = ds.state_pose[ds.defl_state]
     q = ds.q[pose]
@@ -303,7 +315,7 @@ def where_it_fails(robot: Robot, fit: StaticFit, *, n_bins: int = 6) -> Where:
     resid = fit.residuals
     sq = (resid**2).sum(axis=1)
     noise_var = None
-    if fit.noise_blocks is not None:
+    if noise and fit.noise_blocks is not None:
         noise_var = _noise(fit).resid_var.reshape(-1, 3).sum(axis=1)
 
     def summary(by: str, index: np.ndarray, labels: Sequence[str]) -> GroupSummary:
@@ -386,8 +398,10 @@ def unexplained_structure(where: Where) -> tuple[str, ...]:
             _, p = scipy.stats.kruskal(*groups)
             if np.isfinite(p) and p < FEATURE_P:
                 worst = int(np.argmax([g.mean() for g in groups]))
+                m = where.marker == worst
+                ratio_rms = math.sqrt(float((where.residual[m] ** 2).sum() / where.noise_var[m].sum()))
                 found.append((p, f"residual is largest at marker {where.markers[worst]} "
-                                 f"({groups[worst].mean():.1f}x the noise there)"))
+                                 f"({ratio_rms:.1f}x the noise rms there)"))
     pose_excess = np.array([excess[where.pose == p].sum() for p in range(n_pose)])
     worst = int(np.argmax(pose_excess))
     if n_pose > 2 and pose_excess[worst] > POSE_SHARE * total:
@@ -398,25 +412,28 @@ def unexplained_structure(where: Where) -> tuple[str, ...]:
 
 
 # =================================================================== tests
-def _wald(base: StaticFit, aug: StaticFit, names: Sequence[str]) -> tuple[float, int, float | None, float]:
-    """Statistic, dof, p-value and delta BIC of the added parameters ``names``."""
+def _wald(aug: StaticFit, names: Sequence[str]) -> tuple[float, int, float, float]:
+    """Statistic, dof, p-value and delta BIC of the added parameters ``names``
+    (the augmented fit's sandwich covariance with the noise model, scaled by
+    its dispersion)."""
     idx = [aug.beta_names.index(nm) for nm in names if nm not in aug.unidentifiable]
     q = len(idx)
-    n = aug.n
     gamma = aug.beta[idx]
     cov = aug.beta_cov[np.ix_(idx, idx)]
     scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     cs = cov / np.outer(scale, scale)
     gs = gamma / scale
     stat = float(gs @ np.linalg.lstsq(cs, gs, rcond=None)[0])
-    if aug.noise_blocks is not None:
-        p = float(scipy.stats.chi2.sf(stat, q))
-        dbic = -stat + q * math.log(n)
-    else:
-        dof2 = max(n - aug.n_params, 1)
-        p = float(scipy.stats.f.sf(stat / q, q, dof2))
-        dbic = n * math.log(aug.rss / base.rss) + q * math.log(n)
-    return stat, q, p, dbic
+    return stat, q, float(scipy.stats.chi2.sf(stat, q)), -stat + q * math.log(aug.n)
+
+
+def _assumed_noise(robot: Robot, ds: StaticDataset, model, torque: str, form: str) -> StaticDataset:
+    """Without repeated readings the noise level is unknown. Take the structure
+    of tracker noise (the deflections of one marker share its reference reading)
+    with the level that makes the model's residual what noise leaves."""
+    unit = 1e-5
+    fit = identify_static(robot, replace(ds, sigma_tracker=unit), model=model, torque=torque, form=form)
+    return replace(ds, sigma_tracker=unit * math.sqrt(fit.rss / fit.expected_rss))
 
 
 def _embedding(base: StaticFit, aug: StaticFit) -> tuple[float, float | None, float]:
@@ -430,7 +447,7 @@ def _embedding(base: StaticFit, aug: StaticFit) -> tuple[float, float | None, fl
     if dd <= 0.0:
         return 0.0, 1.0, 0.0
     lam = float(d_perp @ r) / dd
-    var = float(d_perp @ nz.sigma_times(d_perp)) / dd**2 * _dispersion(aug)
+    var = float(d_perp @ (nz.cov @ d_perp)) / dd**2 * _dispersion(aug)
     stat = lam**2 / var
     p = float(scipy.stats.chi2.sf(stat, 1))
     dbic = -(2.0 * lam - 1.0) / var
@@ -462,6 +479,9 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     the reason.
     """
     ds = data if isinstance(data, StaticDataset) else build_dataset(data)
+    noise_known = ds.sigma_tracker is not None
+    if not noise_known:
+        ds = _assumed_noise(robot, ds, model, torque, form)
     base = identify_static(robot, ds, model=model, torque=torque, form=form)
     model_names = base.model
     pool = ALL_EFFECTS if effects is None else tuple(effects)
@@ -490,23 +510,24 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
                                              f"condition number {aug.condition_number:.3g})"))
             continue
         if added:
-            stat, dof, p, dbic = _wald(base, aug, added)
+            stat, dof, p, dbic = _wald(aug, added)
         else:
             stat, p, dbic = _embedding(base, aug)
             dof = 1
         params = tuple(pp for pp in aug.parameters if pp.name in added)
         candidates.append(Candidate(
             effect=name, explanation=eff.explanation, evidence=_evidence(eff, params, eff.evidence),
-            rms_after=aug.rms, max_after=aug.max, noise_floor_after=aug.noise_floor, delta_bic=float(dbic),
+            rms_after=aug.rms, max_after=aug.max, noise_floor_after=aug.noise_floor if noise_known else None,
+            delta_bic=float(dbic),
             p_value=p, statistic=float(stat), dof=dof, dispersion=_dispersion(aug), parameters=params,
             unidentifiable=unident, rank=aug.n_params, n_model_parameters=len(aug.beta_names),
             condition_number=aug.condition_number, fit=aug))
     candidates.sort(key=lambda c: (c.delta_bic, c.rms_after))
     verdict = candidates[0].effect if candidates and candidates[0].significant else None
     final = candidates[0].fit if verdict is not None else base
-    excess = excess_p_value(final)
-    where = where_it_fails(robot, base)
-    where_final = where_it_fails(robot, final) if final is not base else where
+    excess = excess_p_value(final) if noise_known else None
+    where = where_it_fails(robot, base, noise=noise_known)
+    where_final = where_it_fails(robot, final, noise=noise_known) if final is not base else where
     unexplained: tuple[str, ...] = ()
     if excess is not None and excess < EXCESS_P:
         unexplained = unexplained_structure(where_final)
@@ -516,7 +537,7 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
                            "joint angle, load or time",)
     return Diagnosis(model=model_names, torque=torque, form=form, fit=base, candidates=tuple(candidates),
                      not_testable=tuple(skipped), verdict=verdict, final=final, excess_p_value=excess,
-                     unexplained=unexplained, where=where, where_final=where_final)
+                     unexplained=unexplained, where=where, where_final=where_final, noise_known=noise_known)
 
 
 # =================================================================== run data
@@ -595,9 +616,13 @@ class RunDiagnosis:
     verdict: str | None
     friction: FrictionView | None = field(repr=False)
     sweeps: SweepView | None = field(repr=False)
+    #: torque residual rms [N·m] of the model by joint and by UV/VU pair (direction-
+    #: dependent part: friction), and of the joint-2 sweep means by q2 and by sweep
+    groups: tuple[GroupSummary, ...] = ()
 
     def to_json(self) -> dict:
         return {"model": list(self.model),
+                "where": {g.by: {**g.to_json(), "unit": "N*m"} for g in self.groups},
                 "residual": {"rms": self.residual_rms, "max": self.residual_max, "n": self.n, "unit": "N*m"},
                 "noise_floor": None,
                 "candidates": [c.to_json() for c in self.candidates],
@@ -651,7 +676,6 @@ def _diagnose_friction(samples, model: tuple[str, ...]):
     rss0 = np.zeros(6)
     n = np.zeros(6, dtype=int)
     before = np.full(samples.friction.shape, np.nan)
-    base_params = {}
     for j in range(6):
         ok = np.isfinite(samples.friction[:, j])
         n[j] = int(ok.sum())
@@ -661,7 +685,6 @@ def _diagnose_friction(samples, model: tuple[str, ...]):
         x = np.column_stack([cols_all[e][ok, j] for e in have]) if have else np.zeros((n[j], 0))
         beta, _, rss0[j] = _lstsq(x, y)
         before[ok, j] = x @ beta if have else 0.0
-        base_params[j] = beta
     out: list[tuple[RunCandidate, np.ndarray]] = []
     skipped: list[NotTestable] = []
     for eff_name in FRICTION_EFFECTS:
@@ -698,8 +721,9 @@ def _diagnose_friction(samples, model: tuple[str, ...]):
         before_rms = float(np.sqrt(rss0[idx].sum() / n[idx].sum()))
         after_rms = float(np.sqrt(rss1[idx].sum() / n[idx].sum()))
         strongest_p = max(params, key=lambda p_: abs(p_.value) / p_.std if p_.std > 0 else 0.0)
+        unit = "" if strongest_p.unit == "1" else f" {strongest_p.unit}"
         evidence = (f"{eff.evidence} (joint {strongest_p.name[2:]}: {strongest_p.name} = "
-                    f"{strongest_p.value:.3g} {strongest_p.unit})")
+                    f"{strongest_p.value:.3g}{unit})")
         out.append((RunCandidate(eff_name, "uv/vu", eff.explanation, evidence, before_rms, after_rms, dbic, p, stat,
                                  len(idx), tuple(params), tuple(unident)), after))
     return out, skipped, before, rss0, n
@@ -874,4 +898,28 @@ def diagnose_runs(robot: Robot, table, *, model: Sequence[str] = ("joint_stiffne
     rms = float(np.sqrt(pieces_rss / pieces_n)) if pieces_n else None
     return RunDiagnosis(model=model, n=pieces_n, residual_rms=rms, residual_max=pieces_max if pieces_n else None,
                         candidates=tuple(c for c, _ in candidates), not_testable=tuple(skipped), verdict=verdict,
-                        friction=friction_view, sweeps=sweep_view)
+                        friction=friction_view, sweeps=sweep_view, groups=_run_groups(friction_view, sweep_view))
+
+
+def _run_groups(friction: FrictionView | None, sweeps: SweepView | None) -> tuple[GroupSummary, ...]:
+    def summary(by: str, index: np.ndarray, values: np.ndarray, labels: Sequence[str]) -> GroupSummary:
+        g = len(labels)
+        n = np.bincount(index, minlength=g)
+        ss = np.bincount(index, weights=values**2, minlength=g)
+        return GroupSummary(by, tuple(labels), np.sqrt(ss / np.maximum(n, 1)), None, n)
+
+    out = []
+    if friction is not None:
+        resid = friction.measured - friction.before
+        moving = np.isfinite(resid)
+        joint = np.nonzero(moving)[1]
+        out.append(summary("joint", joint, resid[moving], [f"j{j + 1}" for j in range(6)]))
+        pair = np.broadcast_to(friction.pair[:, None], resid.shape)[moving]
+        out.append(summary("uv/vu pair", pair, resid[moving], [f"{u}/{v}" for u, v in friction.pairs]))
+    if sweeps is not None and len(sweeps.q2):
+        idx, labels = _bins(sweeps.q2, 6, "rad", ".2f")
+        out.append(summary("sweep q2", idx, sweeps.residual_before, labels))
+        ids = np.unique(sweeps.sweep)
+        out.append(summary("sweep", np.searchsorted(ids, sweeps.sweep), sweeps.residual_before,
+                           [f"sweep {k + 1}" for k in range(len(ids))]))
+    return tuple(out)

@@ -178,9 +178,10 @@ class SimCanopenDrive:
         for pdo in self.node.tpdo.map.values():
             if not pdo.enabled or pdo.trans_type is None or not 1 <= pdo.trans_type <= 240:
                 continue
-            for var in pdo.map:
+            for var in pdo.map:                           # byte-aligned objects: encode in place
                 if var.index in values:
-                    var.raw = values[var.index]
+                    start = var.offset // 8
+                    pdo.data[start:start + var.length // 8] = var.od.encode_raw(values[var.index])
             with self._lock:
                 truncate = self._malformed > 0
                 if truncate:
@@ -209,10 +210,11 @@ class SimCanopenNetwork:
         self.bus = SimCanBus(inner, bitrate=bitrate, reply_delay_s=lambda n: delays.get(n, reply_delay_s),
                              filter_own=(interface == "udp_multicast"))
         self.network = canopen.Network(self.bus)
+        self.network.NOTIFIER_CYCLE = 0.1     # so that closing does not wait a second
         try:
             for d in drives:
                 self.network.add_node(d.node)
-                d.node.tpdo.read(from_od=True)
+                d.node.tpdo.read()   # the node's own object values (data store, then EDS)
                 self._guard_sdo(d)
             self.network.subscribe(0x80, self._on_sync)
             self.network.connect()

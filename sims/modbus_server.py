@@ -163,6 +163,8 @@ class SimCellController:
         self._status = STATUS_IN_POSITION
         self._error = 0
         self._jobs: list = []
+        #: (first address, register count) of every write request, in order
+        self.writes: list[tuple[int, int]] = []
         self._wake = threading.Condition(self._lock)
         self._stop = False
         self._worker = threading.Thread(target=self._work, name="sim-controller", daemon=True)
@@ -191,6 +193,8 @@ class SimCellController:
             if "q" in self._spec:
                 _put(registers, start_address, self._spec["q"], list(self.world.q_now()))
             return None
+        with self._lock:
+            self.writes.append((address, len(set_values)))
         seq_spec = self._spec["sequence"]
         first = address
         last = address + len(set_values) - 1

@@ -4,7 +4,7 @@ served on TCP (127.0.0.1) and on a pseudo-terminal from ``os.openpty()``.
 Positions come from :meth:`elastocal.sims.world.SimWorld.read_tracker` at the
 measurement's own time (drift and noise of the simulated cell included). A
 stream is clocked by the tracker: measurement ``k`` is taken at
-``start + k / rate``; when the sending thread falls behind it sends the
+``start + k / rate`` on the grid of the tracker's clock; when the sending thread falls behind it sends the
 backlog, so no measurement is lost by the simulator itself.
 
 Fault injection (tests): :meth:`SimTracker.break_beam`, :meth:`drop_lines`,
@@ -139,7 +139,9 @@ class _Session:
     def _stream_loop(self, rate: float) -> None:
         world = self.tracker.world
         period_ns = int(round(1e9 / rate))
-        start = world.now_ns()
+        # measurements fall on the tracker clock's grid of the period
+        t0 = self.tracker.clock_origin_ns
+        start = t0 + -(-(world.now_ns() - t0) // period_ns) * period_ns
         k = 0
         while not self._stream_stop.is_set() and not self._closed.is_set():
             now = world.now_ns()
@@ -190,6 +192,8 @@ class SimTracker:
         self._t0_ns = world.now_ns()
         self._lock = threading.Lock()
         self._seq = 0
+        #: the instant the tracker's clock reads 0 [ns, world clock]
+        self.clock_origin_ns = self._t0_ns
         self._beam_broken_until = 0.0
         self._drop = 0
         self._corrupt = 0
@@ -203,6 +207,8 @@ class SimTracker:
         self._pty: tuple[int, int] | None = None
         self.tcp_port: int | None = None
         self.pty_path: str | None = None
+        #: TCP connections accepted so far
+        self.connections = 0
 
     # ---------------------------------------------------------- faults
     def break_beam(self, duration_s: float | None = None) -> None:
@@ -315,6 +321,7 @@ class SimTracker:
             with self._lock:
                 self._sessions = [s for s in self._sessions if not s._closed.is_set()]
                 self._sessions.append(session)
+                self.connections += 1
             session.start()
 
     def serve_pty(self) -> str:

@@ -107,3 +107,17 @@ def test_identify_from_runs_gives_compensator_and_friction(tmp_path, capsys):
     # friction from runs alone without naming a run effect is refused with the reason
     assert main(["identify", "--robot", str(out / "robot.toml"), "--runs", str(out / "runs.csv")]) == 2
     assert "run data alone do not give the joint stiffness" in capsys.readouterr().err
+
+
+def test_identify_static_and_runs_together(dataset, tmp_path, capsys):
+    out = tmp_path / "runs"
+    assert main(["sim", "runs", "--seed", "4", "--out", str(out)]) == 0
+    capsys.readouterr()
+    rc = main(["identify", "--robot", str(dataset / "robot.toml"), "--static", str(dataset / "static.csv"),
+               "--runs", str(out / "runs.csv"), "--json", "--model",
+               "joint_stiffness,coulomb_friction,viscous_friction,load_dependent_friction"])
+    assert rc == 0
+    obj = json.loads(capsys.readouterr().out)
+    assert obj["residual"]["unit"] == "m" and obj["torque_residual"]["unit"] == "N*m"
+    assert {"k1", "fc1", "fv6", "fl3"} <= set(obj["parameters"])
+    assert obj["model"][0] == "joint_stiffness" and "viscous_friction" in obj["model"]

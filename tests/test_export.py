@@ -34,7 +34,7 @@ def recorded(tmp_path_factory):
     friction = (FrictionSpec("F1", start=(0.2, 0.3, -0.4, 0.3, 1.0, 0.2), end=(0.4, 0.5, -0.3, 0.5, 1.1, 0.4),
                              speeds_rad_s=(0.2,), marker="R2"),)
     plan = parse_plan(plan_toml(poses=poses, loads=loads, markers=("R1", "R2", "R3"), repeats=2, reading_s=0.04,
-                                speed_rad_s=0.6, settle=SettleSpec(spread_m=60e-6, window_s=0.15),
+                                speed_rad_s=0.6, settle=SettleSpec(spread_m=20e-6, window_s=0.15),
                                 friction=friction))
     io = VirtualCellIO(SimCell(ROBOT, CellTruth()), seed=9,
                        timing=VirtualTiming(drive_rate_hz=250.0, tracker_rate_hz=250.0))

@@ -31,7 +31,7 @@ from elastocal.sims.static import random_poses
 TIMING = VirtualTiming(drive_rate_hz=250.0, tracker_rate_hz=250.0)
 LOADS = (LoadSpec("L1", mass_kg=60.0), LoadSpec("L2", mass_kg=110.0),
          LoadSpec("L3", force_n=(650.0, -300.0, -400.0), description="cable pull through the force gauge"))
-SETTLE = SettleSpec(speed_rad_s=2e-3, spread_m=60e-6, window_s=0.15, timeout_s=20.0)
+SETTLE = SettleSpec(speed_rad_s=2e-3, spread_m=20e-6, window_s=0.15, timeout_s=20.0)
 Q_A = (0.2, 0.3, -0.4, 0.3, 1.0, 0.2)
 Q_B = (0.5, 0.55, -0.2, 0.6, 1.2, 0.5)
 
@@ -274,3 +274,26 @@ def test_plan_json_free_roundtrip(poses):
     assert plan.loads[2].wrench((0, 0, -9.81)) == (650.0, -300.0, -400.0, 0.0, 0.0, 0.0)
     assert plan.settle == SETTLE
     assert json.dumps(plan.static.poses[0].q)  # plain floats
+
+
+def test_resume_after_a_kill_continues_a_truncated_log(robot, poses, tmp_path):
+    plan = static_plan(poses[:3])
+    full = tmp_path / "full.mcap"
+    run_procedures(virtual_io(robot), plan, full)
+    data = full.read_bytes()
+    killed = tmp_path / "killed.mcap"
+    killed.write_bytes(data[: int(len(data) * 0.55)])   # what a kill in pose P2 or P3 leaves
+    old = read_log(killed)
+    assert not old.complete and old.truncated and old.end_status is None
+    done = old.completed_steps
+    assert 1 <= len(done) <= 2
+    resumed = tmp_path / "resumed.mcap"
+    timing = VirtualTiming(drive_rate_hz=250.0, tracker_rate_hz=250.0, start_ns=500_000_000)  # a rebooted clock: earlier times
+    out = run_procedures(virtual_io(robot, seed=7, timing=timing), plan, resumed, resume_from=killed)
+    assert out.status == "completed" and out.steps_resumed == len(done)
+    _, before, _ = load_log(killed)
+    _, after, _ = load_log(resumed)
+    assert sorted(set(after.pose)) == ["P1", "P2", "P3"]
+    for p in set(before.pose):
+        np.testing.assert_array_equal(before.subset(before.pose == p).xyz, after.subset(after.pose == p).xyz)
+    check_stiffness(identify_static(robot, after, torque="current", form="exact"))

@@ -1,10 +1,9 @@
 """The MCAP recorder: schemas once, JSON channels Foxglove opens, raw timestamps,
-and logs that survive a kill at any moment (byte-level truncation and a real
-SIGKILL of a recording subprocess)."""
+and logs that survive a kill at any moment (byte-level truncation, and a real
+SIGKILL of a subprocess calibrating the simulated cell through the drivers)."""
 
 import json
 import os
-import pathlib
 import signal
 import subprocess
 import sys
@@ -118,7 +117,7 @@ def test_a_log_cut_at_any_byte_reads_up_to_the_cut(tmp_path):
     first_ok = None
     previous = 0
     cut_path = tmp_path / "cut.mcap"
-    for cut in list(range(0, len(data), 97)) + [len(data) - 1]:
+    for cut in list(range(0, len(data), 173)) + [len(data) - 1]:
         cut_path.write_bytes(data[:cut])
         try:
             contents = read_log(cut_path)
@@ -141,23 +140,19 @@ def test_a_log_cut_at_any_byte_reads_up_to_the_cut(tmp_path):
 RECORD_SCRIPT = textwrap.dedent("""
     import sys
     import numpy as np
-    from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
     from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
-    from elastocal.acquisition.procedures import run_procedures
+    from elastocal.acquisition.procedures import run_calibration
     from elastocal.identify.robot import bundled_robot
-    from elastocal.sims.cell import CellTruth, SimCell
+    from elastocal.sims.serve import example_cell_config
     from elastocal.sims.static import random_poses
 
     robot = bundled_robot()
     poses = random_poses(robot, 30, np.random.default_rng(4))
-    loads = (LoadSpec("L1", mass_kg=60.0), LoadSpec("L2", mass_kg=110.0),
-             LoadSpec("L3", force_n=(650.0, -300.0, -400.0)))
-    plan = parse_plan(plan_toml(poses=poses, loads=loads, markers=("R1", "R2", "R3"), repeats=2,
-                                reading_s=0.04, speed_rad_s=0.6,
-                                settle=SettleSpec(spread_m=60e-6, window_s=0.15)))
-    io = VirtualCellIO(SimCell(robot, CellTruth()), seed=2,
-                       timing=VirtualTiming(drive_rate_hz=250.0, tracker_rate_hz=250.0, pace=0.4))
-    run_procedures(io, plan, sys.argv[1])
+    loads = (LoadSpec("L1", mass_kg=110.0), LoadSpec("L2", force_n=(650.0, -300.0, -400.0)))
+    plan = parse_plan(plan_toml(poses=poses, loads=loads, markers=("R1", "R2"), repeats=2,
+                                reading_s=0.04, settle=SettleSpec(window_s=0.1, timeout_s=10.0)))
+    config = example_cell_config(can_channel="issue4-kill", move_speed_rad_s=2.0)
+    run_calibration(config, plan, sys.argv[1], yes=True, simulate=True)
 """)
 
 
@@ -166,10 +161,10 @@ def test_killed_recorder_leaves_a_log_that_export_and_identify_read(tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", RECORD_SCRIPT, str(log)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE)
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 90
         done = ()
         while time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.3)
+            time.sleep(0.5)
             if log.exists():
                 try:
                     done = read_log(log).completed_steps
@@ -179,7 +174,7 @@ def test_killed_recorder_leaves_a_log_that_export_and_identify_read(tmp_path):
                     break
         assert proc.poll() is None, proc.stderr.read().decode()
         assert len(done) >= 3
-        time.sleep(0.37)  # somewhere inside the next pose
+        time.sleep(1.3)  # somewhere inside the next pose
         os.kill(proc.pid, signal.SIGKILL)
     finally:
         proc.kill()

@@ -8,7 +8,7 @@ import shlex
 
 from elastocal.commands._inputs import add_input_arguments, load_inputs
 from elastocal.errors import InputError
-from elastocal.identify.effects import parse_model
+from elastocal.identify.effects import ALL_EFFECTS, get_effect, parse_model
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,7 +22,12 @@ def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str):
     static = None
     runs = None
     if inputs.static is not None:
-        static = diagnose_static(inputs.robot, inputs.static, model=model, torque=torque, form=form)
+        static_model = model
+        if inputs.runs is not None:  # run-data effects of the model are the runs' business
+            static_model = tuple(m for m in model if "static" in get_effect(m).seen_in)
+        pool = tuple(e for e in ALL_EFFECTS if e not in model)
+        static = diagnose_static(inputs.robot, inputs.static, model=static_model, torque=torque, form=form,
+                                 effects=pool)
     if inputs.runs is not None:
         from elastocal.identify.diagnose import diagnose_runs
 
@@ -62,11 +67,11 @@ def identify_command(args: argparse.Namespace, model: tuple[str, ...]) -> str:
     return " ".join(shlex.quote(p) for p in parts)
 
 
-def format_static(diag, args: argparse.Namespace) -> str:
+def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:
     fit = diag.fit
     lines = [f"static: {', '.join(diag.model)} ({diag.torque}-based, {diag.form} form), "
              f"{fit.n} deflection components"]
-    floor = fit.noise_floor
+    floor = diag.noise_floor
     if floor is None:
         lines.append(f"  residual {_um(fit.rms)} rms; no repeated readings, so the noise floor is unknown")
     elif diag.verdict is not None:
@@ -99,11 +104,11 @@ def format_static(diag, args: argparse.Namespace) -> str:
         pose = w.group("pose")
         worst = sorted(range(len(pose.labels)), key=lambda i: -pose.rms[i])[:3]
         lines.append("  where it fails: poses " + ", ".join(f"{pose.labels[i]} ({_um(pose.rms[i])})" for i in worst))
-        lines.append(f"  add it: {identify_command(args, (*diag.model, diag.verdict))}")
+        lines.append(f"  add it: {identify_command(args, (*model, diag.verdict))}")
     return "\n".join(lines)
 
 
-def format_runs(diag, args: argparse.Namespace) -> str:
+def format_runs(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:
     lines = [f"runs: {', '.join(diag.model)}, {diag.n} torque samples"]
     if diag.residual_rms is not None:
         lines.append(f"  torque residual {diag.residual_rms:.3g} N*m rms over the parts tested")
@@ -122,7 +127,7 @@ def format_runs(diag, args: argparse.Namespace) -> str:
         for n in diag.not_testable:
             lines.append(f"    {n.effect}: {n.reason}")
     if diag.verdict is not None:
-        lines.append(f"  add it: {identify_command(args, (*diag.model, diag.verdict))}")
+        lines.append(f"  add it: {identify_command(args, (*model, diag.verdict))}")
     return "\n".join(lines)
 
 
@@ -146,8 +151,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     out = [f"{inputs.robot.name}"]
     if static is not None:
-        out.append(format_static(static, args))
+        out.append(format_static(static, args, model))
     if runs is not None:
-        out.append(format_runs(runs, args))
+        out.append(format_runs(runs, args, model))
     print("\n".join(out))
     return 0

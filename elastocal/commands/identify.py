@@ -26,12 +26,16 @@ def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str) -> t
 
         result = run_ident.identify_runs(inputs.robot, inputs.runs, model=model)
         return result.to_json(), None
-    fit = identify_static(inputs.robot, inputs.static, model=model, torque=torque, form=form)
+    from elastocal.identify.runs import RUN_EFFECTS
+
+    run_model = tuple(m for m in model if m in RUN_EFFECTS)
+    static_model = tuple(m for m in model if m not in RUN_EFFECTS or inputs.runs is None)
+    fit = identify_static(inputs.robot, inputs.static, model=static_model, torque=torque, form=form)
     obj = fit.to_json()
+    obj["model"] = list(model)
     if inputs.runs is not None:
         from elastocal.identify import runs as run_ident
 
-        run_model = tuple(m for m in model if m != "joint_stiffness")
         if run_model:
             result = run_ident.identify_runs(inputs.robot, inputs.runs, model=("joint_stiffness", *run_model))
             rj = result.to_json()

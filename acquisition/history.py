@@ -1,0 +1,341 @@
+"""The calibration history of a cell: an embedded SQLite database (docs/history.md).
+
+One file per cell (``[cell] history`` in cell.toml) holds every calibration
+(its JSON as formats.md §4, the hash of the log it came from, the plan it was
+measured with, when it was recorded) and every check (which calibration it
+tested, its verdict, the reasons and the whole result). Times are wall-clock
+UTC, integer nanoseconds since the Unix epoch, given by the caller.
+
+Nothing here prints; :class:`History` is a context manager around one
+``sqlite3`` connection, records are frozen dataclasses.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import pathlib
+import sqlite3
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from elastocal.errors import InputError
+from elastocal.identify.calibration import FORMAT, Calibration
+
+SCHEMA_VERSION = 1
+APPLICATION = "elastocal.history"
+VERDICTS = ("holds", "recalibrate")
+#: a check's estimate of a parameter enters the drift only when its own
+#: relative std is below this (a short check does not determine every joint)
+MAX_CHECK_RELATIVE_STD = 0.02
+
+_SCHEMA = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE calibration (
+    id INTEGER PRIMARY KEY,
+    time_ns INTEGER NOT NULL,          -- when it was recorded (UTC, ns since the epoch)
+    created TEXT NOT NULL,             -- the calibration's own "created"
+    robot TEXT NOT NULL,
+    json TEXT NOT NULL,                -- the calibration JSON (formats.md §4)
+    log_sha256 TEXT,                   -- the log (or data file) it was identified from
+    log_path TEXT,
+    plan TEXT                          -- plan.toml text it was measured with
+);
+CREATE TABLE check_run (
+    id INTEGER PRIMARY KEY,
+    time_ns INTEGER NOT NULL,
+    calibration_id INTEGER NOT NULL REFERENCES calibration(id),
+    verdict TEXT NOT NULL CHECK (verdict IN ('holds', 'recalibrate')),
+    reasons TEXT NOT NULL,             -- JSON list of sentences
+    result TEXT NOT NULL,              -- JSON: the check --json object
+    log_sha256 TEXT,
+    log_path TEXT
+);
+"""
+
+
+def iso_utc(time_ns: int) -> str:
+    """``2026-11-22T10:00:00Z`` for integer ns since the epoch."""
+    t = _dt.datetime.fromtimestamp(time_ns // 1_000_000_000, tz=_dt.timezone.utc)
+    return t.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+@dataclass(frozen=True)
+class CalibrationRecord:
+    id: int
+    time_ns: int
+    created: str
+    robot: str
+    calibration: Calibration
+    log_sha256: str | None
+    log_path: str | None
+    plan: str | None
+
+    @property
+    def time(self) -> str:
+        return iso_utc(self.time_ns)
+
+
+@dataclass(frozen=True)
+class CheckRecord:
+    id: int
+    time_ns: int
+    calibration_id: int
+    verdict: str
+    reasons: tuple[str, ...]
+    result: Mapping[str, Any]
+    log_sha256: str | None
+    log_path: str | None
+
+    @property
+    def time(self) -> str:
+        return iso_utc(self.time_ns)
+
+
+@dataclass(frozen=True, eq=False)
+class Drift:
+    """Values of parameters over the calibrations and the checks, in time order.
+
+    ``calibration_*`` arrays are (n_calibrations, n_parameters), ``check_*``
+    (n_checks, n_parameters); NaN where a record lacks the parameter or, for
+    a check, where its data determine it worse than
+    :data:`MAX_CHECK_RELATIVE_STD`."""
+
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    calibration_time_ns: np.ndarray
+    calibration_value: np.ndarray
+    calibration_std: np.ndarray
+    check_time_ns: np.ndarray
+    check_value: np.ndarray
+    check_verdict: tuple[str, ...]
+    check_unexplained_m: np.ndarray    # rms of measured - predicted deflection; NaN without static data
+    check_noise_floor_m: np.ndarray
+
+
+def _calibration_from_json(doc: Mapping[str, Any], source: str) -> Calibration:
+    if not isinstance(doc, Mapping) or doc.get("format") != FORMAT:
+        raise InputError(f"a stored calibration is not {FORMAT}", source=source)
+    return Calibration(robot=str(doc.get("robot", "")), created=str(doc.get("created", "")),
+                       model=tuple(doc.get("model", ["joint_stiffness"])), torque=str(doc.get("torque", "current")),
+                       parameters=doc.get("parameters", {}), residual=doc.get("residual", {}),
+                       data=tuple(doc.get("data", [])))
+
+
+class History:
+    """The history database of one cell. ``History(path)`` opens (and, with
+    ``create=True``, creates) it; use it as a context manager."""
+
+    def __init__(self, path: str | pathlib.Path, *, create: bool = True) -> None:
+        self.path = pathlib.Path(path)
+        if not self.path.exists():
+            if not create:
+                raise InputError("no history database here yet (nothing recorded)", source=str(self.path))
+            if not self.path.parent.is_dir():
+                raise InputError("the folder of the history database does not exist", source=str(self.path))
+        try:
+            self._db = sqlite3.connect(str(self.path), timeout=10.0)
+            self._db.execute("PRAGMA foreign_keys = ON")
+            self._init()
+        except sqlite3.DatabaseError as exc:
+            if hasattr(self, "_db"):
+                self._db.close()
+            raise InputError(f"not an elastocal history database ({exc})", source=str(self.path)) from None
+
+    def _init(self) -> None:
+        tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if not tables:
+            with self._db:
+                self._db.executescript(_SCHEMA)
+                self._db.executemany("INSERT INTO meta (key, value) VALUES (?, ?)",
+                                     [("application", APPLICATION), ("schema_version", str(SCHEMA_VERSION))])
+            return
+        if "meta" not in tables:
+            raise sqlite3.DatabaseError("a SQLite file of another application")
+        meta = dict(self._db.execute("SELECT key, value FROM meta"))
+        if meta.get("application") != APPLICATION:
+            raise sqlite3.DatabaseError("a SQLite file of another application")
+        if meta.get("schema_version") != str(SCHEMA_VERSION):
+            raise InputError(f"history schema version {meta.get('schema_version')} is not {SCHEMA_VERSION}; "
+                             "a newer elastocal wrote it", source=str(self.path))
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> "History":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------- writing
+    def add_calibration(self, calibration: Calibration, *, time_ns: int, log_sha256: str | None = None,
+                        log_path: str | None = None, plan: str | None = None) -> int:
+        """Record a calibration; returns its id (the current calibration from now on)."""
+        doc = calibration.to_json()
+        with self._db:
+            cur = self._db.execute(
+                "INSERT INTO calibration (time_ns, created, robot, json, log_sha256, log_path, plan) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (int(time_ns), calibration.created, calibration.robot, json.dumps(doc), log_sha256, log_path, plan))
+        return int(cur.lastrowid)
+
+    def add_check(self, *, calibration_id: int, time_ns: int, verdict: str, reasons: Sequence[str],
+                  result: Mapping[str, Any], log_sha256: str | None = None, log_path: str | None = None) -> int:
+        """Record a check of calibration ``calibration_id``; returns its id."""
+        if verdict not in VERDICTS:
+            raise InputError(f"verdict must be one of {', '.join(VERDICTS)}, got {verdict!r}")
+        if self.calibration(calibration_id) is None:
+            raise InputError(f"no calibration {calibration_id} in the history", source=str(self.path))
+        with self._db:
+            cur = self._db.execute(
+                "INSERT INTO check_run (time_ns, calibration_id, verdict, reasons, result, log_sha256, log_path) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (int(time_ns), int(calibration_id), verdict, json.dumps(list(reasons)),
+                 json.dumps(result, allow_nan=True), log_sha256, log_path))
+        return int(cur.lastrowid)
+
+    # ------------------------------------------------------------- reading
+    def _calibration_row(self, row: tuple) -> CalibrationRecord:
+        rid, time_ns, created, robot, text, sha, path, plan = row
+        cal = _calibration_from_json(json.loads(text), f"{self.path}, calibration {rid}")
+        return CalibrationRecord(id=rid, time_ns=time_ns, created=created, robot=robot, calibration=cal,
+                                 log_sha256=sha, log_path=path, plan=plan)
+
+    def calibrations(self) -> tuple[CalibrationRecord, ...]:
+        """Every calibration, oldest first."""
+        rows = self._db.execute("SELECT id, time_ns, created, robot, json, log_sha256, log_path, plan "
+                                "FROM calibration ORDER BY time_ns, id").fetchall()
+        return tuple(self._calibration_row(r) for r in rows)
+
+    def calibration(self, calibration_id: int) -> CalibrationRecord | None:
+        row = self._db.execute("SELECT id, time_ns, created, robot, json, log_sha256, log_path, plan "
+                               "FROM calibration WHERE id = ?", (int(calibration_id),)).fetchone()
+        return None if row is None else self._calibration_row(row)
+
+    def current(self) -> CalibrationRecord | None:
+        """The calibration in force: the most recently recorded one."""
+        row = self._db.execute("SELECT id, time_ns, created, robot, json, log_sha256, log_path, plan "
+                               "FROM calibration ORDER BY time_ns DESC, id DESC LIMIT 1").fetchone()
+        return None if row is None else self._calibration_row(row)
+
+    def checks(self) -> tuple[CheckRecord, ...]:
+        """Every check, oldest first."""
+        rows = self._db.execute("SELECT id, time_ns, calibration_id, verdict, reasons, result, log_sha256, log_path "
+                                "FROM check_run ORDER BY time_ns, id").fetchall()
+        return tuple(CheckRecord(id=r[0], time_ns=r[1], calibration_id=r[2], verdict=r[3],
+                                 reasons=tuple(json.loads(r[4])), result=json.loads(r[5]), log_sha256=r[6],
+                                 log_path=r[7]) for r in rows)
+
+    def drift(self, names: Sequence[str] | None = None) -> Drift:
+        """Parameter values over time: calibrated values with their std, and
+        the values each check's data gave (static parameters only). ``names``
+        defaults to every parameter of any calibration, k1..k6 first."""
+        cals = self.calibrations()
+        checks = self.checks()
+        if names is None:
+            seen: dict[str, None] = {}
+            for rec in cals:
+                for n in rec.calibration.parameters:
+                    seen.setdefault(n, None)
+            stiff = [f"k{j}" for j in range(1, 7) if f"k{j}" in seen]
+            names = tuple(stiff + [n for n in seen if n not in stiff])
+        names = tuple(names)
+        units = []
+        for n in names:
+            unit = ""
+            for rec in cals:
+                p = rec.calibration.parameters.get(n)
+                if p is not None:
+                    unit = str(p.get("unit", ""))
+                    break
+            units.append(unit)
+        cv = np.full((len(cals), len(names)), np.nan)
+        cs = np.full((len(cals), len(names)), np.nan)
+        for i, rec in enumerate(cals):
+            for j, n in enumerate(names):
+                p = rec.calibration.parameters.get(n)
+                if p is not None:
+                    cv[i, j] = float(p["value"])
+                    std = p.get("std")
+                    cs[i, j] = float(std) if isinstance(std, (int, float)) else math.nan
+        kv = np.full((len(checks), len(names)), np.nan)
+        unexplained = np.full(len(checks), np.nan)
+        floor = np.full(len(checks), np.nan)
+        for i, rec in enumerate(checks):
+            defl = rec.result.get("deflection") if isinstance(rec.result, Mapping) else None
+            if not isinstance(defl, Mapping):
+                continue
+            unexplained[i] = float(defl.get("rms_unexplained", math.nan))
+            floor[i] = float(defl.get("noise_floor", math.nan))
+            params = defl.get("parameters", {})
+            for j, n in enumerate(names):
+                p = params.get(n)
+                if p is None or p.get("check") is None or p.get("check_std") is None:
+                    continue
+                value, std = float(p["check"]), float(p["check_std"])
+                if value != 0.0 and std / abs(value) <= MAX_CHECK_RELATIVE_STD:
+                    kv[i, j] = value
+        return Drift(names=names, units=tuple(units),
+                     calibration_time_ns=np.array([r.time_ns for r in cals], dtype=np.int64),
+                     calibration_value=cv, calibration_std=cs,
+                     check_time_ns=np.array([r.time_ns for r in checks], dtype=np.int64), check_value=kv,
+                     check_verdict=tuple(r.verdict for r in checks), check_unexplained_m=unexplained,
+                     check_noise_floor_m=floor)
+
+
+def plot_drift(drift: Drift, path: str | pathlib.Path) -> None:
+    """Write the drift plot (PNG or SVG by suffix): the joint stiffness and
+    other parameters relative to the first calibration (calibrations with
+    their std, checks as open markers), and each check's unexplained
+    deflection against its noise floor, coloured by verdict."""
+    from matplotlib.figure import Figure
+
+    path = pathlib.Path(path)
+    if path.suffix.lower() not in (".png", ".svg"):
+        raise InputError("the drift plot is written as .png or .svg", source=str(path))
+    if not len(drift.calibration_time_ns):
+        raise InputError("the history holds no calibration to plot", source=str(path))
+
+    def days(t_ns: np.ndarray) -> np.ndarray:
+        return np.asarray(t_ns, dtype=np.int64).astype("datetime64[ns]")
+
+    stiff = [j for j, n in enumerate(drift.names) if n.startswith("k") and n[1:].isdigit()]
+    other = [j for j in range(len(drift.names)) if j not in stiff]
+    panels = [("joint stiffness", stiff)] + ([("other parameters", other)] if other else []) + [("checks", None)]
+    fig = Figure(figsize=(9.0, 2.8 * len(panels)), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(len(panels), 1, sharex=True))
+    tc, tk = days(drift.calibration_time_ns), days(drift.check_time_ns)
+    for ax, (title, cols) in zip(axes, panels):
+        if cols is None:
+            colours = ["tab:green" if v == "holds" else "tab:red" for v in drift.check_verdict]
+            if len(tk):
+                ax.scatter(tk, drift.check_unexplained_m * 1e6, c=colours, zorder=3, label="unexplained (rms)")
+                ax.plot(tk, drift.check_noise_floor_m * 1e6, "k--", lw=0.8, label="noise floor")
+                ax.legend(fontsize=8, loc="upper left")
+            ax.set_ylabel("deflection [µm]")
+            ax.set_title("checks: green holds, red recalibrate", fontsize=10)
+            continue
+        for j in cols:
+            base = drift.calibration_value[0, j]
+            if not np.isfinite(base) or base == 0:
+                finite = drift.calibration_value[np.isfinite(drift.calibration_value[:, j]), j]
+                if not finite.size:
+                    continue
+                base = finite[0]
+            rel = (drift.calibration_value[:, j] / base - 1.0) * 100.0
+            err = drift.calibration_std[:, j] / abs(base) * 100.0
+            line = ax.errorbar(tc, rel, yerr=np.nan_to_num(err), marker="o", ms=4, capsize=2, label=drift.names[j])
+            if len(tk) and np.any(np.isfinite(drift.check_value[:, j])):
+                ax.plot(tk, (drift.check_value[:, j] / base - 1.0) * 100.0, "o", mfc="none",
+                        color=line[0].get_color(), ms=5)
+        ax.axhline(0.0, color="grey", lw=0.6)
+        ax.set_ylabel("change from first [%]")
+        ax.set_title(f"{title}: calibrations (filled, ±1 std) and checks (open)", fontsize=10)
+        ax.legend(fontsize=8, ncol=6, loc="upper left")
+    axes[-1].set_xlabel("time (UTC)")
+    fig.autofmt_xdate()
+    fig.savefig(path, dpi=110)

@@ -1,0 +1,163 @@
+"""`elastocal check`: does the current calibration still hold? (docs/check.md)
+
+    elastocal check --cell cell.toml [--sim --yes]            run the plan's [check] on the cell
+    elastocal check --cell cell.toml --log check.mcap          a check already recorded
+    elastocal check --cell cell.toml --static check.csv [--runs runs.csv]   data given directly
+
+Exit 0: the calibration holds; 3: recalibrate (the reason on stdout); 2 bad
+input; 1 device fault. The verdict is recorded in the cell's history.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+from elastocal.errors import InputError
+
+#: exit code when the calibration no longer holds
+EXIT_RECALIBRATE = 3
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cell", required=True, help="cell.toml: robot, devices and the history database")
+    parser.add_argument("--calibration", help="the calibration to check (default: the current one of the history)")
+    data = parser.add_argument_group("check data (default: run the plan's [check] procedure on the cell)")
+    data.add_argument("--static", help="static table of the check, CSV (formats.md §2)")
+    data.add_argument("--runs", help="UV/VU runs of the check, CSV (formats.md §3)")
+    data.add_argument("--log", help="an MCAP log of a check already run")
+    proc = parser.add_argument_group("running the check procedure")
+    proc.add_argument("--plan", help="plan.toml with a [check] section (default: the plan stored with the "
+                                     "current calibration)")
+    proc.add_argument("--out", help="the check's MCAP log (default: checks/check-<time>.mcap beside the history)")
+    proc.add_argument("--sim", action="store_true", help="serve the cell's simulated devices in this process")
+    proc.add_argument("--yes", action="store_true", help="answer every prompt automatically (simulated devices only)")
+    test = parser.add_argument_group("the test")
+    test.add_argument("--alpha", type=float, default=1e-3,
+                      help="false-alarm probability of the whole check when nothing changed (default 0.001)")
+    test.add_argument("--friction-tolerance", type=float, default=0.2,
+                      help="relative friction change that counts, when significant (default 0.2)")
+    parser.add_argument("--history", help="the history database (default: [cell] history of cell.toml)")
+    parser.add_argument("--no-record", action="store_true", help="do not record the verdict in the history")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+
+
+def _calibration(args: argparse.Namespace, db: pathlib.Path | None):
+    """(calibration, its id in the history or None, the plan text stored with it)."""
+    from elastocal.acquisition.history import History
+    from elastocal.identify.calibration import read_calibration
+
+    if args.calibration:
+        cal = read_calibration(args.calibration)
+        if db is None or not db.exists():
+            return cal, None, None
+        with History(db) as h:
+            same = [r for r in h.calibrations() if r.calibration.to_json() == cal.to_json()]
+        return cal, (same[-1].id if same else None), (same[-1].plan if same else None)
+    if db is None:
+        raise InputError("no calibration to check: give --calibration, or a history (--history, or `history = ...` "
+                         "in [cell] of cell.toml)", source="--calibration")
+    with History(db, create=False) as h:
+        rec = h.current()
+    if rec is None:
+        raise InputError("the history holds no calibration; record one with `elastocal history add`", source=str(db))
+    return rec.calibration, rec.id, rec.plan
+
+
+def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: pathlib.Path | None,
+                   now_ns: int) -> pathlib.Path:
+    """Run the plan's [check] on the cell; returns the log."""
+    from elastocal.acquisition.history import iso_utc
+    from elastocal.acquisition.plan import load_plan, parse_plan
+    from elastocal.acquisition.procedures import run_calibration
+    from elastocal.acquisition.ui import AutoUI, TerminalUI
+
+    if args.plan:
+        plan = load_plan(args.plan)
+    elif plan_text is not None:
+        plan = parse_plan(plan_text, source="the plan stored with the calibration")
+    else:
+        raise InputError("no check plan: give --plan plan.toml (with a [check] section), or record the calibration "
+                         "with its log or plan (`elastocal history add --log ...`)", source="--plan")
+    if plan.check is None:
+        raise InputError("the plan has no [check] section", source=plan.source)
+    if args.out:
+        out = pathlib.Path(args.out)
+    elif db is not None:
+        out = db.parent / "checks" / f"check-{iso_utc(now_ns).replace(':', '').replace('-', '')}.mcap"
+        out.parent.mkdir(exist_ok=True)
+    else:
+        raise InputError("give --out for the check's log (no history folder to put it in)", source="--out")
+    if args.yes and not args.sim:
+        raise InputError("--yes answers the prompts of simulated devices only; add --sim, or let a person answer",
+                         source="--yes")
+    ui = AutoUI(sys.stderr, quiet=args.json) if args.yes else TerminalUI(sys.stderr)
+    outcome = run_calibration(config, plan, out, yes=args.yes, ui=ui, procedures=("check",), simulate=args.sim)
+    if outcome.status != "completed":
+        raise InputError(f"the check procedure did not complete ({outcome.status}: {outcome.message})",
+                         source=str(out))
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from elastocal.acquisition.history import History
+    from elastocal.commands.history import clean
+    from elastocal.drivers.config import load_cell_config
+    from elastocal.identify.calibration import file_sha256
+    from elastocal.identify.check import check_calibration
+    from elastocal.identify.tables import read_run_table, read_static_table
+
+    now_ns = time.time_ns()
+    config = load_cell_config(args.cell)
+    robot = config.load_robot()
+    db = pathlib.Path(args.history) if args.history else config.history
+    cal, cal_id, plan_text = _calibration(args, db)
+    if cal.robot and cal.robot != robot.name:
+        raise InputError(f"the calibration is for {cal.robot!r}, the cell's robot is {robot.name!r}",
+                         source=args.calibration or str(db))
+    if (args.static or args.runs) and args.log:
+        raise InputError("give either a log or --static/--runs tables, not both", source=args.log)
+    log_path = None
+    if args.static or args.runs:
+        if any((args.plan, args.sim, args.yes, args.out)):
+            raise InputError("--plan, --sim, --yes and --out run the check procedure; not with --static/--runs",
+                             source="--static")
+        static = read_static_table(args.static, robot) if args.static else None
+        runs = read_run_table(args.runs, robot) if args.runs else None
+        data_path = pathlib.Path(args.static or args.runs)
+    else:
+        from elastocal.acquisition.export import load_log
+
+        log_path = pathlib.Path(args.log) if args.log else _run_procedure(args, config, plan_text, db, now_ns)
+        _, static, runs = load_log(log_path)
+        data_path = log_path
+    result = check_calibration(robot, cal, static=static, runs=runs, alpha=args.alpha,
+                               friction_tolerance=args.friction_tolerance)
+    obj = clean(result.to_json())
+    recorded = None
+    if not args.no_record and db is not None:
+        if cal_id is None:
+            raise InputError("the calibration is not in the history, so the verdict cannot be recorded: add it with "
+                             "`elastocal history add`, or give --no-record", source=args.calibration)
+        with History(db) as h:
+            recorded = h.add_check(calibration_id=cal_id, time_ns=now_ns, verdict=result.verdict,
+                                   reasons=result.reasons, result=obj, log_sha256=file_sha256(data_path),
+                                   log_path=str(data_path.resolve()))
+    obj.update({"calibration": cal_id, "recorded": recorded, "history": None if db is None else str(db),
+                "log": None if log_path is None else str(log_path)})
+    code = 0 if result.verdict == "holds" else EXIT_RECALIBRATE
+    if args.json:
+        print(json.dumps(obj))
+        return code
+    head = ("HOLDS: the calibration still holds" if result.verdict == "holds"
+            else "RECALIBRATE: the calibration no longer holds")
+    lines = [head] + [f"  - {r}" for r in result.reasons]
+    if recorded is not None:
+        lines.append(f"recorded as check {recorded} of calibration {cal_id} in {db}")
+    if log_path is not None:
+        lines.append(f"log: {log_path}")
+    print("\n".join(lines))
+    return code

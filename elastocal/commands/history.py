@@ -1,0 +1,187 @@
+"""`elastocal history`: every calibration and check of a cell, and the drift (docs/history.md).
+
+    elastocal history --cell cell.toml [--json] [--plot drift.png]
+    elastocal history add --cell cell.toml --calibration cal.json [--log LOG.mcap] [--plan plan.toml]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import pathlib
+import time
+
+from elastocal.errors import InputError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("action", nargs="?", choices=("show", "add"), default="show",
+                        help="show (default): the table and the drift; add: record a calibration")
+    parser.add_argument("--cell", help="cell.toml; its [cell] history names the database")
+    parser.add_argument("--db", help="the history database (instead of --cell's)")
+    parser.add_argument("--calibration", help="add: the calibration JSON to record")
+    parser.add_argument("--log", help="add: the MCAP log the calibration came from (its hash and plan are kept)")
+    parser.add_argument("--plan", help="add: the plan.toml it was measured with (default: the log's)")
+    parser.add_argument("--plot", help="show: write the drift plot here, .png or .svg")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+
+
+def history_path(cell_path: str | None, db: str | None) -> pathlib.Path | None:
+    """The history database: ``db``, else ``[cell] history`` of ``cell_path``; None when neither names one."""
+    if db:
+        return pathlib.Path(db)
+    if cell_path:
+        from elastocal.drivers.config import load_cell_config
+
+        return load_cell_config(cell_path).history
+    return None
+
+
+def clean(obj):
+    """A JSON-safe copy: non-finite floats become null."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [clean(v) for v in obj]
+    return obj
+
+
+def _add(args: argparse.Namespace, db: pathlib.Path) -> int:
+    from elastocal.acquisition.history import History
+    from elastocal.identify.calibration import file_sha256, read_calibration
+
+    if not args.calibration:
+        raise InputError("history add needs --calibration cal.json", source="--calibration")
+    cal = read_calibration(args.calibration)
+    log_sha = log_path = plan_text = None
+    if args.log:
+        log_path = str(pathlib.Path(args.log).resolve())
+        if not pathlib.Path(args.log).is_file():
+            raise InputError("cannot read: no such log", source=args.log)
+        log_sha = file_sha256(args.log)
+        if not args.plan:
+            from elastocal.acquisition.export import read_log
+
+            contents = read_log(args.log)
+            plan_text = contents.plan.text if contents.plan is not None else None
+    else:
+        logs = [d for d in cal.data if str(d.get("path", "")).endswith(".mcap")] or list(cal.data)
+        if logs:
+            log_sha, log_path = logs[0].get("sha256"), logs[0].get("path")
+    if args.plan:
+        try:
+            plan_text = pathlib.Path(args.plan).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise InputError(f"cannot read: {exc.strerror}", source=args.plan) from None
+        from elastocal.acquisition.plan import parse_plan
+
+        parse_plan(plan_text, source=args.plan)
+    with History(db) as h:
+        rid = h.add_calibration(cal, time_ns=time.time_ns(), log_sha256=log_sha, log_path=log_path, plan=plan_text)
+    if args.json:
+        print(json.dumps({"db": str(db), "calibration": rid}))
+    else:
+        print(f"recorded calibration {rid} ({cal.robot}, {', '.join(cal.model)}) in {db}; it is the current one")
+    return 0
+
+
+def _k(rec, name: str) -> float | None:
+    p = rec.calibration.parameters.get(name)
+    return float(p["value"]) if p is not None else None
+
+
+def _summary(drift) -> dict:
+    """Per parameter: first calibrated value, last calibrated value, last check
+    estimate, and the latest evidence (a check after the last calibration,
+    else the last calibration) relative to the first."""
+    out = {}
+    for j, name in enumerate(drift.names):
+        vals = drift.calibration_value[:, j]
+        known = [i for i, v in enumerate(vals) if math.isfinite(v)]
+        if not known:
+            continue
+        first, last_cal = float(vals[known[0]]), float(vals[known[-1]])
+        last_cal_t = drift.calibration_time_ns[known[-1]]
+        checked = [(t, float(v)) for t, v in zip(drift.check_time_ns, drift.check_value[:, j]) if math.isfinite(v)]
+        later = [v for t, v in checked if t >= last_cal_t]
+        latest = later[-1] if later else last_cal
+        out[name] = {"unit": drift.units[j], "first": first, "last_calibration": last_cal,
+                     "last_check": checked[-1][1] if checked else None, "latest": latest,
+                     "change": latest / first - 1.0 if first else None}
+    return out
+
+
+def _show(args: argparse.Namespace, db: pathlib.Path) -> int:
+    from elastocal.acquisition.history import History, plot_drift
+
+    with History(db, create=False) as h:
+        cals = h.calibrations()
+        checks = h.checks()
+        drift = h.drift()
+    summary = _summary(drift)
+    if args.plot:
+        plot_drift(drift, args.plot)
+    if args.json:
+        obj = {"db": str(db),
+               "calibrations": [{"id": r.id, "time": r.time, "created": r.created, "robot": r.robot,
+                                 "model": list(r.calibration.model), "torque": r.calibration.torque,
+                                 "parameters": {k: dict(v) for k, v in r.calibration.parameters.items()},
+                                 "residual": dict(r.calibration.residual), "log_sha256": r.log_sha256,
+                                 "log_path": r.log_path, "has_plan": r.plan is not None} for r in cals],
+               "checks": [{"id": c.id, "time": c.time, "calibration": c.calibration_id, "verdict": c.verdict,
+                           "reasons": list(c.reasons), "deflection": c.result.get("deflection"),
+                           "friction": c.result.get("friction"), "log_sha256": c.log_sha256,
+                           "log_path": c.log_path} for c in checks],
+               "drift": summary, "plot": args.plot}
+        print(json.dumps(clean(obj)))
+        return 0
+    lines = [f"history {db}: {len(cals)} calibration(s), {len(checks)} check(s)"]
+    if cals:
+        lines.append("calibrations (stiffness in 1e6 N*m/rad)")
+        lines.append(f"  {'id':>3}  {'recorded (UTC)':<20}  {'robot':<10} "
+                     + " ".join(f"{f'k{j}':>7}" for j in range(1, 7)) + f"  {'rms':>8}  log")
+        for r in cals:
+            ks = " ".join(f"{_k(r, f'k{j}') / 1e6:7.4f}" if _k(r, f"k{j}") is not None else f"{'-':>7}"
+                          for j in range(1, 7))
+            rms = r.calibration.residual.get("rms")
+            rms_s = f"{rms * 1e6:6.1f}µm" if isinstance(rms, (int, float)) and rms < 1.0 else "-"
+            lines.append(f"  {r.id:>3}  {r.time:<20}  {r.robot[:10]:<10} {ks}  {rms_s:>8}  "
+                         f"{(r.log_sha256 or '-')[:12]}")
+    if checks:
+        lines.append("checks")
+        lines.append(f"  {'id':>3}  {'checked (UTC)':<20}  {'cal':>3}  {'verdict':<11}  {'unexplained':>11}  "
+                     f"{'floor':>8}  reason")
+        for c in checks:
+            d = c.result.get("deflection") or {}
+            un = d.get("rms_unexplained")
+            fl = d.get("noise_floor")
+            lines.append(f"  {c.id:>3}  {c.time:<20}  {c.calibration_id:>3}  {c.verdict:<11}  "
+                         f"{(f'{un * 1e6:.1f} µm' if un is not None else '-'):>11}  "
+                         f"{(f'{fl * 1e6:.1f} µm' if fl is not None else '-'):>8}  {c.reasons[0] if c.reasons else ''}")
+    params = summary
+    if params:
+        lines.append("drift (first calibration -> latest calibration or later check)")
+        for name, p in params.items():
+            if p["change"] is None:
+                continue
+            lines.append(f"  {name:<5} {p['first']:.6g} -> {p['latest']:.6g} {p['unit']} ({p['change'] * 100:+.2f} %)")
+    if args.plot:
+        lines.append(f"drift plot: {args.plot}")
+    print("\n".join(lines))
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    db = history_path(args.cell, args.db)
+    if db is None:
+        raise InputError("no history database: give --db, or --cell with `history = \"history.sqlite\"` in its "
+                         "[cell] table", source=args.cell or "--db")
+    if args.action == "add":
+        return _add(args, db)
+    for flag in ("calibration", "log", "plan"):
+        if getattr(args, flag):
+            raise InputError(f"--{flag} belongs to `history add`", source=f"--{flag}")
+    return _show(args, db)

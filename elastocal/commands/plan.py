@@ -1,0 +1,284 @@
+"""`elastocal plan`: choose the calibration poses and loads (docs/plan.md).
+
+Minimises Klimchik's industry measure at the user's test pose and process load
+(identify/design.py), writes plan.toml in the procedures' format
+(acquisition/plan.py, docs/plan-format.md) with a short [check], prints the
+predicted positioning accuracy, and draws Yang's map of where the first-order
+model is good enough.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import pathlib
+import time
+
+import numpy as np
+
+from elastocal.errors import InputError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    src = parser.add_argument_group("robot and cell")
+    src.add_argument("--robot", help="robot.toml (default: the robot of --cell)")
+    src.add_argument("--cell", help="cell.toml: its robot and the tracker's markers")
+    src.add_argument("--markers", help="comma-separated markers to read (default: the tracker's, else all)")
+    src.add_argument("--tracker-position", metavar="X,Y,Z",
+                     help="the tracker in base coordinates [m]: keep only poses whose markers it sees")
+    use = parser.add_argument_group("where the robot works")
+    use.add_argument("--test-pose", required=True, metavar="Q1,...,Q6",
+                     help="the working pose [rad] (negative first value: --test-pose=-0.3,...)")
+    use.add_argument("--load", required=True, metavar="FX,FY,FZ[,MX,MY,MZ]",
+                     help="the process load on the load point, base axes [N, N*m]")
+    exp = parser.add_argument_group("the experiment")
+    exp.add_argument("--poses", type=int, default=12, help="poses to measure (default 12)")
+    exp.add_argument("--loads-per-pose", type=int, default=2, help="loaded states per pose (default 2)")
+    exp.add_argument("--f-max", type=float, help="largest load force [N] (default: the size of the process force)")
+    exp.add_argument("--directions", choices=("any", "down"), default="any",
+                     help="load directions: any (weights and pulls, default) or down (hung weights only)")
+    exp.add_argument("--candidates", type=int, default=2000, help="candidate poses to choose from (default 2000)")
+    exp.add_argument("--min-height", type=float, default=0.3,
+                     help="lowest height of elbow, wrist, markers and load point [m] (default 0.3)")
+    exp.add_argument("--max-height", type=float, default=3.0, help="highest load point [m] (default 3.0)")
+    exp.add_argument("--min-radius", type=float, default=0.5,
+                     help="least distance of the load point from the axis of joint 1 [m] (default 0.5)")
+    exp.add_argument("--link-radius", type=float, default=0.15,
+                     help="radius of the links for the line of sight [m] (default 0.15)")
+    exp.add_argument("--repeats", type=int, default=3, help="readings per marker and load state (default 3)")
+    exp.add_argument("--tracker-noise", type=float, default=10e-6, help="tracker noise per reading [m] (default 1e-5)")
+    exp.add_argument("--current-noise", type=float, default=0.02, help="current noise per sample [A] (default 0.02)")
+    exp.add_argument("--torque", choices=("current", "force"), default="current",
+                     help="how the calibration will get the joint torques (default current)")
+    exp.add_argument("--check-poses", type=int, default=3, help="poses of the short [check] (default 3)")
+    exp.add_argument("--friction-path", metavar="U;V",
+                     help="a UV/VU path for friction and the check: 6 joint values, ';', 6 joint values [rad]")
+    exp.add_argument("--friction-speeds", default="0.05,0.15", help="speeds of the friction path [rad/s]")
+    exp.add_argument("--name", default="calibration", help="the plan's name")
+    exp.add_argument("--seed", type=int, default=0, help="seed of the candidate sampling (default 0)")
+    prior = parser.add_argument_group("prior stiffness (noise model and map)")
+    prior.add_argument("--calibration", help="a calibration JSON whose k1..k6 serve as the prior")
+    prior.add_argument("--stiffness", metavar="K1,...,K6", help="prior joint stiffness [N*m/rad]")
+    out = parser.add_argument_group("output")
+    out.add_argument("--out", required=True, help="plan.toml to write")
+    out.add_argument("--map", help="write the first-order map (Y Fig. 4-6) here, .png or .svg")
+    out.add_argument("--map-grid", type=int, default=25, help="grid points per axis of the map (default 25)")
+    out.add_argument("--map-load", metavar="FX,FY,FZ[,MX,MY,MZ]",
+                     help="load of the map (default: F_max split equally over +x, +y, -z)")
+    out.add_argument("--force", action="store_true", help="overwrite --out")
+    out.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+
+
+def numbers(text: str, sizes: tuple[int, ...], flag: str) -> tuple[float, ...]:
+    """Comma-separated finite numbers, as many as one of ``sizes``."""
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        raise InputError(f"not numbers: {text!r}", source=flag) from None
+    if len(values) not in sizes:
+        want = " or ".join(str(s) for s in sizes)
+        raise InputError(f"expected {want} comma-separated numbers, got {len(values)}", source=flag)
+    if not all(math.isfinite(v) for v in values):
+        raise InputError("values must be finite", source=flag)
+    return values
+
+
+def _wrench(text: str, flag: str) -> tuple[float, ...]:
+    v = numbers(text, (3, 6), flag)
+    return v + (0.0, 0.0, 0.0) if len(v) == 3 else v
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def _prior(args: argparse.Namespace) -> tuple[tuple[float, ...], str]:
+    from elastocal.identify.design import DEFAULT_PRIOR_STIFFNESS
+
+    if args.calibration and args.stiffness:
+        raise InputError("give --calibration or --stiffness, not both", source="--stiffness")
+    if args.calibration:
+        from elastocal.identify.calibration import read_calibration
+
+        cal = read_calibration(args.calibration)
+        k = tuple(cal.stiffness())
+        where = f"calibration {args.calibration}"
+    elif args.stiffness:
+        k = numbers(args.stiffness, (6,), "--stiffness")
+        where = "--stiffness"
+    else:
+        return DEFAULT_PRIOR_STIFFNESS, "Yang's analysis values (give --calibration for a better noise model)"
+    if not all(v > 0 for v in k):
+        raise InputError("stiffness values must be > 0", source="--stiffness" if args.stiffness else args.calibration)
+    return k, where
+
+
+def _friction(args: argparse.Namespace):
+    from elastocal.acquisition.plan import FrictionSpec
+
+    if not args.friction_path:
+        return ()
+    halves = args.friction_path.split(";")
+    if len(halves) != 2:
+        raise InputError("expected U;V: six joint values, ';', six joint values", source="--friction-path")
+    u = numbers(halves[0], (6,), "--friction-path")
+    v = numbers(halves[1], (6,), "--friction-path")
+    speeds = numbers(args.friction_speeds, tuple(range(1, 9)), "--friction-speeds")
+    if not all(s > 0 for s in speeds):
+        raise InputError("speeds must be > 0", source="--friction-speeds")
+    return (FrictionSpec("F1", start=u, end=v, speeds_rad_s=speeds),)
+
+
+def _load_specs(forces: np.ndarray, gravity: np.ndarray):
+    from elastocal.acquisition.plan import LoadSpec
+
+    g = float(np.linalg.norm(gravity))
+    down = gravity / g
+    specs = []
+    for k, f in enumerate(forces, start=1):
+        size = float(np.linalg.norm(f))
+        if np.allclose(f / size, down, atol=1e-9):
+            specs.append(LoadSpec(f"L{k}", mass_kg=size / g, description=f"hung weight of {size / g:.1f} kg"))
+        else:
+            u = f / size + 0.0        # + 0.0: no negative zeros in the file
+            specs.append(LoadSpec(f"L{k}", force_n=tuple(float(x) + 0.0 for x in f),
+                                  description=f"pull of {size:.0f} N toward ({u[0]:+.2f}, {u[1]:+.2f}, {u[2]:+.2f}) "
+                                              "in base axes, through a force gauge"))
+    return tuple(specs)
+
+
+def run(args: argparse.Namespace) -> int:
+    from elastocal.acquisition.plan import CheckSpec, parse_plan, plan_toml
+    from elastocal.identify import design as dz
+    from elastocal.identify.robot import load_robot
+
+    started = time.monotonic()
+    out = pathlib.Path(args.out)
+    if out.exists() and not args.force:
+        raise InputError("already exists; add --force to overwrite", source=str(out))
+    cell = None
+    if args.cell:
+        from elastocal.drivers.config import load_cell_config
+
+        cell = load_cell_config(args.cell)
+    if args.robot:
+        robot = load_robot(args.robot)
+    elif cell is not None:
+        robot = cell.load_robot()
+    else:
+        raise InputError("missing --robot robot.toml (or --cell cell.toml)", source="--robot")
+    if args.markers:
+        markers = tuple(m.strip() for m in args.markers.split(",") if m.strip())
+    elif cell is not None and cell.tracker is not None:
+        markers = tuple(m for m in cell.tracker.markers if m in robot.marker_names)
+    else:
+        markers = robot.marker_names
+    for m in markers:
+        if m not in robot.marker_names:
+            raise InputError(f"unknown marker {m!r}; the robot has {', '.join(robot.marker_names)}", source="--markers")
+    if not markers:
+        raise InputError("no marker to read", source="--markers")
+    test = dz.TestPose(q=numbers(args.test_pose, (6,), "--test-pose"), wrench=_wrench(args.load, "--load"))
+    for j, (v, lo, hi) in enumerate(zip(test.q, robot.lower, robot.upper), start=1):
+        if not lo <= v <= hi:
+            raise InputError(f"q{j} = {v} rad is outside the joint limits [{lo:.4g}, {hi:.4g}]", source="--test-pose")
+    f_max = args.f_max if args.f_max is not None else float(np.linalg.norm(test.wrench[:3]))
+    if f_max <= 0:
+        raise InputError("the process load has no force: give --f-max", source="--f-max")
+    tracker = numbers(args.tracker_position, (3,), "--tracker-position") if args.tracker_position else None
+    workspace = dz.Workspace(f_max_n=f_max, directions=args.directions, min_height_m=args.min_height,
+                             max_height_m=args.max_height, min_radius_m=args.min_radius, base_p_tracker=tracker,
+                             link_radius_m=args.link_radius)
+    noise = dz.NoiseModel(tracker_m=args.tracker_noise, current_a=args.current_noise if args.torque == "current"
+                          else 0.0, repeats=args.repeats)
+    prior, prior_source = _prior(args)
+    friction = _friction(args)
+    if args.map and pathlib.Path(args.map).suffix.lower() not in (".png", ".svg"):
+        raise InputError("the map is written as .png or .svg", source="--map")
+    rng = np.random.default_rng(args.seed)
+    candidates = dz.sample_candidates(robot, args.candidates, rng, workspace, markers)
+    t_plan = time.monotonic()
+    design = dz.plan_experiment(robot, candidates, test, n_poses=args.poses, loads_per_pose=args.loads_per_pose,
+                                workspace=workspace, markers=markers, prior_stiffness=prior, noise=noise)
+    plan_s = time.monotonic() - t_plan
+    baseline = dz.random_design_k40(robot, candidates, design.forces, test, n_poses=args.poses, markers=markers,
+                                    rng=rng)
+    random_quality = dz.evaluate_design(robot, candidates.q[rng.choice(len(candidates.q), args.poses, replace=False)],
+                                        list(design.wrenches), test, markers, prior_stiffness=prior, noise=noise)
+    check = dz.choose_check(robot, design, test, n_check=min(args.check_poses, args.poses), markers=markers,
+                            prior_stiffness=prior, noise=noise)
+    loads = _load_specs(design.forces, np.array(robot.gravity))
+    pose_ids = [f"P{k}" for k in range(1, len(design.q) + 1)]
+    check_spec = CheckSpec(poses=tuple(pose_ids[i] for i in check.poses), load=loads[check.load].id,
+                           friction=friction[0].id if friction else None)
+    text = plan_toml(poses=dict(zip(pose_ids, (tuple(float(v) for v in q) for q in design.q))), loads=loads,
+                     markers=markers, name=args.name, repeats=args.repeats, friction=friction, check=check_spec,
+                     procedures=("static", "friction") if friction else ("static",))
+    plan = parse_plan(text, source=str(out))
+    plan.validate_for(robot)
+    fmap = None
+    if args.map:
+        map_load = (_wrench(args.map_load, "--map-load") if args.map_load
+                    else tuple(f_max / math.sqrt(3.0) * np.array([1.0, 1.0, -1.0])) + (0.0, 0.0, 0.0))
+        fmap = dz.first_order_map(robot, q_base=test.q, wrench=map_load, stiffness=prior, markers=markers,
+                                  torque=args.torque, n_grid=args.map_grid)
+        dz.plot_first_order_map(fmap, args.map, test_q=test.q, poses=design.q)
+    out.write_text(text, encoding="utf-8")
+    q = design.quality
+    names = [f"k{j}" for j in range(1, 7)]
+    obj = {
+        "plan": str(out),
+        "poses": {pid: [float(v) for v in qq] for pid, qq in zip(pose_ids, design.q)},
+        "loads": [{"id": s.id, "force": [float(v) for v in f], "mass_kg": s.mass_kg}
+                  for s, f in zip(loads, design.forces)],
+        "markers": list(markers),
+        "f_max": f_max,
+        "k40": _finite(q.k40),
+        "k40_random_median": _finite(float(np.median(baseline))),
+        "accuracy": {"value": _finite(q.accuracy_m), "unit": "m"},
+        "accuracy_random": {"value": _finite(random_quality.accuracy_m), "unit": "m"},
+        "test_deflection": {"value": q.test_deflection_m, "unit": "m"},
+        "stiffness_relative_std": {n: _finite(v) for n, v in zip(names, q.stiffness_rel_std)},
+        "check": {"poses": list(check_spec.poses), "load": check_spec.load, "friction": check_spec.friction,
+                  "k40": _finite(check.quality.k40), "accuracy": _finite(check.quality.accuracy_m)},
+        "candidates": {"kept": len(candidates.q), "sampled": candidates.sampled,
+                       "rejected": dict(candidates.rejected)},
+        "visibility_checked": tracker is not None,
+        "prior": {"stiffness": list(prior), "source": prior_source},
+        "map": None if fmap is None else {"path": args.map, "good_fraction": fmap.good_fraction,
+                                          "torque": fmap.torque, "load": list(fmap.wrench)},
+        "planning_s": plan_s,
+        "time_s": time.monotonic() - started,
+    }
+    if args.json:
+        print(json.dumps(obj))
+        return 0
+    lines = [f"plan: {len(design.q)} poses x {len(loads)} loads (+ the unloaded reference), markers "
+             f"{', '.join(markers)}, {args.repeats} readings each -> {out}"]
+    for s in loads:
+        lines.append(f"  load {s.id}: {s.description}")
+    lines.append(f"industry measure K40 = {q.k40:.4g} ({args.poses} random candidate poses, same loads: median "
+                 f"{np.median(baseline):.4g})")
+    rel = 100.0 * q.accuracy_m / q.test_deflection_m if q.test_deflection_m > 0 else math.nan
+    lines.append(f"predicted accuracy at the test pose: {q.accuracy_m * 1e6:.2f} µm rms after compensation "
+                 f"(deflection there {q.test_deflection_m * 1e3:.3f} mm under the process load, {rel:.3f} %; "
+                 f"random poses: {random_quality.accuracy_m * 1e6:.2f} µm)")
+    lines.append("predicted stiffness std: " + ", ".join(
+        f"{n} {v * 100:.2f} %" if math.isfinite(v) else f"{n} unidentifiable" for n, v in zip(names, q.stiffness_rel_std)))
+    lines.append(f"check: poses {', '.join(check_spec.poses)} under {check_spec.load}"
+                 + (f", friction path {check_spec.friction}" if check_spec.friction else "")
+                 + f" (a calibration from the check's data alone would reach {check.quality.accuracy_m * 1e6:.1f} µm "
+                   "at the test pose)")
+    rejected = ", ".join(f"{n} {r}" for r, n in candidates.rejected if n)
+    lines.append(f"candidates: {len(candidates.q)} of {candidates.sampled} sampled poses respect the workspace"
+                 + (f" (rejected: {rejected})" if rejected else ""))
+    if tracker is None:
+        lines.append("marker visibility not checked: give --tracker-position")
+    lines.append(f"prior stiffness: {prior_source}")
+    if fmap is not None:
+        lines.append(f"first-order map: {args.map} (good enough on {fmap.good_fraction * 100:.0f} % of (q2, q3))")
+    lines.append(f"planning {plan_s:.2f} s, total {obj['time_s']:.2f} s")
+    print("\n".join(lines))
+    return 0

@@ -1,0 +1,50 @@
+"""`elastocal report … --out report.html`: a self-contained page showing where the model fails."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+from elastocal.commands._inputs import add_input_arguments, load_inputs
+from elastocal.commands.diagnose import diagnose_inputs, identify_command
+from elastocal.errors import InputError
+from elastocal.identify.effects import get_effect, parse_model
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_input_arguments(parser)
+    parser.add_argument("--out", required=True, help="HTML file to write")
+    parser.add_argument("--add", help="effect to show beside the model (default: the diagnosis' verdict)")
+
+
+def run(args: argparse.Namespace) -> int:
+    inputs = load_inputs(args)
+    model = parse_model(args.model)
+    if args.add is not None:
+        get_effect(args.add)
+        if args.add in model:
+            raise InputError(f"{args.add} is already in the model", source="--add")
+    static, runs = diagnose_inputs(inputs, model, args.torque, args.form)
+    from elastocal.identify.report import render_report
+
+    add = args.add
+    if add is not None and static is not None and add not in {c.effect for c in static.candidates}:
+        reason = next((n.reason for n in static.not_testable if n.effect == add), "not a candidate")
+        raise InputError(f"{add} cannot be shown: {reason}", source="--add")
+    effect = add if add is not None else (static.verdict if static is not None else None)
+    command = identify_command(args, (*model, effect)) if effect is not None else None
+    names = ([args.robot] if args.robot else []) + [str(f) for f in inputs.files]
+    page = render_report(inputs.robot, static, runs, add=add, inputs=names,
+                         command=command)
+    out = pathlib.Path(args.out)
+    try:
+        out.write_text(page, encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot write: {exc.strerror}", source=str(out)) from None
+    verdict = static.verdict if static is not None else (runs.verdict if runs is not None else None)
+    if args.json:
+        print(json.dumps({"out": str(out), "verdict": verdict, "bytes": len(page.encode("utf-8"))}))
+    else:
+        print(f"report written to {out} (verdict: {verdict or 'no missing effect found'})")
+    return 0

@@ -1,0 +1,203 @@
+"""`elastocal schedule install`: run the calibration check periodically (docs/check.md).
+
+    elastocal schedule install --every 7d --cell cell.toml [--unit-dir DIR] [--check-args "--sim --yes"]
+    elastocal schedule install --every 1d --cell cell.toml --crontab
+
+Writes a systemd service (one ``elastocal check`` run) and a timer, or prints
+a crontab line. It never runs systemctl: it prints the commands that enable
+the timer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import re
+import shlex
+import sys
+from dataclasses import dataclass
+
+from elastocal.errors import InputError
+
+WEEKDAYS = ("Mon", "Tue", "Wed", "Thu", "Fri", "Sat", "Sun")
+_UNITS_S = {"m": 60, "min": 60, "h": 3600, "d": 86400, "w": 7 * 86400}
+
+
+@dataclass(frozen=True)
+class Every:
+    """A period: ``count`` of ``unit`` (m, h, d or w)."""
+
+    count: int
+    unit: str
+
+    @property
+    def seconds(self) -> int:
+        return self.count * _UNITS_S[self.unit]
+
+    @property
+    def systemd(self) -> str:
+        return f"{self.count}{'min' if self.unit == 'm' else self.unit}"
+
+
+def parse_every(text: str) -> Every:
+    """``30m``, ``6h``, ``1d``, ``7d``, ``2w``."""
+    m = re.fullmatch(r"\s*(\d+)\s*(m|min|h|d|w)\s*", text)
+    if not m or int(m.group(1)) < 1:
+        raise InputError(f"expected a period such as 30m, 6h, 1d, 7d or 2w, got {text!r}", source="--every")
+    unit = "m" if m.group(2) in ("m", "min") else m.group(2)
+    every = Every(int(m.group(1)), unit)
+    if every.seconds < 600:
+        raise InputError("a check moves the robot: run it at most every 10 minutes", source="--every")
+    return every
+
+
+def parse_at(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"(\d{1,2}):(\d{2})", text.strip())
+    if not m or int(m.group(1)) > 23 or int(m.group(2)) > 59:
+        raise InputError(f"expected HH:MM, got {text!r}", source="--at")
+    return int(m.group(1)), int(m.group(2))
+
+
+def on_calendar(every: Every, at: tuple[int, int], weekday: str) -> str | None:
+    """The systemd OnCalendar expression for the period, None when a calendar
+    cannot express it exactly (then a monotonic timer is used)."""
+    hh, mm = at
+    s = every.seconds
+    if s < 3600 and 3600 % s == 0:
+        return f"*-*-* *:00/{s // 60}:00"
+    if s < 86400 and s % 3600 == 0 and 86400 % s == 0:
+        return f"*-*-* 00/{s // 3600}:{mm:02d}:00"
+    if s == 86400:
+        return f"*-*-* {hh:02d}:{mm:02d}:00"
+    if s == 7 * 86400:
+        return f"{weekday} *-*-* {hh:02d}:{mm:02d}:00"
+    return None
+
+
+def crontab_schedule(every: Every, at: tuple[int, int], weekday: str) -> str:
+    hh, mm = at
+    s = every.seconds
+    if s < 3600 and 3600 % s == 0:
+        return f"*/{s // 60} * * * *"
+    if s == 3600:
+        return f"{mm} * * * *"
+    if s < 86400 and s % 3600 == 0 and 86400 % s == 0:
+        return f"{mm} */{s // 3600} * * *"
+    if s == 86400:
+        return f"{mm} {hh} * * *"
+    if s == 7 * 86400:
+        return f"{mm} {hh} * * {(WEEKDAYS.index(weekday) + 1) % 7}"
+    raise InputError(f"cron cannot run something every {every.systemd} exactly; use the systemd timer "
+                     "(without --crontab)", source="--every")
+
+
+def _systemd_quote(arg: str) -> str:
+    """One ExecStart word: quoted when needed, ``%`` escaped (systemd specifiers)."""
+    arg = arg.replace("%", "%%")
+    if re.search(r"[\s\"'\\;$]", arg) or not arg:
+        return '"' + arg.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return arg
+
+
+def check_command(python: str, cell: pathlib.Path, extra: list[str]) -> list[str]:
+    return [python, "-m", "elastocal", "check", "--cell", str(cell), *extra]
+
+
+def service_unit(cell_name: str, command: list[str], working_dir: pathlib.Path) -> str:
+    exec_start = " ".join(_systemd_quote(a) for a in command)
+    return "\n".join([
+        "# written by `elastocal schedule install`",
+        "[Unit]",
+        f"Description=elastocal: check the calibration of {cell_name}",
+        "",
+        "[Service]",
+        "Type=oneshot",
+        f"WorkingDirectory={_systemd_quote(str(working_dir))}",
+        "# exit 0: the calibration holds; exit 3: recalibrate (the unit shows as failed;",
+        "# the verdict and its reason are in the cell's history and in the journal)",
+        f"ExecStart={exec_start}",
+        "",
+    ])
+
+
+def timer_unit(name: str, cell_name: str, every: Every, calendar: str | None) -> str:
+    lines = ["# written by `elastocal schedule install`", "[Unit]",
+             f"Description=elastocal: calibration check of {cell_name} every {every.systemd}", "", "[Timer]"]
+    if calendar is not None:
+        lines += [f"OnCalendar={calendar}", "Persistent=true"]
+    else:
+        lines += [f"OnActiveSec={every.systemd}", f"OnUnitActiveSec={every.systemd}"]
+    lines += ["AccuracySec=1min", f"Unit={name}.service", "", "[Install]", "WantedBy=timers.target", ""]
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("action", choices=("install",), help="install: write the units (or print a crontab line)")
+    parser.add_argument("--every", required=True, help="period: 30m, 6h, 1d, 7d, 2w")
+    parser.add_argument("--cell", required=True, help="cell.toml of the cell to check")
+    parser.add_argument("--at", default="06:00", help="time of day for daily and weekly checks (default 06:00)")
+    parser.add_argument("--on", default="Mon", choices=WEEKDAYS, help="weekday of weekly checks (default Mon)")
+    parser.add_argument("--name", default="elastocal-check", help="unit name (default elastocal-check)")
+    parser.add_argument("--unit-dir", help="where to write the units (default ~/.config/systemd/user)")
+    parser.add_argument("--check-args", default="", help="more arguments for `elastocal check`, one string "
+                                                         "(e.g. \"--sim --yes\")")
+    parser.add_argument("--crontab", action="store_true", help="print a crontab line instead of writing units")
+    parser.add_argument("--force", action="store_true", help="overwrite existing units")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+
+
+def run(args: argparse.Namespace) -> int:
+    from elastocal.drivers.config import load_cell_config
+
+    every = parse_every(args.every)
+    at = parse_at(args.at)
+    if not re.fullmatch(r"[A-Za-z0-9_.@-]+", args.name):
+        raise InputError("unit names use letters, digits and _.@- only", source="--name")
+    cell_path = pathlib.Path(args.cell).resolve()
+    config = load_cell_config(cell_path)
+    try:
+        extra = shlex.split(args.check_args)
+    except ValueError as exc:
+        raise InputError(f"cannot split: {exc}", source="--check-args") from None
+    if "--cell" in extra:
+        raise InputError("--cell is given by `schedule --cell`", source="--check-args")
+    command = check_command(sys.executable, cell_path, extra)
+    if args.crontab:
+        line = f"{crontab_schedule(every, at, args.on)} cd {shlex.quote(str(cell_path.parent))} && " \
+               + " ".join(shlex.quote(a) for a in command)
+        if args.json:
+            print(json.dumps({"crontab": line}))
+        else:
+            print(f"# add this line with `crontab -e` (check of {config.name} every {every.systemd}):")
+            print(line)
+        return 0
+    unit_dir = pathlib.Path(args.unit_dir) if args.unit_dir else pathlib.Path.home() / ".config" / "systemd" / "user"
+    service = unit_dir / f"{args.name}.service"
+    timer = unit_dir / f"{args.name}.timer"
+    for path in (service, timer):
+        if path.exists() and not args.force:
+            raise InputError("already exists; add --force to overwrite", source=str(path))
+    calendar = on_calendar(every, at, args.on)
+    try:
+        unit_dir.mkdir(parents=True, exist_ok=True)
+        service.write_text(service_unit(config.name, command, cell_path.parent), encoding="utf-8")
+        timer.write_text(timer_unit(args.name, config.name, every, calendar), encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot write: {exc.strerror}", source=str(unit_dir)) from None
+    user = not args.unit_dir or pathlib.Path(args.unit_dir).resolve() == (
+        pathlib.Path.home() / ".config" / "systemd" / "user").resolve()
+    ctl = "systemctl --user" if user else "systemctl"
+    enable = [f"{ctl} daemon-reload", f"{ctl} enable --now {args.name}.timer"]
+    if args.json:
+        print(json.dumps({"service": str(service), "timer": str(timer), "on_calendar": calendar,
+                          "every_s": every.seconds, "command": command, "enable": enable}))
+        return 0
+    print(f"wrote {service}\nwrote {timer}")
+    print(f"the timer runs `elastocal check` of {config.name} every {every.systemd}"
+          + (f" ({calendar})" if calendar else " (counted from the last run)") + "; enable it with:")
+    for c in enable:
+        print(f"  {c}")
+    if user:
+        print("  loginctl enable-linger   # so user timers run while nobody is logged in")
+    return 0

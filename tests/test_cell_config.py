@@ -1,0 +1,115 @@
+"""cell.toml: device URLs and the frozen, validated configuration."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from elastocal.drivers.config import load_cell_config, parse_cell_config, parse_device_url
+from elastocal.errors import InputError
+from elastocal.sims.serve import example_cell_config, example_cell_path
+
+MINIMAL = """
+[cell]
+name = "c"
+robot = "hh150"
+"""
+
+
+def test_the_urls_of_the_architecture():
+    u = parse_device_url("canopen://virtual/cell?node=5")
+    assert (u.scheme, u.can_interface, u.can_channel, u.param("node")) == ("canopen", "virtual", "cell", "5")
+    u = parse_device_url("modbus+tcp://127.0.0.1:1502?unit=1")
+    assert (u.host, u.port, u.int_param("unit", 0)) == ("127.0.0.1", 1502, 1)
+    u = parse_device_url("modbus+rtu:///dev/pts/3?baud=115200&unit=1")
+    assert (u.path, u.int_param("baud", 0), u.int_param("unit", 0)) == ("/dev/pts/3", 115200, 1)
+    u = parse_device_url("tracker+tcp://127.0.0.1:7000")
+    assert (u.host, u.port) == ("127.0.0.1", 7000)
+    u = parse_device_url("tracker+serial:///dev/ttyUSB0?baud=115200")
+    assert u.path == "/dev/ttyUSB0"
+    assert parse_device_url("modbus+tcp://127.0.0.1:0?unit=2").with_port(1503).text == \
+        "modbus+tcp://127.0.0.1:1503?unit=2"
+
+
+@pytest.mark.parametrize("url,message", [
+    ("http://x", "unknown device scheme 'http'"),
+    ("canopen://virtual/cell", "node id is missing"),
+    ("canopen://virtual/cell?node=200", "outside 1..127"),
+    ("canopen://virtual?node=1", "give the CAN channel"),
+    ("modbus+tcp://127.0.0.1?unit=1", "give host and port"),
+    ("modbus+tcp://127.0.0.1:502?unit=x", "not an integer"),
+    ("tracker+serial://?baud=9600", "give the serial device"),
+    ("127.0.0.1:502", "expected a device URL"),
+])
+def test_bad_urls_are_named(url, message):
+    with pytest.raises(InputError, match=message):
+        parse_device_url(url)
+
+
+def test_packaged_simulated_cell_round_trips():
+    c = example_cell_config()
+    assert [d.joint for d in c.drives] == [1, 2, 3, 4, 5, 6]
+    assert c.drive(3).url.text == "canopen://virtual/elastocal-sim?node=3"
+    assert c.tracker.markers == ("R1", "R2", "R3") and c.controller.pose(2)[0] == 0.5
+    assert c.controller.path(2).u[1] == -0.3 and c.sim.seed == 7
+    again = parse_cell_config(c.to_toml(), source="again.toml")
+    for field in ("name", "robot", "drives", "tracker", "controller", "sim"):
+        assert getattr(again, field) == getattr(c, field), field
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        c.name = "x"
+    assert c.load_robot().name == "HH-150"
+    assert load_cell_config(example_cell_path()).drives == c.drives
+
+
+def test_relative_paths_resolve_next_to_the_file(tmp_path):
+    robot = tmp_path / "robots" / "r.toml"
+    robot.parent.mkdir()
+    robot.write_text(example_cell_config().robot_path().read_text())
+    cell = tmp_path / "cell.toml"
+    cell.write_text('[cell]\nname = "c"\nrobot = "robots/r.toml"\nhistory = "hist.sqlite"\n')
+    c = load_cell_config(cell)
+    assert c.robot_path() == robot and c.history == tmp_path / "hist.sqlite"
+    assert parse_cell_config(c.to_toml()).robot_path() == robot.resolve()
+
+
+@pytest.mark.parametrize("extra,column,message", [
+    ('[[drive]]\njoint = 7\nurl = "canopen://virtual/c?node=1"', "drive[1].joint", "joint must be 1..6"),
+    ('[[drive]]\njoint = 1\nurl = "tracker+tcp://127.0.0.1:1"', None, "cannot be used here"),
+    ('[[drive]]\njoint = 1\nurl = "canopen://virtual/c?node=1"\n[[drive]]\njoint = 1\n'
+     'url = "canopen://virtual/c?node=2"', "drive", "joints repeat"),
+    ('[[drive]]\njoint = 1\nurl = "canopen://virtual/c?node=1"\n[[drive]]\njoint = 2\n'
+     'url = "canopen://virtual/c?node=1"', "drive", "same CAN node 1"),
+    ('[[drive]]\njoint = 1\nurl = "modbus+tcp://127.0.0.1:1502"', "drive[1].registers", "needs a"),
+    ('[[drive]]\njoint = 1\nurl = "modbus+tcp://127.0.0.1:1502"\n[drive.registers]\n'
+     'current = { address = 0, unit = "rad" }\nposition = { address = 1, unit = "rad" }',
+     "drive[1].registers.current", "not a unit of current"),
+    ('[[drive]]\njoint = 1\nurl = "modbus+tcp://127.0.0.1:1502"\n[drive.registers]\n'
+     'current = { address = 0, type = "int32", unit = "A" }\nposition = { address = 1, unit = "rad" }',
+     "drive[1].registers.position", "register 1 is used by both current and position"),
+    ('[[drive]]\njoint = 1\nurl = "modbus+tcp://127.0.0.1:1502"\n[drive.registers]\n'
+     'current = { address = 0, unit = "A" }', "drive[1].registers", "missing the position register"),
+    ('[tracker]\nurl = "tracker+tcp://127.0.0.1:7000"', "tracker.markers", "non-empty list"),
+    ('[controller]\nurl = "modbus+tcp://127.0.0.1:1503"\n[controller.registers]\n'
+     'command = { address = 0, access = "write" }', "controller.registers", "missing the sequence register"),
+    ('[controller]\nurl = "modbus+tcp://127.0.0.1:1503"\n[controller.registers]\n'
+     'status = { address = 0, access = "write" }', "controller.registers.status", "elastocal only reads it"),
+    ('[sim]\nhidden = "gremlins"', "sim.hidden", "hidden must be one of"),
+    ('[sim]\nstart_q = [0, 0]', "sim.start_q", "expected 6 finite numbers"),
+    ('[sim]\nseeed = 1', "sim", "unknown keys seeed"),
+])
+def test_config_errors_name_the_file_and_key(extra, column, message):
+    with pytest.raises(InputError, match=message) as err:
+        parse_cell_config(MINIMAL + extra, source="cell.toml")
+    assert "cell.toml" in str(err.value)
+    if column is not None:
+        assert err.value.column == column
+
+
+def test_missing_file_and_bad_toml(tmp_path):
+    with pytest.raises(InputError, match="cannot read"):
+        load_cell_config(tmp_path / "none.toml")
+    with pytest.raises(InputError, match="not valid TOML"):
+        parse_cell_config("[cell", source="x.toml")
+    with pytest.raises(InputError, match="missing robot"):
+        parse_cell_config("[cell]\nname = 'x'\n")

@@ -1,0 +1,220 @@
+"""Contract suite: the laser tracker over TCP and a pty, against the simulated tracker."""
+
+from __future__ import annotations
+
+import functools
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from elastocal.drivers import open_tracker
+from elastocal.drivers.config import SimConfig, TrackerConfig, parse_device_url
+from elastocal.drivers.tracker_protocol import Measurement, decode_line, encode_line, parse_measurement
+from elastocal.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, InputError, ProtocolError
+from elastocal.identify.robot import bundled_robot
+from elastocal.sims.tracker_server import SimTracker
+from elastocal.sims.world import SimWorld
+
+MARKERS = ("R1", "R2", "R3")
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return bundled_robot()
+
+
+@pytest.fixture
+def world(robot):
+    return SimWorld.from_config(robot, SimConfig(tracker_noise_m=0.0, seed=2), MARKERS)
+
+
+@pytest.fixture
+def sim(world):
+    t = SimTracker(world, serial="SN42")
+    t.serve_tcp()
+    yield t
+    t.close()
+
+
+def tracker_for(url: str, **kw):
+    cfg = TrackerConfig(url=parse_device_url(url), markers=MARKERS, timeout_s=kw.pop("timeout_s", 0.3),
+                        retries=kw.pop("retries", 2), **kw)
+    return open_tracker(cfg)
+
+
+@pytest.fixture
+def tracker(sim):
+    t = tracker_for(f"tracker+tcp://127.0.0.1:{sim.tcp_port}")
+    yield t
+    t.close()
+
+
+def xor(body: bytes) -> str:
+    return f"{functools.reduce(lambda a, b: a ^ b, body, 0):02X}"
+
+
+def assert_accounted(samples, gaps, rate):
+    """Every hole in the tracker's clock between two samples is a recorded gap."""
+    dev = np.array([s.device_time_s for s in samples])
+    holes = np.round(np.diff(dev) * rate).astype(int) - 1
+    assert np.all(holes >= 0)
+    assert holes.sum() == sum(g.missing for g in gaps)
+
+
+# ---------------------------------------------------------------- protocol
+def test_lines_carry_an_xor_checksum():
+    assert encode_line("IDN?") == b"IDN?*7C\n"                  # 0x49^0x44^0x4E^0x3F
+    assert decode_line(b"OK STOP*" + xor(b"OK STOP").encode() + b"\r\n") == "OK STOP"
+    with pytest.raises(ProtocolError, match="checksum"):
+        decode_line(b"OK STOP*00\n")
+    with pytest.raises(ProtocolError, match="malformed"):
+        decode_line(b"OK STOP\n")
+    m = Measurement(7, 1500, "R1", (1.0, -2.5, 0.25), "OK")
+    assert m.body() == "M 7 1500 R1 1.000000000 -2.500000000 0.250000000 OK"
+    assert parse_measurement(m.body()) == m
+    with pytest.raises(ProtocolError, match="without a position"):
+        parse_measurement("M 7 1500 R1 nan nan nan OK")
+
+
+def test_byte_level_exchange_with_the_simulated_tracker(sim):
+    with socket.create_connection(("127.0.0.1", sim.tcp_port), timeout=2.0) as s:
+        f = s.makefile("rwb")
+        f.write(b"IDN?*7C\n")
+        f.flush()
+        body = b"IDN elastocal,SimTracker,SN42,0.1.0"
+        assert f.readline() == body + b"*" + xor(body).encode() + b"\n"
+        f.write(b"TARGET R9\n")                                 # hosts may omit the checksum
+        f.flush()
+        body = b"ERR 2 unknown target R9"
+        assert f.readline() == body + b"*" + xor(body).encode() + b"\n"
+        f.write(b"STREAM 5000\n")
+        f.flush()
+        assert f.readline().startswith(b"ERR 3 rate")
+
+
+# ------------------------------------------------------------------- reads
+def test_measure_gives_the_marker_in_metres(tracker, world):
+    info = tracker.identify()
+    assert (info.vendor, info.model, info.serial) == ("elastocal", "SimTracker", "SN42")
+    eq = world.equilibrium_at()
+    for m in ("R2", "R1"):
+        tracker.select(m)
+        s = tracker.measure()
+        assert s.marker == m
+        truth = world.cell.marker_positions(eq, [m])[0]
+        np.testing.assert_allclose(s.tracker_p_marker, truth, atol=1e-9)
+    with pytest.raises(InputError, match="unknown marker"):
+        tracker.select("R9")
+
+
+def test_stream_has_consecutive_sequence_and_device_clock(tracker):
+    rate = 200.0
+    with tracker.stream(rate) as stream:
+        batch = stream.read_for(0.5)
+    seq = np.array([s.seq for s in batch.samples])
+    assert not batch.gaps and len(seq) >= 0.7 * 0.5 * rate
+    assert np.all(np.diff(seq) == 1)
+    t = np.diff([s.t_ns for s in batch.samples])
+    # stamped with the tracker's clock, not with the arrival time of the bytes
+    assert np.mean(np.abs(t - 1e9 / rate) < 1e3) > 0.75
+    assert np.all(t > 0) and np.mean(t) == pytest.approx(1e9 / rate, rel=0.01)
+    dev = np.array([s.device_time_s for s in batch.samples])
+    np.testing.assert_allclose(np.diff(dev), 1 / rate, atol=2e-6)
+    assert tracker.measure().seq > seq[-1]                                 # the stream has stopped
+
+
+def test_serial_tracker_on_a_pty(world):
+    sim = SimTracker(world)
+    path = sim.serve_pty()
+    try:
+        t = tracker_for(f"tracker+serial://{path}?baud=115200")
+        try:
+            s = t.measure()
+            truth = world.cell.marker_positions(world.equilibrium_at(), ["R1"])[0]
+            np.testing.assert_allclose(s.tracker_p_marker, truth, atol=1e-9)
+            with pytest.raises(InputError, match="115200 baud"):
+                t.stream(1000.0)
+            with t.stream(100.0) as stream:
+                batch = stream.read_for(0.3)
+            assert len(batch.samples) >= 20 and not batch.gaps
+        finally:
+            t.close()
+    finally:
+        sim.close()
+
+
+# ------------------------------------------------------------------ faults
+def test_beam_break_is_a_gap_and_a_fault(tracker, sim):
+    sim.break_beam(None)
+    with pytest.raises(DeviceFault, match="beam broken"):
+        tracker.measure()
+    sim.restore_beam()
+    rate = 200.0
+    with tracker.stream(rate) as stream:
+        before = stream.read_for(0.1)
+        sim.break_beam(0.1)
+        after = stream.read_for(0.35)
+    samples = before.samples + after.samples
+    gaps = before.gaps + after.gaps
+    assert [g.reason for g in gaps] == ["beam broken"]
+    assert gaps[0].missing == pytest.approx(0.1 * rate, rel=0.3)
+    seq = [s.seq for s in samples]
+    assert seq[-1] - seq[0] + 1 == len(seq) + gaps[0].missing            # every measurement accounted for
+    assert_accounted(samples, gaps, rate)
+
+
+def test_lost_and_garbled_lines_are_gaps(tracker, sim):
+    with tracker.stream(200.0) as stream:
+        stream.read_for(0.05)
+        sim.drop_lines(3)
+        stream.read_for(0.1)
+        sim.corrupt_lines(2)
+        batch = stream.read_for(0.1)
+        first = stream.stats()
+    assert first.missing == 5
+    with tracker.stream(200.0) as stream:
+        stream.read_for(0.05)
+        sim.corrupt_lines(50)
+        with pytest.raises(ProtocolError, match="bad lines in a row"):
+            for _ in range(20):
+                stream.read(timeout_s=1.0)
+
+
+def test_disconnect_is_resumed_with_a_gap(tracker, sim):
+    rate = 200.0
+    with tracker.stream(rate) as stream:
+        before = stream.read_for(0.1)
+        sim.disconnect_all()
+        after = stream.read_for(0.4)
+    assert sim.connections == 2                      # the driver connected again
+    assert {g.reason for g in after.gaps} <= {"reconnected"}
+    assert len(after.samples) > 0.2 * rate
+    assert_accounted(before.samples + after.samples, before.gaps + after.gaps, rate)
+    assert tracker.measure().marker == "R1"
+
+
+def test_stall_is_a_timeout(tracker, sim):
+    s0, w0 = tracker.measure(), time.monotonic()
+    sim.stall(1.2)
+    with pytest.raises(DeviceTimeout, match="no reply"):
+        tracker.measure()                            # 3 attempts of 0.3 s
+    assert 0.85 < time.monotonic() - w0 < 1.2
+    time.sleep(0.4)
+    w1 = time.monotonic()
+    s1 = tracker.measure()                           # a fresh measurement, not a late answer
+    assert s1.device_time_s - s0.device_time_s >= w1 - w0 - 0.02
+    with tracker.stream(100.0) as stream:
+        stream.read_for(0.05)
+        sim.stall(1.0)
+        with pytest.raises(DeviceTimeout, match="no line for 0.3 s"):
+            for _ in range(20):
+                stream.read(timeout_s=1.0)
+
+
+def test_unreachable_tracker_is_disconnected(sim):
+    port = sim.tcp_port
+    sim.close()
+    with pytest.raises(DeviceDisconnected, match="cannot connect"):
+        tracker_for(f"tracker+tcp://127.0.0.1:{port}", retries=0)
