@@ -24,10 +24,10 @@ import numpy as np
 
 from elastocal.errors import InputError
 from elastocal.identify.calibration import FORMAT, Calibration
+from elastocal.identify.check import VERDICTS
 
 SCHEMA_VERSION = 1
 APPLICATION = "elastocal.history"
-VERDICTS = ("holds", "recalibrate")
 #: a check's estimate of a parameter enters the drift only when its own
 #: relative std is below this (a short check does not determine every joint)
 MAX_CHECK_RELATIVE_STD = 0.02
@@ -133,7 +133,8 @@ class History:
         self.path = pathlib.Path(path)
         if not self.path.exists():
             if not create:
-                raise InputError("no history database here yet (nothing recorded)", source=str(self.path))
+                raise InputError("no history yet: record a calibration with `elastocal history add`",
+                                 source=str(self.path))
             if not self.path.parent.is_dir():
                 raise InputError("the folder of the history database does not exist", source=str(self.path))
         try:

@@ -20,11 +20,10 @@ from __future__ import annotations
 
 import abc
 import collections
-import contextlib
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Generic, Iterable, Sequence, TypeVar
 
 from elastocal.drivers.config import DeviceUrl
@@ -150,6 +149,7 @@ class Stream(Generic[S]):
         self._missing = 0
         self._n_gaps = 0
         self._started_ns = time.monotonic_ns()
+        self._ended_ns: int | None = None
         self._last_ns = self._started_ns
 
     # ---------------------------------------------------------- producer
@@ -226,35 +226,42 @@ class Stream(Generic[S]):
             return Batch((), ())
 
     def read_for(self, duration_s: float, *, timeout_s: float = 1.0) -> Batch[S]:
-        """Everything the stream delivers during ``duration_s``."""
+        """Everything the stream delivers during ``duration_s`` (DeviceTimeout if
+        nothing at all comes for ``timeout_s``; the stream's error as :meth:`read`)."""
         samples: list[S] = []
         gaps: list[Gap] = []
         end = time.monotonic() + duration_s
+        quiet_since = time.monotonic()
         while True:
             remaining = end - time.monotonic()
             if remaining <= 0:
                 break
-            try:
-                b = self.read(timeout_s=min(timeout_s, remaining) if remaining < timeout_s else timeout_s)
-            except DeviceTimeout:
-                if time.monotonic() >= end:
-                    break
-                raise
-            samples.extend(b.samples)
-            gaps.extend(b.gaps)
-            if self._closed and not b.samples and not b.gaps:
+            time.sleep(min(0.02, remaining))
+            b = self.poll()
+            if b.samples or b.gaps:
+                quiet_since = time.monotonic()
+                samples.extend(b.samples)
+                gaps.extend(b.gaps)
+            elif self._closed:
                 break
+            elif time.monotonic() - quiet_since > timeout_s:
+                raise DeviceTimeout(f"{self.device}: no sample for {timeout_s:g} s")
         return Batch(tuple(samples), tuple(gaps))
 
     def stats(self) -> StreamStats:
+        """Counts so far; ``elapsed_s`` runs from the start to now, or to :meth:`close`."""
         with self._cond:
+            end = self._ended_ns if self._ended_ns is not None else time.monotonic_ns()
             return StreamStats(self.device, self.rate_hz, self._received, self._missing, self._n_gaps,
-                               (time.monotonic_ns() - self._started_ns) / 1e9)
+                               (end - self._started_ns) / 1e9)
 
     def close(self) -> None:
+        """Stop the device streaming; samples still in flight are delivered first."""
         with self._cond:
             if self._closed:
                 return
+            if self._ended_ns is None:
+                self._ended_ns = time.monotonic_ns()
         try:
             self._stop()
         finally:
@@ -621,17 +628,3 @@ def close_all(items: Iterable[object]) -> None:
                 first = exc
     if first is not None:
         raise first
-
-
-@contextlib.contextmanager
-def translating(name: str, mapping: Sequence[tuple[type[BaseException], type[DeviceError]]]):
-    """Turn library exceptions into typed elastocal errors named after ``name``."""
-    try:
-        yield
-    except DeviceError:
-        raise
-    except tuple(m[0] for m in mapping) as exc:  # type: ignore[misc]
-        for source, target in mapping:
-            if isinstance(exc, source):
-                raise target(f"{name}: {exc}") from exc
-        raise

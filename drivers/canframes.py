@@ -13,9 +13,6 @@ import functools
 
 import can
 
-SYNC_COB_ID = 0x80
-#: function codes (COB-ID >> 7) of the four TPDOs
-TPDO_FUNCTIONS = (0x3, 0x5, 0x7, 0x9)
 TAIL_BITS = 1 + 2 + 7 + 3  # CRC delimiter, ACK slot + delimiter, EOF, intermission
 
 

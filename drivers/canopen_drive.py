@@ -97,8 +97,8 @@ class _Cycle:
     counter: int
     t_ns: int
     wall_s: float
+    sent: bool = True                              # False: the producer was too late to send it
     replies: dict = field(default_factory=dict)   # (node, cob_id) -> values dict or str (malformed)
-    extra: int = 0
 
 
 class _Member:
@@ -154,17 +154,16 @@ class CanopenLink:
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1     # so that closing does not wait a second
         self.network.connect()
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()            # cycles, TPDOs, membership
+        self._settle_lock = threading.Lock()     # delivering closed cycles (never held with _lock waiting)
         self._members: dict[int, _Member] = {}
         self._cycles: collections.deque[_Cycle] = collections.deque()
         self._cycle_index = 0
-        self.late_tpdos = 0
         self._counter = 0
         self._rate_hz: float | None = None
         self._thread: threading.Thread | None = None
+        self._settler: threading.Thread | None = None
         self._stop = threading.Event()
-        self.syncs_sent = 0
-        self.syncs_skipped = 0
 
     # ------------------------------------------------------------- budget
     def _bits_per_cycle(self, frame_bytes: list[int]) -> int:
@@ -188,6 +187,9 @@ class CanopenLink:
     # ------------------------------------------------------------ members
     def join(self, member_factory, frame_bytes: tuple[int, ...], rate_hz: float) -> _Member:
         self.check_budget(frame_bytes, rate_hz)
+        producer, settler = self._thread, self._settler
+        if producer is not None and not producer.is_alive() and settler is not None:
+            settler.join(timeout=5.0)          # the previous streams' last cycles are delivered
         with self._lock:
             if self._rate_hz is not None and self._members and abs(self._rate_hz - rate_hz) > 1e-9:
                 raise InputError(f"CAN {self.interface}/{self.channel}: drives on one bus stream at one SYNC "
@@ -202,8 +204,11 @@ class CanopenLink:
                 self._stop.clear()
                 self._thread = threading.Thread(target=self._sync_loop, args=(rate_hz,),
                                                 name=f"canopen-sync-{self.channel}", daemon=True)
+                self._settler = threading.Thread(target=self._settle_loop, args=(self._thread,),
+                                                 name=f"canopen-cycles-{self.channel}", daemon=True)
         if start:
             self._thread.start()
+            self._settler.start()
         return member
 
     def leave(self, node_id: int, *, settle: bool = True) -> None:
@@ -214,20 +219,27 @@ class CanopenLink:
             if member is None:
                 return
             member.last_cycle = self._cycle_index      # no SYNC after this one is expected of it
-        if settle and threading.current_thread() is not self._thread:
+        if settle and threading.current_thread() not in (self._thread, self._settler):
             time.sleep(CLOSE_DELAY_S)
-        with self._lock:
+        with self._settle_lock:
             if settle:
-                for cycle in list(self._cycles):
+                with self._lock:
+                    still_open = list(self._cycles)
+                for cycle in still_open:
                     if self._members.get(node_id) is member:
                         self._settle(member, cycle)
-            self._members.pop(node_id, None)
-            last = not self._members
-            thread = self._thread
+            with self._lock:
+                self._members.pop(node_id, None)
+                last = not self._members
         member.flush_gap(time.monotonic_ns())
-        if last and thread is not None and thread is not threading.current_thread():
-            self._stop.set()
-            thread.join(timeout=5.0)
+        if last:
+            self._stop_threads()
+
+    def _stop_threads(self) -> None:
+        self._stop.set()
+        for thread in (self._thread, self._settler):
+            if thread is not None and thread is not threading.current_thread():
+                thread.join(timeout=5.0)
 
     def members(self) -> int:
         with self._lock:
@@ -238,13 +250,10 @@ class CanopenLink:
         """Record a TPDO in the cycle whose SYNC preceded it on the bus."""
         with self._lock:
             for cycle in reversed(self._cycles):
-                if cycle.wall_s <= timestamp:
-                    key = (node_id, cob_id)
-                    if key in cycle.replies:
-                        cycle.extra += 1
-                    cycle.replies[key] = values
+                if cycle.sent and cycle.wall_s <= timestamp:
+                    cycle.replies[(node_id, cob_id)] = values    # a second one in the cycle replaces the first
                     return
-            self.late_tpdos += 1
+            # older than every open cycle: its cycle was already closed and recorded as a gap
 
     def _settle(self, member: _Member, cycle: _Cycle) -> None:
         """Deliver ``member``'s sample of a closed cycle, or record it missing."""
@@ -252,7 +261,9 @@ class CanopenLink:
             return
         member.settled = cycle.index
         replies = [cycle.replies.get((member.node_id, cob)) for cob in member.cob_ids]
-        if any(r is None for r in replies):
+        if not cycle.sent:
+            ok = member.missed(cycle.t_ns, "SYNC not sent (producer late)")
+        elif any(r is None for r in replies):
             ok = member.missed(cycle.t_ns, "no TPDO in the SYNC cycle")
         elif any(isinstance(r, str) for r in replies):
             ok = member.missed(cycle.t_ns, next(r for r in replies if isinstance(r, str)))
@@ -269,11 +280,12 @@ class CanopenLink:
             self._settle(member, cycle)
 
     def _sync_loop(self, rate_hz: float) -> None:
-        """Send SYNC ``k`` at ``start + k / rate``; a SYNC more than a period late is
-        skipped (and recorded as a gap of every member), and after a late SYNC the
-        next waits at least ``MIN_INTERVAL`` periods so the late cycle's TPDOs fit."""
+        """Send SYNC ``k`` at ``start + k / rate``. A SYNC more than a period late is
+        not sent (its cycle is recorded as missing for every member), and after a
+        late SYNC the next waits at least ``MIN_INTERVAL`` periods so that the
+        late cycle's TPDOs fit. This thread only sends: :meth:`_settle_loop`
+        delivers the cycles."""
         period_ns = int(round(1e9 / rate_hz))
-        keep = max(2, int(math.ceil(CLOSE_DELAY_S * rate_hz)))
         next_ns = time.monotonic_ns()          # the nominal schedule
         last_sent = next_ns - period_ns
         oversleep_ns = 0.0                     # running estimate of how late time.sleep wakes up
@@ -291,15 +303,9 @@ class CanopenLink:
             with self._lock:
                 if not self._members:
                     break
-                if late >= 1:     # the producer fell behind: those SYNCs are never sent
-                    self.syncs_skipped += late
-                    for m in list(self._members.values()):
-                        for _ in range(late):
-                            if not m.missed(now, "SYNC not sent (producer late)"):
-                                self._members.pop(m.node_id, None)
-                                break
-                while len(self._cycles) >= keep:
-                    self._close_cycle(self._cycles.popleft())
+                for k in range(late):          # the producer fell behind: these SYNCs are never sent
+                    self._cycle_index += 1
+                    self._cycles.append(_Cycle(self._cycle_index, 0, next_ns + k * period_ns, 0.0, sent=False))
                 self._cycle_index += 1
                 self._counter = self._counter % SYNC_OVERFLOW + 1
                 t_ns = time.monotonic_ns()
@@ -307,7 +313,6 @@ class CanopenLink:
                 counter = self._counter
             try:
                 self.network.sync.transmit(counter)
-                self.syncs_sent += 1
             except (can.CanError, RuntimeError) as exc:
                 with self._lock:
                     for m in list(self._members.values()):
@@ -316,20 +321,33 @@ class CanopenLink:
                 break
             last_sent = t_ns
             next_ns += period_ns * (late + 1)
-        # let the last windows close, then deliver them
-        time.sleep(CLOSE_DELAY_S)
-        with self._lock:
-            while self._cycles:
-                self._close_cycle(self._cycles.popleft())
+
+    def _settle_loop(self, producer: threading.Thread) -> None:
+        """Close the cycles whose SYNC is :data:`CLOSE_DELAY_S` old, in order."""
+        delay_ns = int(CLOSE_DELAY_S * 1e9)
+        while True:
+            done = not producer.is_alive()
+            if done:
+                time.sleep(CLOSE_DELAY_S)      # the last windows close, then everything is delivered
+            with self._lock:
+                now = time.monotonic_ns()
+                due = []
+                while self._cycles and (done or now - self._cycles[0].t_ns >= delay_ns):
+                    due.append(self._cycles.popleft())
+            if due:
+                with self._settle_lock:
+                    for cycle in due:
+                        self._close_cycle(cycle)
+            if done:
+                return
+            time.sleep(0.01)
 
     def close(self) -> None:
         with self._lock:
             members = list(self._members)
         for node_id in members:
             self.leave(node_id)
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5.0)
+        self._stop_threads()
         self.network.disconnect()
 
 

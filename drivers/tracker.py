@@ -33,7 +33,6 @@ at the middle of its request and reply.
 
 from __future__ import annotations
 
-import math
 import queue
 import socket
 import threading

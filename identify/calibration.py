@@ -53,6 +53,8 @@ def calibration_from_fit(robot_name: str, fit_json: dict, data_paths: Sequence[s
     """A Calibration from an ``identify --json`` object and the files it used."""
     created = created or _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
     residual = {k: v for k, v in fit_json["residual"].items() if k in ("rms", "max", "n")}
+    if fit_json.get("noise_floor") is not None:  # optional extension: what noise alone leaves [m]
+        residual["noise_floor"] = fit_json["noise_floor"]
     data = tuple({"path": str(p), "sha256": file_sha256(p)} for p in data_paths)
     return Calibration(robot=robot_name, created=created, model=tuple(fit_json["model"]),
                        torque=fit_json.get("torque", "current"), parameters=fit_json["parameters"],

@@ -42,7 +42,7 @@ from __future__ import annotations
 import itertools
 import math
 import pathlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -122,10 +122,10 @@ class Workspace:
         if not self.max_height_m > self.min_height_m:
             raise InputError(f"max height {self.max_height_m} m is not above min height {self.min_height_m} m",
                              source="--max-height")
-        for name in ("link_radius_m", "tracker_range_m"):
+        for name, flag in (("link_radius_m", "--link-radius"), ("tracker_range_m", "tracker_range_m")):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
-                raise InputError(f"must be > 0, got {v!r}", source=name)
+                raise InputError(f"must be > 0, got {v!r}", source=flag)
         if self.base_p_tracker is not None:
             p = tuple(float(v) for v in self.base_p_tracker)
             if len(p) != 3 or not all(math.isfinite(v) for v in p):
@@ -206,26 +206,27 @@ def _joint_origins(robot: Robot, q: np.ndarray) -> np.ndarray:
 
 
 def _segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
-    """Shortest distance between segments p1-q1 and p2-q2 (broadcast over leading axes)."""
+    """Shortest distance between segments p1-q1 and p2-q2, broadcast over the
+    leading axes (Ericson, Real-Time Collision Detection, 5.1.9; degenerate
+    segments are points)."""
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
     a = np.einsum("...k,...k->...", d1, d1)
     e = np.einsum("...k,...k->...", d2, d2)
     f = np.einsum("...k,...k->...", d2, r)
     c = np.einsum("...k,...k->...", d1, r)
     b = np.einsum("...k,...k->...", d1, d2)
-    tiny = 1e-12
+    eps = 1e-12
+    a_ok, e_ok = a > eps, e > eps
+    safe_a, safe_e = np.where(a_ok, a, 1.0), np.where(e_ok, e, 1.0)
     denom = a * e - b * b
-    s = np.where(denom > tiny, np.clip((b * f - c * e) / np.where(denom > tiny, denom, 1.0), 0.0, 1.0), 0.0)
-    s = np.where(a > tiny, s, 0.0)
-    t = np.where(e > tiny, (b * s + f) / np.where(e > tiny, e, 1.0), 0.0)
-    # clamp t and recompute s where needed
-    t_cl = np.clip(t, 0.0, 1.0)
-    s_new = np.where(a > tiny, np.clip((t_cl * b - c) / np.where(a > tiny, a, 1.0), 0.0, 1.0), 0.0)
-    s = np.where(t != t_cl, s_new, s)
-    t = t_cl
-    c1 = p1 + s[..., None] * d1
-    c2 = p2 + t[..., None] * d2
-    return np.linalg.norm(c1 - c2, axis=-1)
+    s_gen = np.where(denom > eps, np.clip((b * f - c * e) / np.where(denom > eps, denom, 1.0), 0.0, 1.0), 0.0)
+    t_gen = (b * s_gen + f) / safe_e
+    s_gen = np.where(t_gen < 0.0, np.clip(-c / safe_a, 0.0, 1.0),
+                     np.where(t_gen > 1.0, np.clip((b - c) / safe_a, 0.0, 1.0), s_gen))
+    t_gen = np.clip(t_gen, 0.0, 1.0)
+    s = np.where(a_ok, np.where(e_ok, s_gen, np.clip(-c / safe_a, 0.0, 1.0)), 0.0)
+    t = np.where(e_ok, np.where(a_ok, t_gen, np.clip(f / safe_e, 0.0, 1.0)), 0.0)
+    return np.linalg.norm((p1 + s[..., None] * d1) - (p2 + t[..., None] * d2), axis=-1)
 
 
 #: reasons a sampled pose is rejected, in the order they are tested
@@ -268,8 +269,9 @@ class Candidates:
     """Sampled poses that respect the workspace, and why the others did not."""
 
     q: np.ndarray                         # (n, 6)
-    sampled: int
-    rejected: tuple[tuple[str, int], ...]  # (reason, count)
+    sampled: int                          # poses drawn
+    accepted: int                         # of them respecting the workspace (the first n are kept)
+    rejected: tuple[tuple[str, int], ...]  # (reason, count) of the others
 
 
 def sample_candidates(robot: Robot, n: int, rng: np.random.Generator, workspace: Workspace,
@@ -299,7 +301,7 @@ def sample_candidates(robot: Robot, n: int, rng: np.random.Generator, workspace:
         reasons = ", ".join(f"{c} {r}" for r, c in zip(REJECTIONS, counts) if c)
         raise InputError(f"only {len(kept)} of {sampled} sampled poses respect the workspace (rejected: {reasons}); "
                          "relax the constraints or check the tracker position", source="--candidates")
-    return Candidates(q=np.array(kept[:n]), sampled=sampled,
+    return Candidates(q=np.array(kept[:n]), sampled=sampled, accepted=len(kept),
                       rejected=tuple((r, int(c)) for r, c in zip(REJECTIONS, counts)))
 
 
@@ -329,20 +331,34 @@ def load_directions(kind: str, gravity: Sequence[float] = (0.0, 0.0, -9.81)) -> 
 
 
 # =================================================================== quality
+def _unseen(information: np.ndarray, rel_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eigen-analysis of the information in compliances scaled to unit diagonal
+    (so that joints of very different stiffness compare): scale (6,), eigenvalues
+    and eigenvectors of the scaled matrix, with the eigenvalues of directions the
+    experiment cannot see (below ``rel_tol`` of the largest) set to 0."""
+    d = np.diag(information).copy()
+    seen = d > rel_tol * max(float(d.max()), 0.0)
+    scale = np.where(seen, 1.0 / np.sqrt(np.where(seen, d, 1.0)), 0.0)
+    m = information * scale[:, None] * scale[None, :]
+    w, v = np.linalg.eigh(0.5 * (m + m.T))
+    w = np.where(w > rel_tol * max(float(w[-1]), 0.0), w, 0.0)
+    return scale, w, v
+
+
 def industry_measure(information: np.ndarray, a0: np.ndarray, *, rel_tol: float = 1e-10) -> float:
     """``trace(A0 M^-1 A0^T)`` (K40); ``inf`` when the test pose's deflection
     depends on a combination of compliances the experiment cannot see."""
-    w, v = np.linalg.eigh(0.5 * (information + information.T))
-    top = max(float(w[-1]), 0.0)
-    if top == 0.0:
+    scale, w, v = _unseen(information, rel_tol)
+    a0s = a0 * scale[None, :]
+    blind = np.linalg.norm(a0[:, scale == 0.0])              # compliances never excited at all
+    proj = a0s @ v                                           # (3, 6)
+    good = w > 0.0
+    if not np.any(good):
         return math.inf
-    good = w > rel_tol * top
-    proj = a0 @ v                                        # (3, 6)
-    if np.any(~good):
-        seen = np.linalg.norm(proj[:, good]) if np.any(good) else 0.0
-        lost = np.linalg.norm(proj[:, ~good])
-        if lost > 1e-6 * max(seen, 1e-300):
-            return math.inf
+    seen = np.linalg.norm(proj[:, good])
+    lost = np.linalg.norm(proj[:, ~good])
+    if blind > 1e-9 * np.linalg.norm(a0) or lost > 1e-6 * max(seen, 1e-300):
+        return math.inf
     return float(np.sum(proj[:, good] ** 2 / w[good]))
 
 
@@ -408,13 +424,11 @@ def evaluate_design(robot: Robot, q: np.ndarray, wrenches: np.ndarray | Sequence
         accuracy = float(np.sqrt(max(np.trace(a0 @ cov @ a0.T), 0.0)))
     else:
         accuracy = math.inf
-    w_eig = np.linalg.eigvalsh(info)
     rel = np.sqrt(np.clip(np.diag(cov), 0.0, None)) / c_prior
-    if w_eig[0] <= 1e-10 * max(w_eig[-1], 1e-300):
-        # directions the experiment cannot see: the compliances they touch are unidentifiable
-        w, v = np.linalg.eigh(info)
-        null = v[:, w <= 1e-10 * max(w[-1], 1e-300)]
-        rel = np.where(np.linalg.norm(null, axis=1) > 1e-6, np.inf, rel)
+    # directions the experiment cannot see: the compliances they touch are unidentifiable
+    scale, w, v = _unseen(info, 1e-10)
+    null = np.linalg.norm(v[:, w == 0.0], axis=1) > 1e-6
+    rel = np.where(null | (scale == 0.0), np.inf, rel)
     defl = float(np.linalg.norm(a0 @ c_prior))
     return DesignQuality(k40=k40, accuracy_m=accuracy, test_deflection_m=defl, stiffness_rel_std=rel,
                          information=info, covariance=cov, n_deflections=n_defl)

@@ -31,7 +31,6 @@ from typing import Sequence
 
 import can
 import canopen
-import numpy as np
 
 from elastocal.sims.canbus import BusStats, SimCanBus
 from elastocal.sims.world import SimWorld, WorldSample

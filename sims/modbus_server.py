@@ -363,6 +363,13 @@ class ModbusServerThread:
         if self._tcp is not None:
             self.port = self._server.transport.sockets[0].getsockname()[1]
 
+    async def _shutdown(self) -> None:
+        await self._server.shutdown()
+        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for t in tasks:            # requests still waiting (delayed replies) end here
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
     def drop_connections(self) -> None:
         """Close every client connection (the listener stays)."""
         done = threading.Event()
@@ -380,7 +387,7 @@ class ModbusServerThread:
         if self._loop is None or self._thread is None:
             return
         if self._server is not None and self._loop.is_running():
-            fut = asyncio.run_coroutine_threadsafe(self._server.shutdown(), self._loop)
+            fut = asyncio.run_coroutine_threadsafe(self._shutdown(), self._loop)
             try:
                 fut.result(5.0)
             except Exception:  # noqa: BLE001 - closing anyway

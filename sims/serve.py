@@ -42,6 +42,7 @@ from elastocal.sims.world import SimWorld
 LOOPBACK = ("127.0.0.1", "localhost")
 SIM_CAN_INTERFACES = ("virtual", "udp_multicast")
 UDP_GROUP = "239.74.163.2"
+UDP_PORT = 43113
 
 
 def example_cell_path() -> pathlib.Path:
@@ -241,10 +242,15 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _to_udp(config: CellConfig) -> CellConfig:
+    """Virtual CAN channels moved to udp_multicast, one UDP port per channel."""
+    ports: dict[str, int] = {}
     drives = []
     for d in config.drives:
         if d.url.scheme == "canopen" and d.url.can_interface == "virtual":
-            d = replace(d, url=d.url.with_host("udp_multicast").with_path(UDP_GROUP))
+            port = ports.setdefault(d.url.can_channel, UDP_PORT + len(ports))
+            url = d.url.with_host("udp_multicast").with_path(UDP_GROUP)
+            url = replace(url, params=url.params + (("port", str(port)),), text=f"{url.text}&port={port}")
+            d = replace(d, url=url)
         drives.append(d)
     return replace(config, drives=tuple(drives))
 

@@ -53,7 +53,8 @@ def test_identify_out_writes_calibration(dataset, tmp_path, capsys):
     assert doc["robot"] == "HH-150" and doc["torque"] == "force"
     assert doc["created"].endswith("Z")
     assert doc["data"][0]["path"].endswith("static.csv") and len(doc["data"][0]["sha256"]) == 64
-    assert set(doc["residual"]) == {"rms", "max", "n"}
+    assert {"rms", "max", "n"} <= set(doc["residual"]) <= {"rms", "max", "n", "noise_floor"}
+    assert doc["residual"]["noise_floor"] > 0
     assert "k6" in doc["parameters"]
     assert "residual" in capsys.readouterr().out
 

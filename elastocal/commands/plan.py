@@ -243,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
         "stiffness_relative_std": {n: _finite(v) for n, v in zip(names, q.stiffness_rel_std)},
         "check": {"poses": list(check_spec.poses), "load": check_spec.load, "friction": check_spec.friction,
                   "k40": _finite(check.quality.k40), "accuracy": _finite(check.quality.accuracy_m)},
-        "candidates": {"kept": len(candidates.q), "sampled": candidates.sampled,
+        "candidates": {"kept": len(candidates.q), "sampled": candidates.sampled, "accepted": candidates.accepted,
                        "rejected": dict(candidates.rejected)},
         "visibility_checked": tracker is not None,
         "prior": {"stiffness": list(prior), "source": prior_source},
@@ -272,8 +272,8 @@ def run(args: argparse.Namespace) -> int:
                  + f" (a calibration from the check's data alone would reach {check.quality.accuracy_m * 1e6:.1f} µm "
                    "at the test pose)")
     rejected = ", ".join(f"{n} {r}" for r, n in candidates.rejected if n)
-    lines.append(f"candidates: {len(candidates.q)} of {candidates.sampled} sampled poses respect the workspace"
-                 + (f" (rejected: {rejected})" if rejected else ""))
+    lines.append(f"candidates: {len(candidates.q)} poses; {candidates.accepted} of {candidates.sampled} drawn "
+                 "respected the workspace" + (f" (rejected: {rejected})" if rejected else ""))
     if tracker is None:
         lines.append("marker visibility not checked: give --tracker-position")
     lines.append(f"prior stiffness: {prior_source}")
