@@ -54,6 +54,7 @@ class SampleGap:
     end_ns: int
     missing: int
     reason: str
+    joint: int | None = None    # the drive's joint, None for other devices
 
 
 @dataclass(frozen=True)

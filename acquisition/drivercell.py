@@ -170,7 +170,7 @@ class DriverCellIO(CellIO):
             for s in batch.samples:
                 drives.append(DriveSample(d.joint, s.t_ns, s.position_rad, s.velocity_rad_s, s.current_a, s.status))
             for g in batch.gaps:
-                gaps.append(SampleGap(g.device, g.start_ns, g.end_ns, g.missing, g.reason))
+                gaps.append(SampleGap(g.device, g.start_ns, g.end_ns, g.missing, g.reason, d.joint))
         return Samples(tuple(drives), tuple(tracker), tuple(gaps))
 
     def close(self) -> None:

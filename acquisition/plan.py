@@ -430,10 +430,13 @@ def plan_toml(*, poses: Sequence[Sequence[float]] | Mapping[str, Sequence[float]
               markers: Sequence[str], name: str = "calibration", repeats: int = 3, reading_s: float = 0.2,
               speed_rad_s: float = 0.3, settle: SettleSpec | None = None,
               friction: Sequence[FrictionSpec] = (), sweep: SweepSpec | None = None,
-              check: CheckSpec | None = None, procedures: Sequence[str] | None = None) -> str:
+              check: CheckSpec | None = None, procedures: Sequence[str] | None = None,
+              pose_loads: Mapping[str, Sequence[str]] | None = None) -> str:
     """plan.toml text for poses (a list, ids P1.., or a mapping id -> q), loads and
     markers, plus optional friction paths, sweep and check; :func:`parse_plan`
-    reads it back. For the demo, the ``plan`` command and tests."""
+    reads it back. ``pose_loads`` gives some poses their own loaded states
+    (pose id -> load ids; the others get every load). For the demo, the ``plan``
+    command and tests."""
     lines = [f'name = "{name}"']
     if procedures is not None:
         lines.append(f"procedures = {_toml_list(procedures)}")
@@ -456,6 +459,8 @@ def plan_toml(*, poses: Sequence[Sequence[float]] | Mapping[str, Sequence[float]
                   f"reading_s = {reading_s!r}", f"speed_rad_s = {speed_rad_s!r}"]
         for pid, q in items:
             lines += ["", "[[static.pose]]", f'id = "{pid}"', f"q = {_toml_list(q)}"]
+            if pose_loads is not None and pid in pose_loads:
+                lines.append(f"loads = {_toml_list(pose_loads[pid])}")
     for f in friction:
         lines += ["", "[[friction]]", f'id = "{f.id}"', f"from = {_toml_list(f.start)}", f"to = {_toml_list(f.end)}",
                   f"speeds_rad_s = {_toml_list(f.speeds_rad_s)}", f"loads = {_toml_list(f.loads)}",

@@ -40,6 +40,8 @@ from elastocal.errors import DeviceError, DeviceTimeout, InputError
 PERSON_S = 60.0
 #: extra time allowed for a move beyond its nominal duration before giving up [s]
 MOVE_MARGIN_S = 30.0
+#: longest wait for late drive samples after a reading [s]
+DRAIN_TIMEOUT_S = 5.0
 #: how often progress is redrawn during a step [s]
 PROGRESS_EVERY_S = 0.5
 
@@ -193,15 +195,19 @@ class Session:
         for d in samples.drives:
             if d.t_ns > self._latest_drive_ns.get(d.joint, -1):
                 self._latest_drive_ns[d.joint] = d.t_ns
+        for g in samples.gaps:  # samples a drive reported lost will not come
+            if g.joint is not None and g.end_ns > self._latest_drive_ns.get(g.joint, -1):
+                self._latest_drive_ns[g.joint] = g.end_ns
         now = self.io.clock()
         if now - self._last_progress_ns >= PROGRESS_EVERY_S * 1e9:
             self.show_progress(now)
         return samples
 
-    def drain(self, t_ns: int, timeout_s: float = 2.0) -> None:
-        """Poll until every drive has delivered its samples up to ``t_ns`` (drive
-        samples may arrive a little after they were acquired), so a reading's
-        window is complete in the log before the step that holds it ends."""
+    def drain(self, t_ns: int, timeout_s: float = DRAIN_TIMEOUT_S) -> None:
+        """Poll until every drive has delivered (or reported lost) its samples up
+        to ``t_ns`` (drive samples may arrive a little after they were acquired),
+        so a reading's window is complete in the log before its step ends. A
+        silent drive raises from its own stream first; this limit is a backstop."""
         t0 = self.io.clock()
         while len(self._latest_drive_ns) < 6 or min(self._latest_drive_ns.values()) < t_ns:
             if (self.io.clock() - t0) * 1e-9 > timeout_s:

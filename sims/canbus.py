@@ -11,11 +11,16 @@ device side and adds what a 1 Mbit/s bus imposes:
   eight-byte frames per second;
 * each node answers a node-specific reply delay after the frame that
   triggered the reply ended on the bus (SDO replies, TPDOs after SYNC);
-* frames carry their bus time as timestamp (the inner ``virtual`` bus must
+* a frame's place on the timeline is fixed when the node sends it, and the
+  frame carries that bus time as timestamp (the inner ``virtual`` bus must
   preserve timestamps), so Python's scheduling delays do not move a frame
   on the timeline seen by the drivers;
-* a TPDO still queued when the next SYNC arrives is discarded (the CiA 301
-  synchronous window), and a full transmit queue drops frames (overrun); both
+* frames reach the other nodes as from a USB CAN adapter: never before they
+  ended on the bus, handed over in batches at most every
+  ``delivery_interval_s`` (1 ms) — one thread wake-up per batch, not per frame;
+* a SYNC wins arbitration: a TPDO that has not started on the bus when the
+  next SYNC comes is discarded (the CiA 301 synchronous window), and a full
+  transmit queue drops frames (overrun); both
   are counted, so a lossy bus shows up as gaps on the driver side, never as
   late data with a wrong time;
 * with ``filter_own=True`` (udp_multicast loops our own frames back) the echo
@@ -29,6 +34,7 @@ from __future__ import annotations
 import collections
 import heapq
 import itertools
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -70,17 +76,19 @@ class SimCanBus(can.BusABC):
     python-can bus that carries the frames (virtual or udp_multicast).
     """
 
-    #: frames sent at most this much ahead of their bus time (the scheduler's slack)
-    SLACK_S = 200e-6
+    #: frames are handed to the other nodes at most this often (a USB adapter's transfer interval)
+    DELIVERY_INTERVAL_S = 1e-3
 
     def __init__(self, inner: can.BusABC, *, bitrate: int = 1_000_000,
                  reply_delay_s: Callable[[int], float] = lambda node: 0.0,
-                 tx_queue: int = 256, filter_own: bool = False) -> None:
+                 tx_queue: int = 256, filter_own: bool = False,
+                 delivery_interval_s: float = DELIVERY_INTERVAL_S) -> None:
         self._inner = inner
         self.bitrate = int(bitrate)
         self._reply_delay = reply_delay_s
         self._tx_queue = int(tx_queue)
         self._filter_own = filter_own
+        self._interval = float(delivery_interval_s)
         self.channel_info = f"simulated {bitrate // 1000} kbit/s bus on {inner.channel_info}"
         self._cond = threading.Condition()
         self._heap: list = []
@@ -88,8 +96,7 @@ class SimCanBus(can.BusABC):
         self._bus_free_s = 0.0
         self._last_rx_end = 0.0
         self._wall_offset = time.time() - time.monotonic()
-        self._sync_seen = 0
-        self._sync_times: dict[int, float] = {}
+        self._delivered_end = 0.0
         self._own: collections.Counter = collections.Counter()
         self._frames = 0
         self._bits = 0
@@ -119,17 +126,20 @@ class SimCanBus(can.BusABC):
         return can_id & 0x7F
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        function = msg.arbitration_id >> 7
-        is_tpdo = not msg.is_extended_id and function in TPDO_FUNCTIONS
+        """Put ``msg`` on the bus timeline now; it reaches the other nodes after it ended."""
+        is_tpdo = not msg.is_extended_id and msg.arbitration_id >> 7 in TPDO_FUNCTIONS
+        bits = message_bits(msg)
         with self._cond:
-            # a reply is due a node's delay after the frame that triggered it ended on the bus
-            due = self._last_rx_end + self._reply_delay(self._node_of(msg.arbitration_id))
             if len(self._heap) >= self._tx_queue:
                 self._dropped_overrun += 1
                 return
-            tag = self._sync_seen if is_tpdo else None
-            heapq.heappush(self._heap, (due, msg.arbitration_id, next(self._seq), msg, tag))
-            self._cond.notify()
+            # a reply is due a node's delay after the frame that triggered it ended on the bus
+            due = self._last_rx_end + self._reply_delay(self._node_of(msg.arbitration_id))
+            start = self._occupy(due, bits)
+            msg.timestamp = start + self._wall_offset
+            heapq.heappush(self._heap, (self._bus_free_s, next(self._seq), msg, is_tpdo, start, bits))
+            if len(self._heap) == 1:
+                self._cond.notify()
 
     def _occupy(self, start_s: float, bits: int) -> float:
         start = max(start_s, self._bus_free_s)
@@ -139,32 +149,33 @@ class SimCanBus(can.BusABC):
         return start
 
     def _transmit_loop(self) -> None:
+        last = -math.inf
         while True:
             with self._cond:
                 while not self._stop and not self._heap:
                     self._cond.wait()
                 if self._stop:
                     return
-                due, _, _, msg, tag = self._heap[0]
                 now = time.monotonic()
-                start = max(due, self._bus_free_s)
-                if start > now + self.SLACK_S:
-                    self._cond.wait(start - now)
+                at = max(self._heap[0][0], last + self._interval)
+                if at > now:
+                    self._cond.wait(at - now)
                     continue
-                heapq.heappop(self._heap)
-                if tag is not None and tag + 1 in self._sync_times and self._sync_times[tag + 1] <= start:
-                    self._dropped_window += 1   # the next SYNC came first: outside the window
-                    continue
-                start = self._occupy(due, message_bits(msg))
-                msg.timestamp = start + self._wall_offset
-                self._sent += 1
-                if self._filter_own:
-                    self._own[(msg.arbitration_id, bytes(msg.data))] += 1
-            try:
-                self._inner.send(msg)
-            except can.CanError:
-                with self._cond:
-                    self._dropped_overrun += 1
+                last = now
+                batch = []
+                while self._heap and self._heap[0][0] <= now:
+                    end, _, msg, _, _, _ = heapq.heappop(self._heap)
+                    self._delivered_end = max(self._delivered_end, end)
+                    self._sent += 1
+                    if self._filter_own:
+                        self._own[(msg.arbitration_id, bytes(msg.data))] += 1
+                    batch.append(msg)
+            for msg in batch:
+                try:
+                    self._inner.send(msg)
+                except can.CanError:
+                    with self._cond:
+                        self._dropped_overrun += 1
 
     # ----------------------------------------------------------- receive
     def _recv_internal(self, timeout: float | None):
@@ -180,13 +191,26 @@ class SimCanBus(can.BusABC):
                         del self._own[key]
                     return None, False
             on_bus = min(msg.timestamp - self._wall_offset, time.monotonic())
-            start = self._occupy(on_bus, message_bits(msg))
-            self._last_rx_end = self._bus_free_s
             if msg.arbitration_id == SYNC_COB_ID and not msg.is_extended_id:
-                self._sync_seen += 1
-                self._sync_times[self._sync_seen] = start
-                self._sync_times.pop(self._sync_seen - 64, None)
+                self._close_window(on_bus)
+            self._occupy(on_bus, message_bits(msg))
+            self._last_rx_end = self._bus_free_s
         return msg, False
+
+    def _close_window(self, sync_s: float) -> None:
+        """A SYNC wants the bus at ``sync_s``: the TPDOs queued behind that
+        instant lose arbitration and fall outside their SYNC window (dropped);
+        the frame on the bus at that instant finishes first."""
+        kept = [e for e in self._heap if not (e[3] and e[4] >= sync_s)]
+        if len(kept) == len(self._heap):
+            return
+        for _, _, _, _, _, bits in (e for e in self._heap if e[3] and e[4] >= sync_s):
+            self._dropped_window += 1
+            self._frames -= 1
+            self._bits -= bits
+        heapq.heapify(kept)
+        self._heap = kept
+        self._bus_free_s = max([e[0] for e in kept] + [self._delivered_end, self._last_rx_end])
 
     def shutdown(self) -> None:
         with self._cond:

@@ -31,6 +31,7 @@ from typing import Sequence
 
 import can
 import canopen
+import numpy as np
 
 from elastocal.sims.canbus import BusStats, SimCanBus
 from elastocal.sims.world import SimWorld, WorldSample
@@ -81,6 +82,7 @@ class SimCanopenDrive:
         store(0x608F, 1, self.encoder_increments.to_bytes(4, "little"))
         if tpdo2:
             store(0x1801, 1, (0x280 + node_id).to_bytes(4, "little"))
+        self._units = DriveUnits([self])
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
 
@@ -124,21 +126,9 @@ class SimCanopenDrive:
     # ------------------------------------------------------------- values
     def raw_values(self, s: WorldSample) -> dict[int, int]:
         """Object values in drive units for a world sample."""
-        j = self.joint - 1
-        current_a = float(s.currents_a[j])
-        joint_torque = self.torque_constant * current_a
-        motor_torque_mnm = joint_torque / self.gear_ratio * 1000.0
-
-        def clamp16(v: float) -> int:
-            return int(max(-32768, min(32767, round(v))))
-
-        return {
-            0x6041: self.statusword,
-            0x6064: int(round(float(s.q[j]) * self.counts_per_rad)),
-            0x606C: int(round(float(s.dq[j]) * self.counts_per_rad)),
-            0x6077: clamp16(motor_torque_mnm / self.rated_torque_mnm * 1000.0),
-            0x6078: clamp16(current_a * 1000.0 / self.rated_current_ma * 1000.0),
-        }
+        values = self._units(s)[0]
+        values[STATUS_SLOT] = self.statusword
+        return dict(zip(PDO_OBJECTS, values))
 
     def _on_read(self, index: int, subindex: int, od) -> int | None:
         if index in (0x6041, 0x6064, 0x606C, 0x6077, 0x6078):
@@ -170,25 +160,86 @@ class SimCanopenDrive:
                 self._state = SW_OPERATION_ENABLED
 
     # --------------------------------------------------------------- SYNC
-    def on_sync(self, sample: WorldSample) -> None:
-        if self.silent():
-            return
-        values = self.raw_values(sample)
+    def prepare_sync(self) -> None:
+        """Lay out the enabled synchronous TPDOs as configured (after ``node.tpdo.read()``):
+        which value goes to which bytes of ``PdoMap.data``, packed with the
+        object's own ``struct`` from the object dictionary."""
+        plan = []
         for pdo in self.node.tpdo.map.values():
             if not pdo.enabled or pdo.trans_type is None or not 1 <= pdo.trans_type <= 240:
                 continue
-            for var in pdo.map:                           # byte-aligned objects: encode in place
-                if var.index in values:
-                    start = var.offset // 8
-                    pdo.data[start:start + var.length // 8] = var.od.encode_raw(values[var.index])
+            fields = []
+            for var in pdo.map:
+                if var.index not in _SLOTS:
+                    continue                      # left as the PDO's data holds it
+                if var.offset % 8 or var.length % 8:
+                    raise ValueError(f"node {self.node_id}: TPDO 0x{pdo.cob_id:03X} maps 0x{var.index:04X} "
+                                     "off a byte boundary")
+                fields.append((_SLOTS[var.index], var.od.STRUCT_TYPES[var.od.data_type].pack_into, var.offset // 8))
+            plan.append((pdo, tuple(fields)))
+        self._sync_plan = tuple(plan)
+
+    _sync_plan: tuple = ()
+
+    def latch(self, values: list[int], now_s: float) -> bool:
+        """Latch ``values`` (:data:`PDO_OBJECTS` order, from :class:`DriveUnits`;
+        the statusword slot is filled here) into the synchronous TPDOs at a
+        SYNC; False (nothing latched) while the drive is silent."""
+        with self._lock:
+            if now_s < self._silent_until:
+                return False
+            values[STATUS_SLOT] = self._state
+        for pdo, fields in self._sync_plan:
+            data = pdo.data
+            for slot, pack_into, offset in fields:
+                pack_into(data, offset, values[slot])
+        return True
+
+    def transmit(self, pdo) -> None:
+        """Send a latched TPDO (truncated to 3 bytes while :meth:`send_malformed` asks so)."""
+        if self._malformed:
             with self._lock:
                 truncate = self._malformed > 0
                 if truncate:
                     self._malformed -= 1
             if truncate:
                 self.node.network.send_message(pdo.cob_id, bytes(pdo.data[:3]))
-            else:
-                pdo.transmit()
+                return
+        pdo.transmit()
+
+
+#: the objects a synchronous TPDO may carry, in the order of :class:`DriveUnits`
+PDO_OBJECTS = (0x6041, 0x6064, 0x606C, 0x6077, 0x6078)
+STATUS_SLOT = 0
+_SLOTS = {index: slot for slot, index in enumerate(PDO_OBJECTS)}
+
+
+class DriveUnits:
+    """Object values in drive units for world samples, for several drives in one pass.
+
+    ``DriveUnits(drives)(sample)`` gives one list per drive in
+    :data:`PDO_OBJECTS` order (statusword 0: the caller fills it): position
+    and velocity in increments (/s), torque and current in per-mille of the
+    rated values, clamped to int16."""
+
+    def __init__(self, drives: Sequence[SimCanopenDrive]) -> None:
+        self._joints = np.array([d.joint - 1 for d in drives], dtype=int)
+        self._counts = np.array([d.counts_per_rad for d in drives])
+        self._xi = np.array([d.torque_constant for d in drives])
+        self._gear = np.array([d.gear_ratio for d in drives])
+        self._rated_torque = np.array([float(d.rated_torque_mnm) for d in drives])
+        self._rated_current = np.array([float(d.rated_current_ma) for d in drives])
+
+    def __call__(self, s: WorldSample) -> list[list[int]]:
+        j = self._joints
+        current_a = s.currents_a[j]
+        motor_torque_mnm = self._xi * current_a / self._gear * 1000.0
+        rows = np.zeros((len(j), len(PDO_OBJECTS)))
+        rows[:, 1] = s.q[j] * self._counts
+        rows[:, 2] = s.dq[j] * self._counts
+        rows[:, 3] = np.clip(np.rint(motor_torque_mnm / self._rated_torque * 1000.0), -32768, 32767)
+        rows[:, 4] = np.clip(np.rint(current_a * 1000.0 / self._rated_current * 1000.0), -32768, 32767)
+        return np.rint(rows).astype(np.int64).tolist()
 
 
 class SimCanopenNetwork:
@@ -214,7 +265,12 @@ class SimCanopenNetwork:
             for d in drives:
                 self.network.add_node(d.node)
                 d.node.tpdo.read()   # the node's own object values (data store, then EDS)
+                d.prepare_sync()
                 self._guard_sdo(d)
+            self._sync_drives = [d for d in drives if d._sync_plan]
+            self._sync_units = DriveUnits(self._sync_drives)
+            self._sync_tpdos = sorted(((d, pdo) for d in self._sync_drives for pdo, _ in d._sync_plan),
+                                      key=lambda dp: dp[1].cob_id)
             self.network.subscribe(0x80, self._on_sync)
             self.network.connect()
         except BaseException:
@@ -238,9 +294,13 @@ class SimCanopenNetwork:
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
         if self.world is None:
             return
-        sample = self.world.sample()
-        for d in self.drives.values():
-            d.on_sync(sample)
+        # one world sample and one unit conversion per SYNC for all drives
+        now_s = time.monotonic()
+        latched = {d.node_id for d, values in zip(self._sync_drives, self._sync_units(self.world.sample()))
+                   if d.latch(values, now_s)}
+        for d, pdo in self._sync_tpdos:          # lowest COB-ID first, as arbitration orders them
+            if d.node_id in latched:
+                d.transmit(pdo)
 
     def stats(self) -> BusStats:
         return self.bus.stats()

@@ -84,6 +84,15 @@ class _Segment:
         return self.t0_ns + int(round(self.duration_s * 1e9))
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.flags.writeable = False
+    return a
+
+
+_ZEROS6 = _read_only(np.zeros(6))
+
+
 def _interp_rows(grid: np.ndarray, values: np.ndarray, s: float) -> np.ndarray:
     i = int(np.searchsorted(grid, s, side="right")) - 1
     i = min(max(i, 0), len(grid) - 2)
@@ -113,9 +122,8 @@ class SimWorld:
         q = self._check_q(start_q, "start_q")
         self._wrench = np.zeros(6)
         self._segments: tuple[_Segment, ...] = ()
-        self._rest_q = q
         self._reference = cell.equilibrium(q, self._wrench)
-        self._rest_eq = self._reference
+        self._set_rest(q, self._reference)
 
     @classmethod
     def from_config(cls, robot, sim, markers: Sequence[str] | None = None) -> "SimWorld":
@@ -196,9 +204,8 @@ class SimWorld:
                 segments.append(seg)
                 t = seg.end_ns()
             self._segments = tuple(segments)
-            self._rest_q = q
             self._reference = end_eq
-            self._rest_eq = end_eq
+            self._set_rest(q, end_eq)
             self._planning = False
             self._idle.notify_all()
             return sum(s.duration_s for s in segments)
@@ -237,7 +244,7 @@ class SimWorld:
         eq = self.cell.equilibrium(q, w, reference=reference)
         with self._lock:
             self._wrench = w
-            self._rest_eq = eq
+            self._set_rest(self._rest_q, eq)
 
     def remove_load(self) -> None:
         self.set_load(np.zeros(6))
@@ -247,6 +254,18 @@ class SimWorld:
             return self._wrench.copy()
 
     # ----------------------------------------------------------- state
+    def _set_rest(self, q: np.ndarray, eq: Equilibrium) -> None:
+        """The pose the robot stops in (call with the lock held, or before other threads run).
+
+        What the devices read at rest is computed here once, not per reading:
+        the noise-free currents, and (on the first tracker reading) the
+        noise-free marker positions."""
+        self._rest_q = q
+        self._rest_eq = eq
+        self._rest_q_ro = _read_only(q)
+        self._rest_currents = self.cell.currents(eq)
+        self._rest_markers: dict[str, np.ndarray] | None = None
+
     def _moving_locked(self, t_ns: int) -> bool:
         return bool(self._segments) and t_ns < self._segments[-1].end_ns()
 
@@ -293,9 +312,9 @@ class SimWorld:
                     seg = self._segments[0]
                     t = seg.t0_ns
                 else:
-                    eq = self._rest_eq
-                    currents = self.cell.read_currents(eq, self._rng)
-                    return WorldSample(t, self._rest_q.copy(), np.zeros(6), currents, False)
+                    # SimCell.read_currents(self._rest_eq, rng), with the noise-free currents computed once
+                    noise = self._rng.normal(0.0, self.cell.truth.current_noise_a, size=6)
+                    return WorldSample(t, self._rest_q_ro, _ZEROS6, self._rest_currents + noise, False)
             s = seg.s_at(t)
             q = seg.q0 + (seg.q1 - seg.q0) * s
             i = _interp_rows(seg.s_grid, seg.currents, s)
@@ -324,6 +343,15 @@ class SimWorld:
         if marker not in self.markers:
             raise InputError(f"unknown marker {marker!r}; the cell has {', '.join(self.markers)}")
         t = self._clock_ns() if t_ns is None else t_ns
+        with self._lock:
+            if self._segment_at(t) is None and not self._moving_locked(t):
+                # at rest: SimCell.read_tracker with the noise-free positions computed once per pose
+                if self._rest_markers is None:
+                    p = self.cell.marker_positions(self._rest_eq, self.markers)
+                    self._rest_markers = {m: p[i:i + 1] for i, m in enumerate(self.markers)}
+                truth = self.cell.truth
+                p = self._rest_markers[marker] + truth.drift_velocity * self.t_s(t)
+                return (p + self._rng.normal(0.0, truth.tracker_noise_m, size=p.shape))[0]
         eq = self.equilibrium_at(t)
         with self._lock:
             return self.cell.read_tracker(eq, [marker], self.t_s(t), self._rng)[0]

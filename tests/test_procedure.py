@@ -266,7 +266,7 @@ def test_plan_file_errors_name_file_and_key(tmp_path):
         load_plan(tmp_path / "missing.toml")
 
 
-def test_plan_json_free_roundtrip(poses):
+def test_plan_toml_roundtrip(poses):
     """plan_toml writes what parse_plan reads, loads and settle included."""
     plan = static_plan(poses[:2])
     assert [p.id for p in plan.static.poses] == ["P1", "P2"]
@@ -274,6 +274,8 @@ def test_plan_json_free_roundtrip(poses):
     assert plan.loads[2].wrench((0, 0, -9.81)) == (650.0, -300.0, -400.0, 0.0, 0.0, 0.0)
     assert plan.settle == SETTLE
     assert json.dumps(plan.static.poses[0].q)  # plain floats
+    own = parse_plan(plan_toml(poses=poses[:2], loads=LOADS, markers=("R1",), pose_loads={"P2": ("L3", "L1")}))
+    assert own.static.poses[0].loads == ("L1", "L2", "L3") and own.static.poses[1].loads == ("L3", "L1")
 
 
 def test_resume_after_a_kill_continues_a_truncated_log(robot, poses, tmp_path):
@@ -288,7 +290,8 @@ def test_resume_after_a_kill_continues_a_truncated_log(robot, poses, tmp_path):
     done = old.completed_steps
     assert 1 <= len(done) <= 2
     resumed = tmp_path / "resumed.mcap"
-    timing = VirtualTiming(drive_rate_hz=250.0, tracker_rate_hz=250.0, start_ns=500_000_000)  # a rebooted clock: earlier times
+    # a rebooted clock: the new session's times lie before the old one's
+    timing = VirtualTiming(drive_rate_hz=250.0, tracker_rate_hz=250.0, start_ns=500_000_000)
     out = run_procedures(virtual_io(robot, seed=7, timing=timing), plan, resumed, resume_from=killed)
     assert out.status == "completed" and out.steps_resumed == len(done)
     _, before, _ = load_log(killed)
