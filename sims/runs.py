@@ -203,3 +203,23 @@ def simulate_run_dataset(robot: Robot, truth: CellTruth, *, seed: int, out_dir: 
     table = simulate_runs(robot, truth, seed=seed, source=str(out / "runs.csv"))
     write_runs_csv(out / "runs.csv", table)
     return {}
+
+
+#: what ``elastocal sim runs --hidden`` can switch on: each friction term alone, all
+#: three together ("friction", the realistic cell), or none
+RUN_HIDDEN = ("none", "coulomb_friction", "viscous_friction", "load_dependent_friction", "friction")
+
+
+def hide_in_runs(truth: CellTruth, effect: str) -> CellTruth:
+    """``truth`` with only the named friction switched on (sizes of
+    :func:`default_run_truth`); ``none`` switches friction off, ``friction``
+    switches on all three terms. The compensator and the link masses are always
+    in the run physics: the run torque model always holds them (cli.md)."""
+    if effect not in RUN_HIDDEN:
+        raise ValueError(f"the simulator cannot hide {effect!r} in run data; one of {', '.join(RUN_HIDDEN)}")
+    zero = np.zeros(6)
+    full = default_run_truth(truth)
+    return replace(truth,
+                   coulomb=full.coulomb if effect in ("coulomb_friction", "friction") else zero,
+                   viscous=full.viscous if effect in ("viscous_friction", "friction") else zero,
+                   load_friction=full.load_friction if effect in ("load_dependent_friction", "friction") else zero)

@@ -95,7 +95,7 @@ def test_python_dash_m_runs(dataset):
 
 def test_identify_from_runs_gives_compensator_and_friction(tmp_path, capsys):
     out = tmp_path / "runs"
-    assert main(["sim", "runs", "--seed", "3", "--out", str(out)]) == 0
+    assert main(["sim", "runs", "--hidden", "friction", "--seed", "3", "--out", str(out)]) == 0
     capsys.readouterr()
     rc = main(["identify", "--robot", str(out / "robot.toml"), "--runs", str(out / "runs.csv"), "--json",
                "--model", "compensator,coulomb_friction,viscous_friction,load_dependent_friction"])
@@ -112,7 +112,7 @@ def test_identify_from_runs_gives_compensator_and_friction(tmp_path, capsys):
 
 def test_identify_static_and_runs_together(dataset, tmp_path, capsys):
     out = tmp_path / "runs"
-    assert main(["sim", "runs", "--seed", "4", "--out", str(out)]) == 0
+    assert main(["sim", "runs", "--hidden", "friction", "--seed", "4", "--out", str(out)]) == 0
     capsys.readouterr()
     rc = main(["identify", "--robot", str(dataset / "robot.toml"), "--static", str(dataset / "static.csv"),
                "--runs", str(out / "runs.csv"), "--json", "--model",

@@ -16,7 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        ("runs", "friction runs and joint-2 sweeps: robot.toml, runs.csv, truth.json")):
         p = sub.add_parser(name, help=text, description=text)
         p.add_argument("--hidden", default="none",
-                       help="effect the simulated cell has and the default model lacks (none for none)")
+                       help="effect the simulated cell has and the default model lacks (none for none); static: "
+                            "link_compliance, thermal_drift, static_friction, backlash; runs: coulomb_friction, "
+                            "viscous_friction, load_dependent_friction, or friction for all three")
         p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
         p.add_argument("--out", required=True, help="output directory")
         p.add_argument("--robot", help="robot.toml to simulate (default: the bundled HH-150)")
@@ -29,8 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         from elastocal.sims.serve import add_serve_arguments
     except ImportError:
         return
-    serve = sub.add_parser("serve", help="serve simulated devices on loopback and a virtual CAN bus",
-                           description="serve simulated devices on loopback and a virtual CAN bus")
+    serve = sub.add_parser("serve", help="serve simulated devices on loopback and a CAN bus",
+                           description="serve simulated devices on loopback and a CAN bus (udp_multicast by "
+                                       "default, so other processes reach it)")
     add_serve_arguments(serve)
 
 
@@ -68,25 +71,26 @@ def run(args: argparse.Namespace) -> int:
         write_static_table(out / "static.csv", table)
         written["static"] = str(out / "static.csv")
         params = truth.parameters(robot)
-        try:
-            from elastocal.acquisition.export import write_log_from_tables
-        except ImportError:
-            write_log_from_tables = None
-        if write_log_from_tables is not None:
-            write_log_from_tables(out / "log.mcap", robot, static=table)
-            written["log"] = str(out / "log.mcap")
-    else:
-        from elastocal.sims.runs import default_run_truth, simulate_run_dataset
+        from elastocal.acquisition.export import write_log_from_tables
 
-        truth = default_run_truth(CellTruth())
-        if args.hidden != "none":
-            truth = _hide_in_runs(truth, args.hidden)
+        write_log_from_tables(out / "log.mcap", robot, static=table)
+        written["log"] = str(out / "log.mcap")
+    else:
+        from elastocal.identify.tables import read_run_table
+        from elastocal.sims.runs import RUN_HIDDEN, hide_in_runs, simulate_run_dataset
+
+        if args.hidden not in RUN_HIDDEN:
+            raise InputError(f"the simulator cannot hide {args.hidden!r} in run data; one of "
+                             f"{', '.join(RUN_HIDDEN)}", source="--hidden")
+        truth = hide_in_runs(CellTruth(), args.hidden)
         extra = simulate_run_dataset(robot, truth, seed=args.seed, out_dir=out)
         written["runs"] = str(out / "runs.csv")
-        if (out / "log.mcap").exists():
-            written["log"] = str(out / "log.mcap")
         params = truth.parameters(robot)
         params.update(extra or {})
+        from elastocal.acquisition.export import write_log_from_tables
+
+        write_log_from_tables(out / "log.mcap", robot, runs=read_run_table(out / "runs.csv", robot))
+        written["log"] = str(out / "log.mcap")
     truth_doc = {"hidden": args.hidden, "seed": args.seed, "robot": robot.name, "parameters": params,
                  "noise": {"tracker_m": truth.tracker_noise_m, "current_a": truth.current_noise_a}}
     (out / "truth.json").write_text(json.dumps(truth_doc, indent=2) + "\n", encoding="utf-8")
@@ -98,11 +102,3 @@ def run(args: argparse.Namespace) -> int:
             print(f"wrote {kind:<6} {path}")
     return 0
 
-
-def _hide_in_runs(truth, effect: str):
-    from elastocal.sims import runs as sim_runs
-
-    hide = getattr(sim_runs, "hide_in_runs", None)
-    if hide is None:
-        raise InputError(f"the simulator cannot hide {effect!r} in run data", source="--hidden")
-    return hide(truth, effect)
