@@ -303,6 +303,9 @@ class TrackerConfig:
     rate_hz: float = 100.0
     timeout_s: float = 1.0
     retries: int = 2
+    #: where the tracker head stands, robot base coordinates [m] (optional; used by
+    #: `elastocal plan` to keep only poses whose markers it can see)
+    base_p_tracker: tuple[float, float, float] | None = None
 
     @property
     def name(self) -> str:
@@ -514,9 +517,19 @@ def _tracker(t: Mapping, *, source: str) -> TrackerConfig:
     where = "tracker"
     if not isinstance(t, Mapping):
         raise InputError("expected a table", source=source, column=where)
-    _check_keys(t, {"url", "markers", "rate_hz", "timeout_s", "retries"}, source=source, where=where)
+    _check_keys(t, {"url", "markers", "rate_hz", "timeout_s", "retries", "base_p_tracker"}, source=source,
+                where=where)
     if "url" not in t:
         raise InputError("missing required key", source=source, column="tracker.url")
+    base_p_tracker = None
+    if "base_p_tracker" in t:
+        v = t["base_p_tracker"]
+        ok = (isinstance(v, list) and len(v) == 3
+              and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v))
+        if not ok:
+            raise InputError(f"expected 3 finite numbers [m], got {v!r}", source=source,
+                             column="tracker.base_p_tracker")
+        base_p_tracker = tuple(float(x) for x in v)
     url = parse_device_url(t["url"], allowed=TRACKER_SCHEMES, source=f"{source}, tracker.url")
     markers = t.get("markers", [])
     if not isinstance(markers, list) or not markers or not all(isinstance(m, str) and m for m in markers):
@@ -526,7 +539,8 @@ def _tracker(t: Mapping, *, source: str) -> TrackerConfig:
     return TrackerConfig(url=url, markers=tuple(markers),
                          rate_hz=_num(t, "rate_hz", 100.0, source=source, where=where),
                          timeout_s=_num(t, "timeout_s", 1.0, source=source, where=where),
-                         retries=_int(t, "retries", 2, source=source, where=where))
+                         retries=_int(t, "retries", 2, source=source, where=where),
+                         base_p_tracker=base_p_tracker)
 
 
 def _controller(t: Mapping, *, source: str) -> ControllerConfig:
@@ -744,6 +758,8 @@ def _to_toml(c: CellConfig) -> str:
         t = c.tracker
         lines += ["", "[tracker]", f"url = {_toml_value(t.url.text)}", f"markers = {_toml_value(list(t.markers))}",
                   f"rate_hz = {t.rate_hz!r}", f"timeout_s = {t.timeout_s!r}", f"retries = {t.retries}"]
+        if t.base_p_tracker is not None:
+            lines.append(f"base_p_tracker = {_toml_value(list(t.base_p_tracker))}")
     if c.controller is not None:
         k = c.controller
         lines += ["", "[controller]", f"url = {_toml_value(k.url.text)}", f"timeout_s = {k.timeout_s!r}",

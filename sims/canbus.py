@@ -15,9 +15,11 @@ device side and adds what a 1 Mbit/s bus imposes:
   frame carries that bus time as timestamp (the inner ``virtual`` bus must
   preserve timestamps), so Python's scheduling delays do not move a frame
   on the timeline seen by the drivers;
-* frames reach the other nodes as from a USB CAN adapter: never before they
-  ended on the bus, handed over in batches at most every
-  ``delivery_interval_s`` (1 ms) — one thread wake-up per batch, not per frame;
+* frames reach the other nodes in bus order and never before they ended on
+  the bus, in batches as from a USB CAN adapter: whenever a frame from the
+  other side arrives (the next SYNC hands over the TPDOs of the cycle before),
+  else ``delivery_interval_s`` (5 ms) after a TPDO ended (other frames: when
+  they ended) — a thread wake-up per batch, not per frame;
 * a SYNC wins arbitration: a TPDO that has not started on the bus when the
   next SYNC comes is discarded (the CiA 301 synchronous window), and a full
   transmit queue drops frames (overrun); both
@@ -32,9 +34,6 @@ device side and adds what a 1 Mbit/s bus imposes:
 from __future__ import annotations
 
 import collections
-import heapq
-import itertools
-import math
 import threading
 import time
 from dataclasses import dataclass
@@ -76,8 +75,8 @@ class SimCanBus(can.BusABC):
     python-can bus that carries the frames (virtual or udp_multicast).
     """
 
-    #: frames are handed to the other nodes at most this often (a USB adapter's transfer interval)
-    DELIVERY_INTERVAL_S = 1e-3
+    #: a TPDO waits at most this long after it ended for a batch to go with
+    DELIVERY_INTERVAL_S = 5e-3
 
     def __init__(self, inner: can.BusABC, *, bitrate: int = 1_000_000,
                  reply_delay_s: Callable[[int], float] = lambda node: 0.0,
@@ -91,8 +90,8 @@ class SimCanBus(can.BusABC):
         self._interval = float(delivery_interval_s)
         self.channel_info = f"simulated {bitrate // 1000} kbit/s bus on {inner.channel_info}"
         self._cond = threading.Condition()
-        self._heap: list = []
-        self._seq = itertools.count()
+        self._pending: collections.deque = collections.deque()   # (end, msg, is_tpdo, start, bits), bus order
+        self._handing_over = threading.Lock()   # one batch at a time, so frames arrive in bus order
         self._bus_free_s = 0.0
         self._last_rx_end = 0.0
         self._wall_offset = time.time() - time.monotonic()
@@ -130,15 +129,15 @@ class SimCanBus(can.BusABC):
         is_tpdo = not msg.is_extended_id and msg.arbitration_id >> 7 in TPDO_FUNCTIONS
         bits = message_bits(msg)
         with self._cond:
-            if len(self._heap) >= self._tx_queue:
+            if len(self._pending) >= self._tx_queue:
                 self._dropped_overrun += 1
                 return
             # a reply is due a node's delay after the frame that triggered it ended on the bus
             due = self._last_rx_end + self._reply_delay(self._node_of(msg.arbitration_id))
             start = self._occupy(due, bits)
             msg.timestamp = start + self._wall_offset
-            heapq.heappush(self._heap, (self._bus_free_s, next(self._seq), msg, is_tpdo, start, bits))
-            if len(self._heap) == 1:
+            self._pending.append((self._bus_free_s, msg, is_tpdo, start, bits))
+            if len(self._pending) == 1:
                 self._cond.notify()
 
     def _occupy(self, start_s: float, bits: int) -> float:
@@ -148,34 +147,46 @@ class SimCanBus(can.BusABC):
         self._bits += bits
         return start
 
-    def _transmit_loop(self) -> None:
-        last = -math.inf
-        while True:
+    def _take_ended(self, now: float) -> list:
+        """Pending frames that have ended on the bus by ``now`` (call with the lock held)."""
+        batch = []
+        pending = self._pending
+        while pending and pending[0][0] <= now:
+            end, msg, _, _, _ = pending.popleft()
+            self._delivered_end = end
+            self._sent += 1
+            if self._filter_own:
+                self._own[(msg.arbitration_id, bytes(msg.data))] += 1
+            batch.append(msg)
+        return batch
+
+    def _hand_over(self) -> None:
+        """Send the frames that have ended on the bus to the other nodes."""
+        with self._handing_over:
             with self._cond:
-                while not self._stop and not self._heap:
-                    self._cond.wait()
-                if self._stop:
-                    return
-                now = time.monotonic()
-                at = max(self._heap[0][0], last + self._interval)
-                if at > now:
-                    self._cond.wait(at - now)
-                    continue
-                last = now
-                batch = []
-                while self._heap and self._heap[0][0] <= now:
-                    end, _, msg, _, _, _ = heapq.heappop(self._heap)
-                    self._delivered_end = max(self._delivered_end, end)
-                    self._sent += 1
-                    if self._filter_own:
-                        self._own[(msg.arbitration_id, bytes(msg.data))] += 1
-                    batch.append(msg)
+                batch = self._take_ended(time.monotonic())
             for msg in batch:
                 try:
                     self._inner.send(msg)
                 except can.CanError:
                     with self._cond:
                         self._dropped_overrun += 1
+
+    def _transmit_loop(self) -> None:
+        """Hand over the frames no receive did: a TPDO ``delivery_interval_s`` after it ended, others when they ended."""
+        while True:
+            with self._cond:
+                while not self._stop and not self._pending:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                end, _, is_tpdo, _, _ = self._pending[0]
+                now = time.monotonic()
+                at = end + self._interval if is_tpdo else end
+                if at > now:
+                    self._cond.wait(at - now)
+                    continue
+            self._hand_over()
 
     # ----------------------------------------------------------- receive
     def _recv_internal(self, timeout: float | None):
@@ -190,27 +201,30 @@ class SimCanBus(can.BusABC):
                     if not self._own[key]:
                         del self._own[key]
                     return None, False
-            on_bus = min(msg.timestamp - self._wall_offset, time.monotonic())
+            now = time.monotonic()
+            on_bus = min(msg.timestamp - self._wall_offset, now)
             if msg.arbitration_id == SYNC_COB_ID and not msg.is_extended_id:
                 self._close_window(on_bus)
             self._occupy(on_bus, message_bits(msg))
             self._last_rx_end = self._bus_free_s
+            ended = bool(self._pending) and self._pending[0][0] <= now
+        if ended:
+            self._hand_over()
         return msg, False
 
     def _close_window(self, sync_s: float) -> None:
         """A SYNC wants the bus at ``sync_s``: the TPDOs queued behind that
         instant lose arbitration and fall outside their SYNC window (dropped);
         the frame on the bus at that instant finishes first."""
-        kept = [e for e in self._heap if not (e[3] and e[4] >= sync_s)]
-        if len(kept) == len(self._heap):
+        late = [e for e in self._pending if e[2] and e[3] >= sync_s]
+        if not late:
             return
-        for _, _, _, _, _, bits in (e for e in self._heap if e[3] and e[4] >= sync_s):
+        for *_, bits in late:
             self._dropped_window += 1
             self._frames -= 1
             self._bits -= bits
-        heapq.heapify(kept)
-        self._heap = kept
-        self._bus_free_s = max([e[0] for e in kept] + [self._delivered_end, self._last_rx_end])
+        self._pending = collections.deque(e for e in self._pending if not (e[2] and e[3] >= sync_s))
+        self._bus_free_s = max([e[0] for e in self._pending] + [self._delivered_end, self._last_rx_end])
 
     def shutdown(self) -> None:
         with self._cond:

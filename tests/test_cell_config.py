@@ -113,3 +113,16 @@ def test_missing_file_and_bad_toml(tmp_path):
         parse_cell_config("[cell", source="x.toml")
     with pytest.raises(InputError, match="missing robot"):
         parse_cell_config("[cell]\nname = 'x'\n")
+
+
+def test_tracker_position_is_optional_validated_and_round_trips():
+    text = example_cell_path().read_text()
+    assert example_cell_config().tracker.base_p_tracker is None
+    placed = text.replace('rate_hz = 100.0', 'rate_hz = 100.0\nbase_p_tracker = [3.5, 0.0, 1.2]', 1)
+    cfg = parse_cell_config(placed, source="cell.toml", base_dir=example_cell_path().parent)
+    assert cfg.tracker.base_p_tracker == (3.5, 0.0, 1.2)
+    again = parse_cell_config(cfg.to_toml(), source="again.toml", base_dir=example_cell_path().parent)
+    assert again.tracker.base_p_tracker == (3.5, 0.0, 1.2)
+    bad = text.replace('rate_hz = 100.0', 'rate_hz = 100.0\nbase_p_tracker = [3.5, 0.0]', 1)
+    with pytest.raises(InputError, match=r"cell.toml, column tracker.base_p_tracker: expected 3 finite numbers"):
+        parse_cell_config(bad, source="cell.toml", base_dir=example_cell_path().parent)

@@ -188,6 +188,8 @@ def run(args: argparse.Namespace) -> int:
     if f_max <= 0:
         raise InputError("the process load has no force: give --f-max", source="--f-max")
     tracker = numbers(args.tracker_position, (3,), "--tracker-position") if args.tracker_position else None
+    if tracker is None and cell is not None and cell.tracker is not None and cell.tracker.base_p_tracker is not None:
+        tracker = np.array(cell.tracker.base_p_tracker)
     workspace = dz.Workspace(f_max_n=f_max, directions=args.directions, min_height_m=args.min_height,
                              max_height_m=args.max_height, min_radius_m=args.min_radius, base_p_tracker=tracker,
                              link_radius_m=args.link_radius)
