@@ -57,48 +57,51 @@ def _stuff_tables():
 _STUFF_BIT, _STUFF_BYTE = _stuff_tables()
 
 
-def _crc15(value: int, nbits: int) -> int:
-    """CRC-15 (CAN, polynomial 0x4599) of the ``nbits`` low bits of ``value``, most significant first."""
-    crc = 0
-    lead = nbits % 8
-    for i in range(lead - 1, -1, -1):                 # leading bits one at a time
-        bit = (value >> (nbits - lead + i)) & 1
-        crc = ((crc << 1) ^ 0x4599 if bit ^ (crc >> 14) else crc << 1) & 0x7FFF
-    for shift in range(nbits - lead - 8, -1, -8):     # then whole bytes through the table
-        byte = (value >> shift) & 0xFF
-        crc = ((crc << 8) & 0x7FFF) ^ _CRC15[((crc >> 7) ^ byte) & 0xFF]
-    return crc
+def _crc_bit(crc: int, bit: int) -> int:
+    return ((crc << 1) ^ 0x4599 if bit ^ (crc >> 14) else crc << 1) & 0x7FFF
 
 
-@functools.lru_cache(maxsize=8192)
-def frame_bits(can_id: int, dlc: int, data: bytes = b"", *, extended: bool = False, remote: bool = False) -> int:
-    """Bits a classic CAN frame occupies on the bus, stuff bits and intermission included."""
+@functools.lru_cache(maxsize=4096)
+def _header(can_id: int, dlc: int, extended: bool, remote: bool) -> tuple[int, int, int, int]:
+    """CRC, stuffing state, stuff bits so far and bit count after start of frame,
+    arbitration and control fields (they repeat: computed once per identifier)."""
     if extended:
-        value = ((can_id >> 18) & 0x7FF) << 2 | 0b11                  # SOF 0, base id, SRR, IDE
+        value = ((can_id >> 18) & 0x7FF) << 2 | 0b11                  # base id, SRR, IDE
         value = (value << 18 | (can_id & 0x3FFFF)) << 3 | (4 if remote else 0)   # id extension, RTR, r1, r0
-        nbits = 1 + 11 + 2 + 18 + 3
+        nbits = 11 + 2 + 18 + 3
     else:
-        value = (can_id & 0x7FF) << 3 | (4 if remote else 0)           # SOF 0, id, RTR, IDE, r0
-        nbits = 1 + 11 + 3
+        value = (can_id & 0x7FF) << 3 | (4 if remote else 0)           # id, RTR, IDE, r0
+        nbits = 11 + 3
     value = value << 4 | (dlc & 0xF)
     nbits += 4
-    if not remote:
-        payload = bytes(data)[:dlc]
-        value = value << (8 * len(payload)) | int.from_bytes(payload, "big")
-        nbits += 8 * len(payload)
-    value = value << 15 | _crc15(value, nbits)
-    nbits += 15
-    # bit stuffing: after five equal bits a complementary bit is inserted (and counts in the next run)
+    crc = _crc_bit(0, 0)                              # the start of frame, a 0
     state = 0                                         # after the start of frame: one 0
     stuffed = 0
-    rest = nbits - 1
-    for i in range(rest % 8 - 1, -1, -1):
-        state, n = _STUFF_BIT[state][(value >> (rest - rest % 8 + i)) & 1]
+    for i in range(nbits - 1, -1, -1):
+        bit = (value >> i) & 1
+        crc = _crc_bit(crc, bit)
+        state, n = _STUFF_BIT[state][bit]
         stuffed += n
-    for shift in range(rest - rest % 8 - 8, -1, -8):
-        state, n = _STUFF_BYTE[state][(value >> shift) & 0xFF]
+    return crc, state, stuffed, 1 + nbits
+
+
+def frame_bits(can_id: int, dlc: int, data: bytes = b"", *, extended: bool = False, remote: bool = False) -> int:
+    """Bits a classic CAN frame occupies on the bus, stuff bits and intermission included."""
+    crc, state, stuffed, nbits = _header(can_id, dlc, extended, remote)
+    if not remote:
+        payload = data[:dlc]
+        nbits += 8 * len(payload)
+        table, stuff = _CRC15, _STUFF_BYTE
+        for byte in payload:                          # CRC and stuffing a byte at a time
+            crc = ((crc << 8) & 0x7FFF) ^ table[((crc >> 7) ^ byte) & 0xFF]
+            state, n = stuff[state][byte]
+            stuffed += n
+    # bit stuffing runs on through the 15 CRC bits: the top 7 one at a time, then a byte
+    for i in range(14, 7, -1):
+        state, n = _STUFF_BIT[state][(crc >> i) & 1]
         stuffed += n
-    return nbits + stuffed + TAIL_BITS
+    stuffed += _STUFF_BYTE[state][crc & 0xFF][1]
+    return nbits + 15 + stuffed + TAIL_BITS
 
 
 def worst_frame_bits(dlc: int, *, extended: bool = False) -> int:
@@ -108,7 +111,7 @@ def worst_frame_bits(dlc: int, *, extended: bool = False) -> int:
 
 
 def message_bits(msg: can.Message) -> int:
-    return frame_bits(msg.arbitration_id, msg.dlc, bytes(msg.data), extended=msg.is_extended_id,
+    return frame_bits(msg.arbitration_id, msg.dlc, msg.data, extended=msg.is_extended_id,
                       remote=msg.is_remote_frame)
 
 
