@@ -5,31 +5,109 @@ rate times the streaming time, and what the stream accounts for itself:
 received + recorded gaps), what the lost samples were lost to, and the load of
 the simulated 1 Mbit/s CAN bus. Target: no sample lost.
 
-The simulated devices run in this process on python-can's ``virtual`` bus,
-so the drivers and the simulated devices share one interpreter lock: the
-figures are a lower bound of what the drivers do against real devices. The
-lost samples are broken down by cause (a SYNC the producer could not send on
-time, a TPDO missing from its SYNC cycle, a tracker line lost).
+The simulated drives run in this process on python-can's ``virtual`` bus (no
+python-can transport reaches another process without leaving 127.0.0.1), so
+the drivers and the simulated drives share one interpreter lock: the figures
+are a lower bound of what the drivers do against real drives. The simulated
+tracker is a TCP server on 127.0.0.1 and runs, as a real tracker would, apart:
+in a child process with its own copy of the simulated world (``--tracker-sim
+here`` runs it in this process too). The lost samples are broken down by cause
+(a SYNC the producer could not send on time, a TPDO missing from its SYNC
+cycle, a tracker line lost). The diagnostics say what the run had to work
+with: the SYNC producer's punctuality, the CPU time of this process per CAN
+frame and per cycle, the load average and the CPU pressure of the machine.
 
     python benchmarks/bench_devices.py [--duration 60] [--rate 1000] [--tracker-rate 1000]
+                                       [--tracker-sim process|here]
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
+import os
+import pathlib
 import sys
 import time
 import uuid
+from dataclasses import replace
 
 from elastocal.drivers import open_cell
 from elastocal.sims.serve import SimulatedCell, example_cell_config
 
-class _Local:
-    def __init__(self) -> None:
-        self.sim = SimulatedCell(example_cell_config(can_channel=f"bench-{uuid.uuid4().hex[:6]}")).start()
-        self.config = self.sim.config
+
+def _cpu_pressure() -> str:
+    """``some avg10`` of /proc/pressure/cpu: the share of time a task waited for a CPU."""
+    try:
+        line = pathlib.Path("/proc/pressure/cpu").read_text().splitlines()[0]
+    except (OSError, IndexError):
+        return "n/a"
+    fields = dict(f.split("=") for f in line.split()[1:])
+    return f"{float(fields.get('avg10', 'nan')):.0f}%"
+
+
+def _probe(conn, rate_hz: float) -> None:
+    """Child process: a bare thread sleeping to absolute deadlines at ``rate_hz``
+    (nothing else in its interpreter) from the parent's "go" to its "stop".
+    Reports how late the machine woke it: the floor under what the SYNC
+    producer can do."""
+    period_ns = int(round(1e9 / rate_hz))
+    lateness = []
+    conn.send("ready")
+    conn.recv()
+    next_ns = time.monotonic_ns() + period_ns
+    while not conn.poll():
+        now = time.monotonic_ns()
+        if now < next_ns:
+            time.sleep((next_ns - now) / 1e9)
+            now = time.monotonic_ns()
+        late = now - next_ns
+        lateness.append(late)
+        next_ns += period_ns * (1 + late // period_ns)     # deadlines more than a period late are skipped
+    lateness.sort()
+    n = len(lateness)
+    missed = sum(late // period_ns for late in lateness)
+    conn.send((n, missed, lateness[n // 2] if n else 0, lateness[int(n * 0.99)] if n else 0,
+               lateness[-1] if n else 0))
+
+
+def _serve_tracker(conn, channel: str) -> None:
+    """Child process: the simulated tracker (and nothing else) of the example cell."""
+    cfg = example_cell_config(can_channel=channel)
+    with SimulatedCell(replace(cfg, drives=(), controller=None)) as sim:
+        conn.send(sim.config.tracker)
+        try:
+            conn.recv()                        # the parent says stop (or goes away)
+        except EOFError:
+            pass
+        conn.send(time.process_time())
+
+
+class _Sims:
+    """The simulated cell: drives (and controller) here, the tracker here or in a child process."""
+
+    def __init__(self, tracker_sim: str) -> None:
+        channel = f"bench-{uuid.uuid4().hex[:6]}"
+        cfg = example_cell_config(can_channel=channel)
+        self._child = self._conn = None
+        if tracker_sim == "process":
+            ctx = multiprocessing.get_context("spawn")
+            self._conn, child_end = ctx.Pipe()
+            self._child = ctx.Process(target=_serve_tracker, args=(child_end, channel), daemon=True,
+                                      name="sim-tracker")
+            self._child.start()
+            while not self._conn.poll(0.2):
+                if not self._child.is_alive():
+                    raise RuntimeError(f"the simulated tracker process exited (code {self._child.exitcode})")
+            tracker = self._conn.recv()
+            self.sim = SimulatedCell(replace(cfg, tracker=None)).start()
+            self.config = replace(self.sim.config, tracker=tracker)
+        else:
+            self.sim = SimulatedCell(cfg).start()
+            self.config = self.sim.config
         (iface, channel), self.net = next(iter(self.sim.can_networks.items()))
         self.name = f"{iface}/{channel}"
+        self.child_cpu_s: float | None = None
 
     def reset(self) -> None:
         self.net.bus.reset_stats()
@@ -38,7 +116,19 @@ class _Local:
         return self.net.stats()
 
     def close(self) -> None:
-        self.sim.close()
+        try:
+            self.sim.close()
+        finally:
+            if self._child is not None:
+                try:
+                    self._conn.send("stop")
+                    if self._conn.poll(10.0):
+                        self.child_cpu_s = self._conn.recv()
+                except (OSError, EOFError):
+                    pass
+                self._child.join(timeout=10.0)
+                if self._child.is_alive():
+                    self._child.kill()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,14 +136,27 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=60.0, help="streaming time [s] (default 60)")
     p.add_argument("--rate", type=float, default=1000.0, help="SYNC rate of the drives [Hz] (default 1000)")
     p.add_argument("--tracker-rate", type=float, default=1000.0, help="tracker stream rate [Hz] (default 1000)")
+    p.add_argument("--tracker-sim", choices=("process", "here"), default="process",
+                   help="run the simulated tracker in a child process (default) or in this process")
+    p.add_argument("--no-probe", dest="probe", action="store_false",
+                   help="do not run the wake-up probe (a bare 1 kHz sleeper in a child process that "
+                        "measures how late this machine wakes threads during the run)")
     p.add_argument("--switch-interval", type=float, default=2e-4,
                    help="sys.setswitchinterval of this process [s] (default 2e-4; Python's is 5e-3)")
     args = p.parse_args(argv)
     sys.setswitchinterval(args.switch_interval)
 
-    sims = _Local()
+    probe = probe_conn = woke = None
+    if args.probe:                            # started first: its imports are done before streaming
+        ctx = multiprocessing.get_context("spawn")
+        probe_conn, child_end = ctx.Pipe()
+        probe = ctx.Process(target=_probe, args=(child_end, args.rate), daemon=True, name="wake-probe")
+        probe.start()
+        probe_conn.recv()
+    sims = _Sims(args.tracker_sim)
     try:
         with open_cell(sims.config) as cell:
+            link = next(iter(cell.drives.values())).link
             streams = [(d.name, d.stream(args.rate)) for d in cell.drives.values()]
             streams.append(("tracker", cell.tracker.stream(args.tracker_rate)))
             sims.reset()
@@ -71,6 +174,10 @@ def main(argv: list[str] | None = None) -> int:
                 for g in batch.gaps:
                     reasons[g.reason] = reasons.get(g.reason, 0) + g.missing
 
+            if probe is not None:
+                probe_conn.send("go")
+            load_before = os.getloadavg()
+            cpu_before = time.process_time()
             started = time.monotonic()
             try:
                 while time.monotonic() - started < args.duration:
@@ -78,17 +185,32 @@ def main(argv: list[str] | None = None) -> int:
                     for name, s in streams:
                         take(name, s)
             finally:
+                cpu_s = time.process_time() - cpu_before
+                wall_s = time.monotonic() - started
+                load_after = os.getloadavg()
+                pressure = _cpu_pressure()
                 bus = sims.stats()
+                sync = link.sync_stats()
+                if probe is not None:
+                    probe_conn.send("stop")
+                    woke = probe_conn.recv() if probe_conn.poll(10.0) else None
+                    probe.join(timeout=10.0)
                 for _, s in streams:
                     s.close()
                 for name, s in streams:
                     take(name, s)
                 stats = {name: s.stats() for name, s in streams}
     finally:
-        sims.close()
+        try:
+            sims.close()
+        finally:
+            if probe is not None and probe.is_alive():
+                probe.kill()
 
+    where = ("simulated drives in this process, simulated tracker in a child process"
+             if args.tracker_sim == "process" else "simulated devices in this process")
     print(f"{len(cell.drives)} CANopen drives at {args.rate:g} Hz, tracker at {args.tracker_rate:g} Hz, "
-          f"{args.duration:g} s, simulated devices in this process")
+          f"{args.duration:g} s, {where}")
     print(f"{'device':<10} {'expected':>9} {'accounted':>10} {'received':>9} {'lost':>6} {'gaps':>5}")
     worst = 0
     for name, _ in streams:
@@ -105,6 +227,20 @@ def main(argv: list[str] | None = None) -> int:
     print(f"CAN bus {sims.name}: {bus.frames_per_s:,.0f} frames/s, load {bus.load:.1%} of "
           f"{bus.bitrate / 1e6:g} Mbit/s; TPDOs dropped: {bus.dropped_window} outside the SYNC window, "
           f"{bus.dropped_overrun} on overrun")
+    print(f"SYNC: {sync.sent} sent, {sync.not_sent} not sent (producer more than a period late), "
+          f"{sync.late} sent more than a tenth of a period late; lateness mean "
+          f"{sync.mean_lateness_s * 1e6:.0f} us, max {sync.max_lateness_s * 1e3:.2f} ms")
+    cycles = max(sync.sent, 1)
+    print(f"CPU: this process {cpu_s:.1f} s in {wall_s:.1f} s ({cpu_s / wall_s:.0%} of a core), "
+          f"{cpu_s / cycles * 1e6:.0f} us per SYNC cycle, {cpu_s / max(bus.frames, 1) * 1e6:.0f} us per CAN frame"
+          + (f"; tracker process {sims.child_cpu_s:.1f} s in all" if sims.child_cpu_s is not None else ""))
+    if probe is not None and woke is not None:
+        n, missed, p50, p99, worst_ns = woke
+        print(f"wake-up probe (a bare thread in another process sleeping to the same deadlines): "
+              f"{missed} of {n + missed} deadlines missed by more than a period ({missed / max(n + missed, 1):.2%}); "
+              f"lateness median {p50 / 1e3:.0f} us, 99th percentile {p99 / 1e3:.0f} us, max {worst_ns / 1e6:.1f} ms")
+    print(f"machine: {os.cpu_count()} CPUs, load average {load_before[0]:.2f} -> {load_after[0]:.2f}, "
+          f"CPU pressure (time some task waited for a CPU, last 10 s) {pressure}")
     print("result:", "no sample lost" if worst == 0 else f"samples lost (worst device: {worst})")
     return 0
 

@@ -425,8 +425,10 @@ class Drive(Device):
 
     def check_sample(self, s: DriveSample) -> DriveSample:
         """Unit and plausibility checks every sample passes (raises ProtocolError)."""
-        values = [s.position_rad, s.current_a] + [v for v in (s.velocity_rad_s, s.torque_nm) if v is not None]
-        if not all(math.isfinite(v) for v in values):
+        isfinite = math.isfinite
+        if not (isfinite(s.position_rad) and isfinite(s.current_a)
+                and (s.velocity_rad_s is None or isfinite(s.velocity_rad_s))
+                and (s.torque_nm is None or isfinite(s.torque_nm))):
             raise ProtocolError(f"{self.name}: non-finite value in {s}")
         if abs(s.current_a) > self.max_current_a:
             raise ProtocolError(f"{self.name}: current {s.current_a:.6g} A is above max_current_a "

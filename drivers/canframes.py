@@ -89,7 +89,7 @@ def frame_bits(can_id: int, dlc: int, data: bytes = b"", *, extended: bool = Fal
     """Bits a classic CAN frame occupies on the bus, stuff bits and intermission included."""
     crc, state, stuffed, nbits = _header(can_id, dlc, extended, remote)
     if not remote:
-        payload = data[:dlc]
+        payload = bytes(data[:dlc])
         nbits += 8 * len(payload)
         table, stuff = _CRC15, _STUFF_BYTE
         for byte in payload:                          # CRC and stuffing a byte at a time

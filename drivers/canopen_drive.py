@@ -9,7 +9,9 @@ needs:
   channel, shared by the drives on it, and the SYNC producer. Streams of all
   drives on a channel run on one SYNC; the bus budget (exact worst-case frame
   lengths, :mod:`elastocal.drivers.canframes`) is checked before a stream
-  starts.
+  starts. The producer keeps an absolute schedule; a SYNC more than a period
+  late is not sent (a gap of every drive), and the lateness of the others is
+  counted (:meth:`CanopenLink.sync_stats`).
 * Cycle attribution: a TPDO belongs to the SYNC cycle in which it was on the
   bus (the CiA 301 synchronous window, closed by the next SYNC), judged by the
   frame's bus timestamp against the wall-clock time each SYNC was sent, so
@@ -34,6 +36,7 @@ from __future__ import annotations
 import collections
 import math
 import pathlib
+import struct
 import threading
 import time
 from dataclasses import dataclass, field
@@ -54,8 +57,12 @@ MAX_BUS_LOAD = 0.9
 SYNC_OVERFLOW = 240
 #: how long after its SYNC a cycle stays open for TPDOs still in the receive queue
 CLOSE_DELAY_S = 0.05
-#: the SYNC producer never sends two SYNCs closer than this fraction of the period
+#: the SYNC producer never sends two SYNCs closer than this fraction of the period, nor before
+#: the last TPDO of the previous cycle has started on the bus (worst-case frame lengths, the
+#: drives answering within :data:`REPLY_MARGIN_S`): a frame on the bus finishes before the SYNC
 MIN_INTERVAL = 0.85
+#: how soon after a SYNC the drives start answering, at most (for the spacing of SYNCs)
+REPLY_MARGIN_S = 100e-6
 
 STATUS_OBJECT = 0x6041
 POSITION_OBJECT = 0x6064
@@ -99,6 +106,22 @@ class _Cycle:
     wall_s: float
     sent: bool = True                              # False: the producer was too late to send it
     replies: dict = field(default_factory=dict)   # (node, cob_id) -> values dict or str (malformed)
+
+
+@dataclass(frozen=True)
+class SyncStats:
+    """How punctually the SYNC producer of a link sent its SYNCs (since streaming started).
+
+    ``lateness`` is the time a SYNC went out after its nominal instant on the
+    ``start + k / rate`` schedule; a SYNC more than a period late is not sent
+    (``not_sent``; its cycle is a gap of every streaming drive)."""
+
+    rate_hz: float
+    sent: int
+    not_sent: int
+    late: int                  # sent more than a tenth of a period after the nominal instant
+    max_lateness_s: float      # of the SYNCs sent
+    mean_lateness_s: float
 
 
 class _Member:
@@ -164,6 +187,8 @@ class CanopenLink:
         self._thread: threading.Thread | None = None
         self._settler: threading.Thread | None = None
         self._stop = threading.Event()
+        self._cycle_s = 0.0       # worst-case bus time from a SYNC to the start of its last TPDO
+        self._sync_counts = [0, 0, 0, 0, 0]     # sent, not sent, late, max and sum of lateness [ns]
 
     # ------------------------------------------------------------- budget
     def _bits_per_cycle(self, frame_bytes: list[int]) -> int:
@@ -198,10 +223,12 @@ class CanopenLink:
             if member.node_id in self._members:
                 raise InputError(f"node {member.node_id} is already streaming")
             self._members[member.node_id] = member
+            self._update_cycle_time()
             self._rate_hz = rate_hz
             start = self._thread is None or not self._thread.is_alive()
             if start:
                 self._stop.clear()
+                self._sync_counts = [0, 0, 0, 0, 0]
                 self._thread = threading.Thread(target=self._sync_loop, args=(rate_hz,),
                                                 name=f"canopen-sync-{self.channel}", daemon=True)
                 self._settler = threading.Thread(target=self._settle_loop, args=(self._thread,),
@@ -230,6 +257,7 @@ class CanopenLink:
                         self._settle(member, cycle)
             with self._lock:
                 self._members.pop(node_id, None)
+                self._update_cycle_time()
                 last = not self._members
         member.flush_gap(time.monotonic_ns())
         if last:
@@ -244,6 +272,19 @@ class CanopenLink:
     def members(self) -> int:
         with self._lock:
             return len(self._members)
+
+    def _update_cycle_time(self) -> None:
+        """(with the lock held) the worst-case bus time from a SYNC to the start of its last TPDO."""
+        frames = [n for m in self._members.values() for n in m.frame_bytes]
+        last = max((worst_frame_bits(n) for n in frames), default=0)
+        self._cycle_s = (self._bits_per_cycle(frames) - last) / self.bitrate
+
+    def sync_stats(self) -> SyncStats:
+        """Punctuality of the SYNCs of the current (or last) streams on this link."""
+        with self._lock:
+            sent, not_sent, late, max_ns, sum_ns = self._sync_counts
+            rate = self._rate_hz or 0.0
+        return SyncStats(rate, sent, not_sent, late, max_ns / 1e9, sum_ns / 1e9 / sent if sent else 0.0)
 
     # -------------------------------------------------------------- TPDOs
     def on_tpdo(self, node_id: int, cob_id: int, values: dict | str, timestamp: float) -> None:
@@ -280,25 +321,38 @@ class CanopenLink:
             self._settle(member, cycle)
 
     def _sync_loop(self, rate_hz: float) -> None:
-        """Send SYNC ``k`` at ``start + k / rate``. A SYNC more than a period late is
-        not sent (its cycle is recorded as missing for every member), and after a
-        late SYNC the next waits at least ``MIN_INTERVAL`` periods so that the
-        late cycle's TPDOs fit. This thread only sends: :meth:`_settle_loop`
-        delivers the cycles."""
+        """Send SYNC ``k`` at ``start + k / rate``: absolute deadlines on
+        ``time.monotonic_ns``, the thread sleeps to the next one and wakes up
+        early by its running estimate of the wake-up latency. A SYNC more than
+        a period late is not sent (its cycle is recorded as missing for every
+        member); the lateness of the others is counted (:meth:`sync_stats`).
+        Two SYNCs are never closer than ``MIN_INTERVAL`` periods nor than the
+        worst-case bus time up to the start of a cycle's last TPDO plus
+        ``REPLY_MARGIN_S``, so that the TPDOs of a late cycle still fall in its
+        window: after a late SYNC the next goes out exactly when that spacing
+        allows (the thread wakes early and busy-waits the rest, at most the
+        wake-up latency, instead of sleeping again), so the producer catches up with its
+        schedule instead of drifting behind by the wake-up latency every cycle.
+        This thread only sends: :meth:`_settle_loop` delivers the cycles."""
         period_ns = int(round(1e9 / rate_hz))
+        tenth_ns = period_ns // 10
         next_ns = time.monotonic_ns()          # the nominal schedule
         last_sent = next_ns - period_ns
         oversleep_ns = 0.0                     # running estimate of how late time.sleep wakes up
+        counts = self._sync_counts
         while not self._stop.is_set():
-            send_at = max(next_ns, last_sent + int(MIN_INTERVAL * period_ns))
+            gap_ns = min(period_ns, max(int(MIN_INTERVAL * period_ns), int((self._cycle_s + REPLY_MARGIN_S) * 1e9)))
+            earliest = last_sent + gap_ns
+            wake = max(next_ns, earliest) - oversleep_ns      # early by the usual wake-up latency
             now = time.monotonic_ns()
-            if now < send_at - oversleep_ns:
-                wake = send_at - oversleep_ns
+            if now < wake:
                 time.sleep((wake - now) / 1e9)
                 woke = time.monotonic_ns()
                 oversleep_ns += 0.1 * ((woke - wake) - oversleep_ns)
                 oversleep_ns = min(max(oversleep_ns, 0.0), 0.2 * period_ns)
                 continue
+            while now < earliest:              # woke before the spacing allows: at most the wake-up latency
+                now = time.monotonic_ns()
             late = max(0, (now - next_ns) // period_ns)
             with self._lock:
                 if not self._members:
@@ -311,6 +365,12 @@ class CanopenLink:
                 t_ns = time.monotonic_ns()
                 self._cycles.append(_Cycle(self._cycle_index, self._counter, t_ns, time.time()))
                 counter = self._counter
+                lateness_ns = max(0, t_ns - (next_ns + late * period_ns))
+                counts[0] += 1
+                counts[1] += late
+                counts[2] += lateness_ns > tenth_ns
+                counts[3] = max(counts[3], lateness_ns)
+                counts[4] += lateness_ns
             try:
                 self.network.sync.transmit(counter)
             except (can.CanError, RuntimeError) as exc:
@@ -349,6 +409,25 @@ class CanopenLink:
             self.leave(node_id)
         self._stop_threads()
         self.network.disconnect()
+
+
+def _frame_struct(layout, nbytes: int) -> struct.Struct | None:
+    """One little-endian ``struct`` decoding a whole TPDO of ``nbytes`` mapped as
+    ``layout`` ((index, od variable, byte offset, byte length), in mapping order),
+    built from the objects' own ``ODVariable.STRUCT_TYPES``; None when an object
+    has no plain struct type or the mapping has overlaps."""
+    fmt, at = "<", 0
+    for _, od, offset, length in layout:
+        st = od.STRUCT_TYPES.get(od.data_type)
+        if not isinstance(st, struct.Struct) or st.size != length or offset < at:
+            return None
+        code = st.format.lstrip("<>=!@")
+        if len(code) != 1:
+            return None
+        fmt += "x" * (offset - at) + code
+        at = offset + length
+    fmt += "x" * (nbytes - at)
+    return struct.Struct(fmt) if at <= nbytes else None
 
 
 # --------------------------------------------------------------- the drive
@@ -445,6 +524,8 @@ class CanopenDrive(Drive):
             status=values[STATUS_OBJECT])
 
     def _state_error(self, statusword: int) -> DeviceFault | None:
+        if statusword & 0x6F == 0x27:               # operation enabled
+            return None
         state = state_name(statusword)
         if state == "operation enabled":
             return None
@@ -548,8 +629,23 @@ class CanopenDrive(Drive):
         layout = [(v.index, v.od, v.offset // 8, v.length // 8) for v in pdo.map if v.length]
         if any(v.offset % 8 or v.length % 8 for v in pdo.map if v.length):
             raise InputError(f"{self.name}: TPDO 0x{cob_id:03X} maps objects that are not byte-aligned")
+        indices = tuple(index for index, _, _, _ in layout)
+        whole = _frame_struct(layout, nbytes)
 
-        def on_pdo(pdo_map) -> None:
+        if whole is not None:               # one struct for the frame, from the objects' own types
+            unpack = whole.unpack
+
+            def on_pdo(pdo_map) -> None:
+                data = pdo_map.data
+                if len(data) != nbytes:
+                    link.on_tpdo(node_id, cob_id, f"malformed TPDO 0x{cob_id:03X} ({len(data)} of "
+                                                  f"{nbytes} bytes)", pdo_map.timestamp)
+                    return
+                link.on_tpdo(node_id, cob_id, dict(zip(indices, unpack(data))), pdo_map.timestamp)
+
+            return on_pdo
+
+        def on_pdo(pdo_map) -> None:        # objects without a fixed struct layout: the OD decodes
             data = bytes(pdo_map.data)
             if len(data) != nbytes:
                 link.on_tpdo(node_id, cob_id, f"malformed TPDO 0x{cob_id:03X} ({len(data)} of "

@@ -22,9 +22,8 @@ device side and adds what a 1 Mbit/s bus imposes:
   they ended) — a thread wake-up per batch, not per frame;
 * a SYNC wins arbitration: a TPDO that has not started on the bus when the
   next SYNC comes is discarded (the CiA 301 synchronous window), and a full
-  transmit queue drops frames (overrun); both
-  are counted, so a lossy bus shows up as gaps on the driver side, never as
-  late data with a wrong time;
+  transmit queue drops frames (overrun); both are counted, so a lossy bus
+  shows up as gaps on the driver side, never as late data with a wrong time;
 * with ``filter_own=True`` (udp_multicast loops our own frames back) the echo
   of every frame we sent is dropped.
 
@@ -75,7 +74,7 @@ class SimCanBus(can.BusABC):
     python-can bus that carries the frames (virtual or udp_multicast).
     """
 
-    #: a TPDO waits at most this long after it ended for a batch to go with
+    #: how long after it ended a TPDO waits, at most, for the next SYNC to hand it over with its cycle
     DELIVERY_INTERVAL_S = 5e-3
 
     def __init__(self, inner: can.BusABC, *, bitrate: int = 1_000_000,
@@ -136,6 +135,7 @@ class SimCanBus(can.BusABC):
             due = self._last_rx_end + self._reply_delay(self._node_of(msg.arbitration_id))
             start = self._occupy(due, bits)
             msg.timestamp = start + self._wall_offset
+            msg.data = bytes(msg.data)   # immutable: the inner bus's per-receiver deepcopy shares it
             self._pending.append((self._bus_free_s, msg, is_tpdo, start, bits))
             if len(self._pending) == 1:
                 self._cond.notify()
@@ -173,7 +173,8 @@ class SimCanBus(can.BusABC):
                         self._dropped_overrun += 1
 
     def _transmit_loop(self) -> None:
-        """Hand over the frames no receive did: a TPDO ``delivery_interval_s`` after it ended, others when they ended."""
+        """Hand over the frames no receive did: a TPDO ``delivery_interval_s`` after it
+        ended, other frames when they ended."""
         while True:
             with self._cond:
                 while not self._stop and not self._pending:

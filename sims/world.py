@@ -47,7 +47,7 @@ PLAN_MAX_POINTS = 301
 
 @dataclass(frozen=True)
 class WorldSample:
-    """The robot as the drives see it at ``t_ns``."""
+    """The robot as the drives see it at ``t_ns`` (do not modify the arrays: samples may share them)."""
 
     t_ns: int
     q: np.ndarray            # commanded (motor-side) joint coordinates [rad]
