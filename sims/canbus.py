@@ -11,6 +11,8 @@ device side and adds what a 1 Mbit/s bus imposes:
   eight-byte frames per second;
 * each node answers a node-specific reply delay after the frame that
   triggered the reply ended on the bus (SDO replies, TPDOs after SYNC);
+  frames a node sends of its own accord (EMCY, heartbeat) go on the bus
+  when they are sent;
 * a frame's place on the timeline is fixed when the node sends it, and the
   frame carries that bus time as timestamp (the inner ``virtual`` bus must
   preserve timestamps), so Python's scheduling delays do not move a frame
@@ -45,6 +47,8 @@ from elastocal.drivers.canframes import message_bits
 SYNC_COB_ID = 0x80
 #: function codes (COB-ID >> 7) of the four TPDOs
 TPDO_FUNCTIONS = (0x3, 0x5, 0x7, 0x9)
+#: function codes of frames a node sends of its own accord (EMCY, heartbeat), not as a reply
+UNSOLICITED_FUNCTIONS = (0x1, 0xE)
 
 
 @dataclass(frozen=True)
@@ -133,6 +137,8 @@ class SimCanBus(can.BusABC):
                 return
             # a reply is due a node's delay after the frame that triggered it ended on the bus
             due = self._last_rx_end + self._reply_delay(self._node_of(msg.arbitration_id))
+            if not msg.is_extended_id and msg.arbitration_id >> 7 in UNSOLICITED_FUNCTIONS:
+                due = max(due, time.monotonic())
             start = self._occupy(due, bits)
             msg.timestamp = start + self._wall_offset
             msg.data = bytes(msg.data)   # immutable: the inner bus's per-receiver deepcopy shares it
