@@ -1,4 +1,4 @@
-"""Start every simulated device of a cell: in Python or as ``elastocal sim serve``.
+"""Start every simulated device of a cell (the library behind ``elastocal sim serve``).
 
 In Python (tests, the demo, the guided procedure)::
 
@@ -21,17 +21,11 @@ TCP or on a pseudo-terminal (``tracker+serial``). All read one
 
 from __future__ import annotations
 
-import argparse
-import json
 import pathlib
-import signal
-import sys
-import threading
-import time
 from dataclasses import replace
 from importlib import resources
 
-from elastocal.drivers.config import CellConfig, DeviceUrl, load_cell_config, parse_cell_config
+from elastocal.drivers.config import CellConfig, DeviceUrl, parse_cell_config
 from elastocal.errors import InputError
 from elastocal.sims.canbus import BusStats
 from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork
@@ -225,24 +219,10 @@ class SimulatedCell:
         self.close()
 
 
-# ------------------------------------------------------------------- CLI
-def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
-    """Flags of ``elastocal sim serve``."""
-    parser.add_argument("--cell", metavar="CELL.toml",
-                        help="cell config to serve (default: the packaged simulated HH-150 cell)")
-    parser.add_argument("--can", choices=("udp_multicast", "as-configured"), default="udp_multicast",
-                        help="CAN bus of the simulated drives: udp_multicast (reachable from other "
-                             "processes; default) or as the config says (virtual = this process only)")
-    parser.add_argument("--write-cell", metavar="PATH",
-                        help="write the cell config with the actual ports and device paths here, "
-                             "for `elastocal devices --cell PATH`")
-    parser.add_argument("--duration", type=float, default=None, metavar="S",
-                        help="stop after S seconds (default: until interrupted)")
-    parser.add_argument("--json", action="store_true", help="print the device URLs as one JSON object")
-
-
-def _to_udp(config: CellConfig) -> CellConfig:
-    """Virtual CAN channels moved to udp_multicast, one UDP port per channel."""
+# -------------------------------------------------------- across processes
+def to_udp_multicast(config: CellConfig) -> CellConfig:
+    """``config`` with its virtual CAN channels moved to udp_multicast (one UDP
+    port per channel), so that other processes reach the simulated drives."""
     ports: dict[str, int] = {}
     drives = []
     for d in config.drives:
@@ -253,47 +233,3 @@ def _to_udp(config: CellConfig) -> CellConfig:
             d = replace(d, url=url)
         drives.append(d)
     return replace(config, drives=tuple(drives))
-
-
-def run_serve(args: argparse.Namespace) -> int:
-    """``elastocal sim serve``: serve the simulated devices until interrupted (or ``--duration``)."""
-    if args.duration is not None and not args.duration > 0:
-        raise InputError(f"--duration must be > 0, got {args.duration}")
-    config = load_cell_config(args.cell) if args.cell else example_cell_config()
-    if args.can == "udp_multicast":
-        config = _to_udp(config)
-    stop = threading.Event()
-    previous = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
-    if previous is not None:
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    try:
-        with SimulatedCell(config) as sim:
-            if args.write_cell:
-                try:
-                    pathlib.Path(args.write_cell).write_text(sim.config.to_toml(), encoding="utf-8")
-                except OSError as exc:
-                    raise InputError(f"cannot write: {exc.strerror}", source=args.write_cell) from None
-            if args.json:
-                print(json.dumps({"urls": sim.urls, "cell": args.write_cell}), flush=True)
-            else:
-                print(f"simulated cell {sim.config.name!r} serving (Ctrl-C stops):")
-                for name, url in sim.urls.items():
-                    print(f"  {name:12s} {url}")
-                if any(d.url.scheme == "canopen" and d.url.can_interface == "virtual" for d in sim.config.drives):
-                    print("  note: CAN 'virtual' reaches this process only; use --can udp_multicast for others")
-                if args.write_cell:
-                    print(f"  cell config with these URLs: {args.write_cell}")
-                sys.stdout.flush()
-            end = None if args.duration is None else time.monotonic() + args.duration
-            try:
-                while not stop.is_set():
-                    remaining = None if end is None else end - time.monotonic()
-                    if remaining is not None and remaining <= 0:
-                        break
-                    stop.wait(0.5 if remaining is None else min(0.5, remaining))
-            except KeyboardInterrupt:
-                pass
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-    return 0

@@ -27,14 +27,77 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             p.add_argument("--poses", type=int, default=12, help="number of poses (default 12)")
             p.add_argument("--loads", type=int, default=3, help="loaded states per pose (default 3)")
             p.add_argument("--repeats", type=int, default=3, help="readings per marker and state (default 3)")
-    try:
-        from elastocal.sims.serve import add_serve_arguments
-    except ImportError:
-        return
     serve = sub.add_parser("serve", help="serve simulated devices on loopback and a CAN bus",
                            description="serve simulated devices on loopback and a CAN bus (udp_multicast by "
                                        "default, so other processes reach it)")
-    add_serve_arguments(serve)
+    _add_serve_arguments(serve)
+
+
+def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
+    """Flags of ``elastocal sim serve``."""
+    parser.add_argument("--cell", metavar="CELL.toml",
+                        help="cell config to serve (default: the packaged simulated HH-150 cell)")
+    parser.add_argument("--can", choices=("udp_multicast", "as-configured"), default="udp_multicast",
+                        help="CAN bus of the simulated drives: udp_multicast (reachable from other "
+                             "processes; default) or as the config says (virtual = this process only)")
+    parser.add_argument("--write-cell", metavar="PATH",
+                        help="write the cell config with the actual ports and device paths here, "
+                             "for `elastocal devices --cell PATH`")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S seconds (default: until interrupted)")
+    parser.add_argument("--json", action="store_true", help="print the device URLs as one JSON object")
+
+
+def _serve(args: argparse.Namespace) -> int:
+    """``elastocal sim serve``: serve the simulated devices until interrupted (or ``--duration``)."""
+    import signal
+    import sys
+    import threading
+    import time
+
+    from elastocal.drivers.config import load_cell_config
+    from elastocal.sims.serve import SimulatedCell, example_cell_config, to_udp_multicast
+
+    if args.duration is not None and not args.duration > 0:
+        raise InputError(f"--duration must be > 0, got {args.duration}")
+    config = load_cell_config(args.cell) if args.cell else example_cell_config()
+    if args.can == "udp_multicast":
+        config = to_udp_multicast(config)
+    stop = threading.Event()
+    previous = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
+    if previous is not None:
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        with SimulatedCell(config) as sim:
+            if args.write_cell:
+                try:
+                    pathlib.Path(args.write_cell).write_text(sim.config.to_toml(), encoding="utf-8")
+                except OSError as exc:
+                    raise InputError(f"cannot write: {exc.strerror}", source=args.write_cell) from None
+            if args.json:
+                print(json.dumps({"urls": sim.urls, "cell": args.write_cell}), flush=True)
+            else:
+                print(f"simulated cell {sim.config.name!r} serving (Ctrl-C stops):")
+                for name, url in sim.urls.items():
+                    print(f"  {name:12s} {url}")
+                if any(d.url.scheme == "canopen" and d.url.can_interface == "virtual" for d in sim.config.drives):
+                    print("  note: CAN 'virtual' reaches this process only; use --can udp_multicast for others")
+                if args.write_cell:
+                    print(f"  cell config with these URLs: {args.write_cell}")
+                sys.stdout.flush()
+            end = None if args.duration is None else time.monotonic() + args.duration
+            try:
+                while not stop.is_set():
+                    remaining = None if end is None else end - time.monotonic()
+                    if remaining is not None and remaining <= 0:
+                        break
+                    stop.wait(0.5 if remaining is None else min(0.5, remaining))
+            except KeyboardInterrupt:
+                pass
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    return 0
 
 
 def _robot(args):
@@ -45,9 +108,7 @@ def _robot(args):
 
 def run(args: argparse.Namespace) -> int:
     if args.sim_command == "serve":
-        from elastocal.sims.serve import run_serve
-
-        return run_serve(args)
+        return _serve(args)
     from elastocal.sims.cell import HIDDEN_EFFECTS, CellTruth
 
     out = pathlib.Path(args.out)
