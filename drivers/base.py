@@ -203,27 +203,24 @@ class Stream(Generic[S]):
                 if remaining is not None and remaining <= 0:
                     raise DeviceTimeout(f"{self.device}: no sample for {timeout_s:g} s")
                 self._cond.wait(remaining)
-            if self._samples or self._gaps:
-                batch = Batch(tuple(self._samples), tuple(self._gaps))
-                self._samples.clear()
-                self._gaps.clear()
-                return batch
-            if self._error is not None:
-                raise self._error
-            return Batch((), ())
+            return self._take()
 
     def poll(self) -> Batch[S]:
         """What has arrived, without waiting (possibly an empty batch); raises
         the stream's error once the data before it has been handed out."""
         with self._cond:
-            if self._samples or self._gaps:
-                batch = Batch(tuple(self._samples), tuple(self._gaps))
-                self._samples.clear()
-                self._gaps.clear()
-                return batch
-            if self._error is not None:
-                raise self._error
-            return Batch((), ())
+            return self._take()
+
+    def _take(self) -> Batch[S]:
+        """(with the lock held) the samples and gaps so far, else the stream's error, else an empty batch."""
+        if self._samples or self._gaps:
+            batch = Batch(tuple(self._samples), tuple(self._gaps))
+            self._samples.clear()
+            self._gaps.clear()
+            return batch
+        if self._error is not None:
+            raise self._error
+        return Batch((), ())
 
     def read_for(self, duration_s: float, *, timeout_s: float = 1.0) -> Batch[S]:
         """Everything the stream delivers during ``duration_s`` (DeviceTimeout if

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from elastocal.drivers.base import CellController, ControllerStatus, DeviceInfo, SharedLinks
 from elastocal.drivers.config import ControllerConfig
-from elastocal.drivers.modbus import ModbusLink, encode
-from elastocal.drivers.modbus_drive import link_key
+from elastocal.drivers.modbus import encode
+from elastocal.drivers.modbus_drive import acquire_link
 from elastocal.errors import InputError, ProtocolError
 
 
@@ -22,11 +22,7 @@ class ModbusCellController(CellController):
                          move_timeout_s=config.move_timeout_s)
         self.config = config
         self.unit = config.url.int_param("unit", 1, low=0, high=247)
-        self._own_links = links is None
-        self._links = SharedLinks() if links is None else links
-        self._key = link_key(config.url)
-        self.link: ModbusLink = self._links.acquire(
-            self._key, lambda: ModbusLink(config.url, timeout_s=config.timeout_s), ModbusLink.close)
+        self.link, self._release_link = acquire_link(config.url, config.timeout_s, links)
         self._read_specs = tuple(r for r in config.registers if r.access == "read")
 
     def _reconnect(self) -> None:
@@ -80,7 +76,4 @@ class ModbusCellController(CellController):
             self.link.write(spec.address, regs, unit=self.unit)
 
     def _close(self) -> None:
-        if self._own_links:
-            self._links.close()
-        else:
-            self._links.release(self._key)
+        self._release_link()

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import Callable
 
 from elastocal.drivers.base import DeviceInfo, Drive, DriveSample, ModbusExceptionError, SharedLinks, Stream
 from elastocal.drivers.config import DriveConfig
@@ -31,6 +32,18 @@ def link_key(url) -> tuple:
     return ("modbus+rtu", url.path)
 
 
+def acquire_link(url, timeout_s: float, links: SharedLinks | None) -> tuple[ModbusLink, Callable[[], None]]:
+    """The Modbus connection of ``url``, shared through ``links`` (a private one
+    when None), and the function that gives it back."""
+    if links is None:
+        own = SharedLinks()
+        link = own.acquire(link_key(url), lambda: ModbusLink(url, timeout_s=timeout_s), ModbusLink.close)
+        return link, own.close
+    key = link_key(url)
+    link = links.acquire(key, lambda: ModbusLink(url, timeout_s=timeout_s), ModbusLink.close)
+    return link, lambda: links.release(key)
+
+
 class ModbusDrive(Drive):
     """A joint drive whose values are Modbus registers (see the module docstring)."""
 
@@ -39,11 +52,7 @@ class ModbusDrive(Drive):
                          max_current_a=config.max_current_a, max_rate_hz=1000.0)
         self.config = config
         self.unit = config.url.int_param("unit", 1, low=0, high=247)
-        self._own_links = links is None
-        self._links = SharedLinks() if links is None else links
-        self._key = link_key(config.url)
-        self.link: ModbusLink = self._links.acquire(
-            self._key, lambda: ModbusLink(config.url, timeout_s=config.timeout_s), ModbusLink.close)
+        self.link, self._release_link = acquire_link(config.url, config.timeout_s, links)
         self._status = config.register("status")
         self._poller: threading.Thread | None = None
         self._stop = threading.Event()
@@ -137,7 +146,4 @@ class ModbusDrive(Drive):
 
     def _close(self) -> None:
         self._stop_stream()
-        if self._own_links:
-            self._links.close()
-        else:
-            self._links.release(self._key)
+        self._release_link()
