@@ -1,12 +1,14 @@
 """Robot description (``robot.toml``, formats.md §1) and its Pinocchio models.
 
 The description is resolved once into frozen dataclasses; :class:`Robot` holds
-two immutable Pinocchio models built from the modified-DH table:
+two immutable Pinocchio models built from the modified-DH table, or from a
+URDF (:mod:`elastocal.identify.urdf`):
 
 * ``model``: the rigid 6-joint chain, configuration ``theta`` (the link-side DH
-  variable, ``theta = q + offset + dtheta``);
+  or URDF joint variable, ``theta = q + offset + dtheta``);
 * ``link_model``: the same chain with two passive revolute joints (about x and
-  y) at the distal ends of links 2 and 3, used by the ``link_compliance`` effect
+  y of the next joint's frame, for a URDF two axes normal to its axis) at the
+  distal ends of links 2 and 3, used by the ``link_compliance`` effect
   and by the simulator. Its configuration is ``theta_links`` (10 values, in the
   order of :data:`LINK_JOINT_ORDER`).
 
@@ -17,6 +19,7 @@ come from Pinocchio.
 
 from __future__ import annotations
 
+import json
 import math
 import pathlib
 from dataclasses import dataclass, field
@@ -26,6 +29,7 @@ import numpy as np
 import pinocchio as pin
 
 from elastocal.errors import InputError
+from elastocal.identify.urdf import UrdfSource, dh_urdf, urdf_chain
 
 try:  # Python 3.11+
     import tomllib
@@ -38,6 +42,9 @@ FLANGE_FRAME = "flange"
 MARKER_PREFIX = "marker:"
 #: names of the passive link-compliance joints, in the order of their parameters
 LINK_SPRINGS = ("cl2x", "cl2y", "cl3x", "cl3y")
+#: radius of the solid sphere whose inertia a link gets about its centre of mass (statics use only
+#: the mass and the centre of mass)
+LINK_SPHERE_RADIUS_M = 0.05
 #: index in ``link_model``'s configuration of each actuated joint and link spring
 LINK_JOINT_ORDER = ("q1", "q2", "cl2x", "cl2y", "q3", "cl3x", "cl3y", "q4", "q5", "q6")
 ACTUATED_IN_LINK_MODEL = np.array([0, 1, 4, 7, 8, 9])
@@ -67,7 +74,8 @@ def _number(table: Mapping, key: str, *, source: str, where: str, default: float
 
 @dataclass(frozen=True)
 class JointSpec:
-    """One actuated revolute joint in modified-DH form (Craig)."""
+    """One actuated revolute joint in modified-DH form (Craig); ``a``, ``alpha``
+    and ``d`` are nan for a URDF robot, whose URDF holds the geometry."""
 
     a: float
     alpha: float
@@ -198,6 +206,24 @@ class CompensatorSpec:
         return np.sqrt(a * a + big_l * big_l + 2.0 * a * big_l * np.cos(alpha - q2))
 
 
+def _revolute(axis: np.ndarray) -> pin.JointModel:
+    """A revolute joint about ``axis`` (unit, in the joint's frame): RX/RY/RZ when it is one of those."""
+    for k, jm in enumerate((pin.JointModelRX, pin.JointModelRY, pin.JointModelRZ)):
+        if abs(axis[k] - 1.0) < 1e-12 and np.linalg.norm(np.delete(axis, k)) < 1e-12:
+            return jm()
+    return pin.JointModelRevoluteUnaligned(*np.asarray(axis, dtype=float))
+
+
+def _normal_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit axes normal to ``axis`` and to each other, right-handed with it
+    (x and y for a z axis): the bending axes of a link spring."""
+    axis = np.asarray(axis, dtype=float)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = ref - (ref @ axis) * axis
+    u /= np.linalg.norm(u)
+    return u, np.cross(axis, u)
+
+
 def _dh_placement(joint: JointSpec) -> pin.SE3:
     """Rx(alpha_{i-1}) Tx(a_{i-1}) Tz(d_i): the parts of the modified-DH transform
     that do not depend on theta (Rz(theta) and Tz(d) commute)."""
@@ -217,38 +243,50 @@ class Robot:
     tool: ToolSpec
     compensator: CompensatorSpec | None = None
     source: str = "<robot>"
+    urdf: UrdfSource | None = None           # the URDF the geometry comes from (None: the DH table)
     model: pin.Model = field(init=False, repr=False)
     link_model: pin.Model = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if len(self.joints) != N_JOINTS:
             raise InputError(f"expected {N_JOINTS} [[joint]] tables, got {len(self.joints)}", source=self.source)
-        object.__setattr__(self, "model", self._build(with_link_springs=False))
-        object.__setattr__(self, "link_model", self._build(with_link_springs=True))
+        if self.urdf is None:
+            placements = tuple(_dh_placement(j) for j in self.joints)
+            axes = np.tile([0.0, 0.0, 1.0], (N_JOINTS, 1))
+            flange = pin.SE3.Identity()
+        else:
+            chain = urdf_chain(self.urdf, [j.name for j in self.joints], source=self.source)
+            placements, axes, flange = chain.placements, chain.axes, chain.flange_placement
+        object.__setattr__(self, "model", self._build(placements, axes, flange, with_link_springs=False))
+        object.__setattr__(self, "link_model", self._build(placements, axes, flange, with_link_springs=True))
 
     # ----------------------------------------------------------------- build
-    def _build(self, *, with_link_springs: bool) -> pin.Model:
+    def _build(self, placements: Sequence[pin.SE3], axes: np.ndarray, flange: pin.SE3, *,
+               with_link_springs: bool) -> pin.Model:
+        """The chain from each joint's placement in the previous joint's frame and
+        its axis in its own frame; bodies from the joints' masses and centres of
+        mass; the flange, load point and markers on the last joint."""
         model = pin.Model()
         model.name = self.name
         model.gravity = pin.Motion(np.array(self.gravity), np.zeros(3))
         parent = 0
-        for i, joint in enumerate(self.joints, start=1):
-            placement = _dh_placement(joint)
+        for i, (joint, placement, axis) in enumerate(zip(self.joints, placements, axes), start=1):
             if with_link_springs and i in (3, 4):
                 link = i - 1
-                parent = model.addJoint(parent, pin.JointModelRX(), placement, f"link{link}_x")
-                parent = model.addJoint(parent, pin.JointModelRY(), pin.SE3.Identity(), f"link{link}_y")
+                u, v = _normal_axes(axis)
+                parent = model.addJoint(parent, _revolute(u), placement, f"link{link}_x")
+                parent = model.addJoint(parent, _revolute(v), pin.SE3.Identity(), f"link{link}_y")
                 placement = pin.SE3.Identity()
-            parent = model.addJoint(parent, pin.JointModelRZ(), placement, f"joint{i}")
+            parent = model.addJoint(parent, _revolute(axis), placement, f"joint{i}")
             if joint.mass > 0.0:
-                inertia = pin.Inertia.FromSphere(joint.mass, 0.05)
+                inertia = pin.Inertia.FromSphere(joint.mass, LINK_SPHERE_RADIUS_M)
                 inertia = pin.Inertia(joint.mass, np.array(joint.com), inertia.inertia)
                 model.appendBodyToJoint(parent, inertia, pin.SE3.Identity())
-        model.addFrame(pin.Frame(FLANGE_FRAME, parent, pin.SE3.Identity(), pin.FrameType.OP_FRAME))
-        model.addFrame(pin.Frame(LOAD_FRAME, parent, pin.SE3(np.eye(3), np.array(self.tool.flange_p_load)),
+        model.addFrame(pin.Frame(FLANGE_FRAME, parent, flange, pin.FrameType.OP_FRAME))
+        model.addFrame(pin.Frame(LOAD_FRAME, parent, flange * pin.SE3(np.eye(3), np.array(self.tool.flange_p_load)),
                                  pin.FrameType.OP_FRAME))
         for name, flange_p in self.tool.flange_p_markers:
-            model.addFrame(pin.Frame(MARKER_PREFIX + name, parent, pin.SE3(np.eye(3), np.array(flange_p)),
+            model.addFrame(pin.Frame(MARKER_PREFIX + name, parent, flange * pin.SE3(np.eye(3), np.array(flange_p)),
                                      pin.FrameType.OP_FRAME))
         return model
 
@@ -359,16 +397,28 @@ class Robot:
         def vec(v) -> str:
             return "[" + ", ".join(num(x) for x in v) + "]"
 
-        lines = [f'name = "{self.name}"', 'convention = "modified-dh"', f"gravity = {vec(self.gravity)}", ""]
+        if self.urdf is None:
+            lines = [f'name = "{self.name}"', 'convention = "modified-dh"', f"gravity = {vec(self.gravity)}", ""]
+        else:       # the URDF inline, so that the description stands alone (logs, exports)
+            xml = self.urdf.xml
+            literal = ("'''" not in xml and not xml.endswith("'")
+                       and not any(ord(c) < 32 and c not in "\t\r\n" or ord(c) == 127 for c in xml))
+            inline = (f"urdf_xml = '''\n{xml}'''" if literal       # a TOML multi-line literal string
+                      else f"urdf_xml = {json.dumps(xml, ensure_ascii=True)}")   # valid TOML basic string
+            lines = [f'name = "{self.name}"', f"gravity = {vec(self.gravity)}", inline, ""]
         for j in self.joints:
             lines += ["[[joint]]"]
             if j.name:
                 lines.append(f'name = "{j.name}"')
-            lines += [f"a = {num(j.a)}", f"alpha = {num(j.alpha)}", f"d = {num(j.d)}",
-                      f"offset = {num(j.offset)}", f"lower = {num(j.lower)}", f"upper = {num(j.upper)}",
+            if self.urdf is None:
+                lines += [f"a = {num(j.a)}", f"alpha = {num(j.alpha)}", f"d = {num(j.d)}"]
+            lines += [f"offset = {num(j.offset)}", f"lower = {num(j.lower)}", f"upper = {num(j.upper)}",
                       f"torque_constant = {num(j.torque_constant)}", f"mass = {num(j.mass)}",
                       f"com = {vec(j.com)}", ""]
-        lines += ["[tool]", f"load_point = {vec(self.tool.flange_p_load)}", "[tool.markers]"]
+        lines += ["[tool]"]
+        if self.urdf is not None and self.urdf.flange:
+            lines.append(f'flange = "{self.urdf.flange}"')
+        lines += [f"load_point = {vec(self.tool.flange_p_load)}", "[tool.markers]"]
         lines += [f"{name} = {vec(p)}" for name, p in self.tool.flange_p_markers]
         if self.compensator is not None:
             c = self.compensator
@@ -376,6 +426,19 @@ class Robot:
             lines += [f"{k} = {num(v)}" for k, v in c.geometry]
             lines += [f"{k} = {num(v)}" for k, v in c.nominal]
         return "\n".join(lines) + "\n"
+
+
+    def to_urdf(self) -> str:
+        """The kinematic chain and link masses as URDF text: the URDF a URDF robot
+        was built from, or a DH robot written out (links ``base_link``,
+        ``link1`` … ``link6``, ``link6`` being the flange; joint limits in theta =
+        q + offset, so the ``[[joint]]`` tables keep their offsets)."""
+        if self.urdf is not None:
+            return self.urdf.xml
+        placements = [_dh_placement(j) for j in self.joints]
+        return dh_urdf(self.name, placements, [j.name or f"joint{i}" for i, j in enumerate(self.joints, start=1)],
+                       [j.lower + j.offset for j in self.joints], [j.upper + j.offset for j in self.joints],
+                       [j.mass for j in self.joints], [j.com for j in self.joints], LINK_SPHERE_RADIUS_M)
 
 
 # ---------------------------------------------------------------- loading
@@ -386,45 +449,67 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source=source) from None
     name = doc.get("name", "robot")
-    if "urdf" in doc:
-        raise InputError("URDF robots are not supported yet; give the modified-DH [[joint]] tables",
-                         source=source, column="urdf")
-    convention = doc.get("convention", "modified-dh")
-    if convention != "modified-dh":
-        raise InputError(f"convention must be 'modified-dh', got {convention!r}", source=source, column="convention")
     gravity = _vec3(doc.get("gravity", [0.0, 0.0, -9.81]), source=source, column="gravity")
     tables = doc.get("joint")
     if not isinstance(tables, list) or len(tables) != N_JOINTS:
         raise InputError(f"expected {N_JOINTS} [[joint]] tables", source=source, column="joint")
+    tool = doc.get("tool")
+    if not isinstance(tool, dict):
+        raise InputError("missing [tool] table", source=source, column="tool")
+    urdf = _urdf_source(doc, tool, source=source, base_dir=base_dir)
+    if urdf is None:
+        convention = doc.get("convention", "modified-dh")
+        if convention != "modified-dh":
+            raise InputError(f"convention must be 'modified-dh', got {convention!r}", source=source,
+                             column="convention")
+        chain = None
+    else:
+        names = []
+        for i, t in enumerate(tables, start=1):
+            if not isinstance(t.get("name"), str) or not t["name"]:
+                raise InputError("a URDF robot's joint needs the name of its URDF joint", source=source,
+                                 column=f"joint[{i}].name")
+            for key in ("a", "alpha", "d"):
+                if key in t:
+                    raise InputError("a URDF robot takes its geometry from the URDF, not from DH parameters",
+                                     source=source, column=f"joint[{i}].{key}")
+            names.append(t["name"])
+        chain = urdf_chain(urdf, names, source=source)
     joints = []
     for i, t in enumerate(tables, start=1):
         where = f"joint[{i}]"
-        lower = _number(t, "lower", source=source, where=where)
-        upper = _number(t, "upper", source=source, where=where)
+        offset = _number(t, "offset", source=source, where=where, default=0.0)
+        if chain is None or "lower" in t or "upper" in t:
+            lower = _number(t, "lower", source=source, where=where)
+            upper = _number(t, "upper", source=source, where=where)
+        elif math.isnan(chain.lower[i - 1]):
+            raise InputError(f"URDF joint {t['name']!r} is continuous: give lower and upper", source=source,
+                             column=f"{where}.lower")
+        else:                                   # URDF limits are in theta = q + offset
+            lower, upper = float(chain.lower[i - 1]) - offset, float(chain.upper[i - 1]) - offset
         if max(abs(lower), abs(upper)) > 4 * math.pi:
             raise InputError(f"joint limits {lower}..{upper} look like degrees; limits are radians",
                              source=source, column=f"{where}.lower")
         xi = _number(t, "torque_constant", source=source, where=where)
         if xi == 0.0:
             raise InputError("torque_constant must be non-zero", source=source, column=f"{where}.torque_constant")
-        mass = _number(t, "mass", source=source, where=where, default=0.0)
+        urdf_mass = 0.0 if chain is None else float(chain.masses[i - 1])
+        mass = _number(t, "mass", source=source, where=where, default=urdf_mass)
         if mass < 0:
             raise InputError("mass must be >= 0", source=source, column=f"{where}.mass")
+        urdf_com = [0.0, 0.0, 0.0] if chain is None else [float(x) for x in chain.coms[i - 1]]
+        if chain is None:
+            geometry = {key: _number(t, key, source=source, where=where) for key in ("a", "alpha", "d")}
+        else:
+            geometry = {key: math.nan for key in ("a", "alpha", "d")}
         try:
             joints.append(JointSpec(
-                a=_number(t, "a", source=source, where=where),
-                alpha=_number(t, "alpha", source=source, where=where),
-                d=_number(t, "d", source=source, where=where),
-                offset=_number(t, "offset", source=source, where=where, default=0.0),
-                lower=lower, upper=upper, torque_constant=xi, mass=mass,
-                com=_vec3(t.get("com", [0.0, 0.0, 0.0]), source=source, column=f"{where}.com"),
+                **geometry, offset=offset, lower=lower, upper=upper, torque_constant=xi, mass=mass,
+                com=_vec3(t.get("com", urdf_com), source=source, column=f"{where}.com"),
                 name=str(t.get("name", f"joint{i}")),
             ))
         except InputError as exc:
             raise InputError(exc.detail, source=source, column=where) from None
-    tool = doc.get("tool")
-    if not isinstance(tool, dict):
-        raise InputError("missing [tool] table", source=source, column="tool")
     if "load_point" not in tool:
         raise InputError("missing required key", source=source, column="tool.load_point")
     load = _vec3(tool["load_point"], source=source, column="tool.load_point")
@@ -454,7 +539,40 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
         comp = CompensatorSpec(kind=kind, joint=2, geometry=geometry, nominal=nominal)
     return Robot(name=str(name), joints=tuple(joints), gravity=gravity,
                  tool=ToolSpec(flange_p_load=load, flange_p_markers=marker_items),
-                 compensator=comp, source=source)
+                 compensator=comp, source=source, urdf=urdf)
+
+
+def _urdf_source(doc: Mapping, tool: Mapping, *, source: str, base_dir: pathlib.Path | None) -> UrdfSource | None:
+    """The URDF of a robot.toml (``urdf`` path or ``urdf_xml`` text), or None for a DH robot."""
+    if "urdf" not in doc and "urdf_xml" not in doc:
+        if "flange" in tool:
+            raise InputError("only a URDF robot names its flange; a DH robot's flange is frame 6",
+                             source=source, column="tool.flange")
+        return None
+    if "urdf" in doc and "urdf_xml" in doc:
+        raise InputError("give the URDF as a path (urdf) or inline (urdf_xml), not both", source=source,
+                         column="urdf_xml")
+    if "convention" in doc:
+        raise InputError("a URDF robot has no DH convention; remove convention", source=source,
+                         column="convention")
+    flange = tool.get("flange", "")
+    if not isinstance(flange, str):
+        raise InputError(f"expected the name of a URDF link or frame, got {flange!r}", source=source,
+                         column="tool.flange")
+    if "urdf_xml" in doc:
+        if not isinstance(doc["urdf_xml"], str):
+            raise InputError("expected the URDF text", source=source, column="urdf_xml")
+        return UrdfSource(xml=doc["urdf_xml"], flange=flange)
+    if not isinstance(doc["urdf"], str):
+        raise InputError("expected a path to a URDF file", source=source, column="urdf")
+    path = pathlib.Path(doc["urdf"])
+    if not path.is_absolute() and base_dir is not None:
+        path = base_dir / path
+    try:
+        xml = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot read URDF {path}: {exc.strerror}", source=source, column="urdf") from None
+    return UrdfSource(xml=xml, path=str(path), flange=flange)
 
 
 def load_robot(path: str | pathlib.Path) -> Robot:

@@ -237,7 +237,12 @@ def test_short_silence_is_a_recorded_gap_then_the_stream_resumes(bench):
     gaps = [g for g in batch.gaps if g.reason == "no TPDO in the SYNC cycle"]
     assert gaps
     assert sum(g.missing for g in gaps) == pytest.approx(0.1 * rate, rel=0.4)
-    assert batch.samples[-1].t_ns > max(g.end_ns for g in gaps)
+    silence = max(gaps, key=lambda g: g.missing)
+    assert silence.missing >= 0.5 * 0.1 * rate
+    # the stream resumes: samples after the silence (a cycle still open when the
+    # stream closes on a loaded machine may be one more gap at the very end)
+    after = [s for s in batch.samples if s.t_ns > silence.end_ns]
+    assert len(after) > 0.5 * rate * 0.2
 
 
 def test_long_silence_ends_in_timeout(bench):
