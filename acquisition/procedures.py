@@ -599,6 +599,15 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
                    time.monotonic() - started)
 
 
+def _robot_text(robot, robot_path) -> str:
+    """The robot description the log keeps: the file as written (comments kept),
+    or, for a robot whose URDF is a separate file, the description with the
+    URDF inline, so that the log stands alone."""
+    if robot.urdf is not None and robot.urdf.path:
+        return robot.to_toml()
+    return pathlib.Path(robot_path).read_text(encoding="utf-8")
+
+
 def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, yes: bool = True,
                     ui: OperatorUI | None = None, world=None, simulate: bool = False,
                     procedures: Sequence[str] | None = None, resume_from: str | pathlib.Path | None = None,
@@ -645,5 +654,4 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
         return run_procedures(io, plan, out_path, ui=ui, procedures=procedures, resume_from=resume_from,
                               cell_text=cell_config.to_toml(), cell_name=cell_config.name,
                               cell_path=str(cell_config.source),
-                              robot_text=pathlib.Path(robot_path).read_text(encoding="utf-8"),
-                              overwrite=overwrite)
+                              robot_text=_robot_text(robot, robot_path), overwrite=overwrite)
