@@ -48,8 +48,8 @@ def measure(drive, duration_s: float, rate_hz: float) -> dict:
         stream.read_for(duration_s)
     st = stream.stats()
     return {"polls_per_s": len(lat) / duration_s, "p50_ms": np.percentile(lat, 50) * 1e3,
-            "p99_ms": np.percentile(lat, 99) * 1e3, "expected": int(round(rate_hz * st.elapsed_s)),
-            "received": st.received, "gaps": st.gaps}
+            "p99_ms": np.percentile(lat, 99) * 1e3, "expected": st.expected,
+            "received": st.received, "missing": st.missing, "gaps": st.gaps}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'link':<28} {'polls/s':>8} {'p50 [ms]':>9} {'p99 [ms]':>9}   stream at {args.rate:g} Hz")
     for name, r in rows:
         print(f"{name:<28} {r['polls_per_s']:>8.0f} {r['p50_ms']:>9.2f} {r['p99_ms']:>9.2f}   "
-              f"{r['received']} of {r['expected']} samples, {r['gaps']} gap(s)")
+              f"{r['received']} of {r['expected']} samples ({r['missing']} missing in {r['gaps']} gap(s))")
     return 0
 
 
