@@ -508,7 +508,7 @@ def _procedures(plan: Plan, procedures: Sequence[str] | None) -> tuple[str, ...]
 def _check_out(out_path: str | pathlib.Path, overwrite: bool, resume_from) -> None:
     out = pathlib.Path(out_path)
     if out.exists() and not overwrite:
-        raise InputError("already exists; choose another --out or remove it", source=str(out))
+        raise InputError("already exists; choose another --out, or --force to overwrite it", source=str(out))
     if resume_from is not None:
         if not pathlib.Path(resume_from).is_file():
             raise InputError("cannot read: no such log", source=str(resume_from))

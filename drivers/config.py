@@ -383,6 +383,7 @@ class CellConfig:
     controller: ControllerConfig | None = None
     history: pathlib.Path | None = None
     sim: SimConfig = field(default_factory=SimConfig)
+    plan: pathlib.Path | None = None        # the cell's calibration plan (default for `calibrate --plan`)
     source: str = "<cell.toml>"
     base_dir: pathlib.Path | None = None
 
@@ -653,7 +654,7 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
     cell = doc.get("cell")
     if not isinstance(cell, Mapping):
         raise InputError("missing [cell] table", source=source, column="cell")
-    _check_keys(cell, {"name", "robot", "history"}, source=source, where="cell")
+    _check_keys(cell, {"name", "robot", "history", "plan"}, source=source, where="cell")
     name = cell.get("name", "cell")
     robot = cell.get("robot")
     if not isinstance(robot, str) or not robot:
@@ -666,6 +667,14 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
         history_path = pathlib.Path(history)
         if not history_path.is_absolute() and base_dir is not None:
             history_path = base_dir / history_path
+    plan = cell.get("plan")
+    plan_path = None
+    if plan is not None:
+        if not isinstance(plan, str) or not plan:
+            raise InputError("plan must be the path of a plan.toml", source=source, column="cell.plan")
+        plan_path = pathlib.Path(plan)
+        if not plan_path.is_absolute() and base_dir is not None:
+            plan_path = base_dir / plan_path
     drive_tables = doc.get("drive", [])
     if not isinstance(drive_tables, list):
         raise InputError("drives are [[drive]] tables", source=source, column="drive")
@@ -678,7 +687,7 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
     controller = _controller(doc["controller"], source=source) if "controller" in doc else None
     sim = _sim(doc["sim"], source=source) if "sim" in doc else SimConfig()
     return CellConfig(name=str(name), robot=robot, drives=tuple(sorted(drives, key=lambda d: d.joint)),
-                      tracker=tracker, controller=controller, history=history_path, sim=sim,
+                      tracker=tracker, controller=controller, history=history_path, sim=sim, plan=plan_path,
                       source=source, base_dir=base_dir)
 
 
@@ -747,6 +756,8 @@ def _to_toml(c: CellConfig) -> str:
     lines = ["[cell]", f"name = {_toml_value(c.name)}", f"robot = {_toml_value(robot)}"]
     if c.history is not None:
         lines.append(f"history = {_toml_value(str(c.history))}")
+    if c.plan is not None:
+        lines.append(f"plan = {_toml_value(str(c.plan.resolve()))}")
     for d in c.drives:
         lines += ["", "[[drive]]", f"joint = {d.joint}", f"url = {_toml_value(d.url.text)}",
                   f"rate_hz = {d.rate_hz!r}", f"timeout_s = {d.timeout_s!r}", f"retries = {d.retries}",

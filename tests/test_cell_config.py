@@ -126,3 +126,14 @@ def test_tracker_position_is_optional_validated_and_round_trips():
     bad = text.replace('rate_hz = 100.0', 'rate_hz = 100.0\nbase_p_tracker = [3.5, 0.0]', 1)
     with pytest.raises(InputError, match=r"cell.toml, column tracker.base_p_tracker: expected 3 finite numbers"):
         parse_cell_config(bad, source="cell.toml", base_dir=example_cell_path().parent)
+
+
+def test_the_cells_plan_is_optional_resolves_next_to_the_file_and_round_trips(tmp_path):
+    text = example_cell_path().read_text()
+    assert parse_cell_config(text).plan is None
+    cfg = parse_cell_config(text.replace("[cell]\n", '[cell]\nplan = "plans/cal.toml"\n', 1),
+                            source="cell.toml", base_dir=tmp_path)
+    assert cfg.plan == tmp_path / "plans" / "cal.toml"
+    assert parse_cell_config(cfg.to_toml()).plan == (tmp_path / "plans" / "cal.toml").resolve()
+    with pytest.raises(InputError, match=r"cell\.plan.*path of a plan\.toml"):
+        parse_cell_config(text.replace("[cell]\n", "[cell]\nplan = 3\n", 1), source="cell.toml")

@@ -1,6 +1,7 @@
 """The command line of the core: sim static, identify (cli.md contract)."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -122,3 +123,21 @@ def test_identify_static_and_runs_together(dataset, tmp_path, capsys):
     assert obj["residual"]["unit"] == "m" and obj["torque_residual"]["unit"] == "N*m"
     assert {"k1", "fc1", "fv6", "fl3"} <= set(obj["parameters"])
     assert obj["model"][0] == "joint_stiffness" and "viscous_friction" in obj["model"]
+
+
+def test_a_closed_output_pipe_is_no_traceback(tmp_path):
+    """`elastocal … | head`: the reader goes away before the output is written."""
+    import subprocess
+    import sys
+
+    assert main(["sim", "static", "--seed", "1", "--poses", "4", "--out", str(tmp_path)]) == 0
+    read_end, write_end = os.pipe()
+    os.close(read_end)                      # no reader at all: the first write fails with EPIPE
+    try:
+        proc = subprocess.run([sys.executable, "-m", "elastocal", "identify", "--robot", str(tmp_path / "robot.toml"),
+                               "--static", str(tmp_path / "static.csv"), "--json"],
+                              stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert proc.returncode == 1
+    assert proc.stderr == ""

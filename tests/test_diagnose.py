@@ -287,3 +287,28 @@ def test_runs_where_it_fails_by_joint_pair_and_q2(runs_table):
     obj = diag.to_json()
     assert obj["where"]["joint"]["unit"] == "N*m"
     json.dumps(obj)
+
+
+@pytest.mark.parametrize("static_hidden, runs_hidden, verdict, data", [
+    ("none", "friction", "coulomb_friction", "runs"),
+    ("link_compliance", "none", "link_compliance", "static"),
+    ("none", "none", None, None),
+])
+def test_diagnose_json_with_static_and_runs_covers_both(sim_dirs, tmp_path, capsys, static_hidden, runs_hidden,
+                                                        verdict, data):
+    d = sim_dirs[static_hidden]
+    r = tmp_path / "runs"
+    assert main(["sim", "runs", "--hidden", runs_hidden, "--seed", "3", "--out", str(r)]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", "--robot", str(d / "robot.toml"), "--static", str(d / "static.csv"),
+                 "--runs", str(r / "runs.csv"), "--json"]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    assert obj["verdict"] == verdict
+    assert {c["data"] for c in obj["candidates"]} == {"static", "runs"}
+    assert obj["residual"]["unit"] == "m" and obj["runs"]["residual"]["unit"] == "N*m"
+    if verdict is None:
+        assert not any(c["significant"] for c in obj["candidates"])
+    else:
+        assert obj["candidates"][0]["effect"] == verdict and obj["candidates"][0]["data"] == data
+    flags = [c["significant"] for c in obj["candidates"]]
+    assert flags == sorted(flags, reverse=True)            # significant ones first

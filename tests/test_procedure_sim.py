@@ -58,7 +58,7 @@ def test_static_procedure_on_simulated_devices_interrupted_resumed_and_identifie
     cell_path = tmp_path / "cell.toml"
     cell_path.write_text(example_cell_config(can_channel="issue4-proc-b", move_speed_rad_s=2.0).to_toml())
     second = tmp_path / "second.mcap"
-    rc = main(["calibrate", "--cell", str(cell_path), "--plan", str(plan_path), "--out", str(second),
+    rc = main(["calibrate", "--cell", str(cell_path), "--out", str(second),      # the plan: the log's
                "--resume", str(first), "--sim", "--yes", "--json"])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
@@ -92,6 +92,17 @@ def test_calibrate_cli_refuses_yes_on_a_real_cell_and_bad_inputs(tmp_path, capsy
                    *extra])
         err = capsys.readouterr().err
         assert rc == 2 and message in err and err.count("\n") == 1, err
+    # no --plan: the cell config names none
+    rc = main(["calibrate", "--cell", str(cell), "--out", str(tmp_path / "x.mcap"), "--sim", "--yes"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--plan: no plan: give --plan plan.toml or name one in [cell]" in err, err
+    # ... or names one, next to it
+    from elastocal.commands.calibrate import resolve_plan
+    from elastocal.drivers.config import load_cell_config
+
+    cell.write_text(cell.read_text().replace("[cell]\n", '[cell]\nplan = "plan.toml"\n', 1))
+    resolved = resolve_plan(None, load_cell_config(cell), None)
+    assert resolved.sha256 == parse_plan(plan.read_text(), source="x").sha256
     (tmp_path / "exists.mcap").write_bytes(b"")
     rc = main(["calibrate", "--cell", str(cell), "--plan", str(plan), "--out", str(tmp_path / "exists.mcap"),
                "--sim", "--yes"])

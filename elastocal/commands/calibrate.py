@@ -11,8 +11,8 @@ from elastocal.errors import InputError
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cell", required=True, help="cell.toml: the devices of the cell")
-    parser.add_argument("--plan", required=True, help="plan.toml: poses, loads, markers, repeats, speeds "
-                                                      "(docs/plan-format.md)")
+    parser.add_argument("--plan", help="plan.toml: poses, loads, markers, repeats, speeds (docs/plan-format.md); "
+                                       "default: the plan of the --resume log, else `plan` in [cell] of cell.toml")
     parser.add_argument("--out", required=True, help="the MCAP log to write")
     parser.add_argument("--procedure", help="comma-separated procedures to run: static, friction, sweep, check "
                                             "(default: the plan's `procedures`)")
@@ -26,14 +26,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
+def resolve_plan(plan_arg: str | None, config, resume: str | None):
+    """The plan to run: ``--plan``, else the one recorded in the ``--resume``
+    log, else the cell's (``[cell] plan``)."""
+    from elastocal.acquisition.export import read_log
+    from elastocal.acquisition.plan import load_plan, parse_plan
+
+    if plan_arg:
+        return load_plan(plan_arg)
+    if resume:
+        doc = read_log(resume).plan
+        if doc is None:
+            raise InputError("the log holds no plan; give --plan", source=resume)
+        return parse_plan(doc.text, source=doc.path or f"{resume} (plan)")
+    if config.plan is not None:
+        return load_plan(config.plan)
+    raise InputError("no plan: give --plan plan.toml or name one in [cell] of the cell config "
+                     "(plan = \"plan.toml\"); `elastocal plan` makes one", source="--plan")
+
+
 def run(args: argparse.Namespace) -> int:
-    from elastocal.acquisition.plan import PROCEDURES, load_plan
+    from elastocal.acquisition.plan import PROCEDURES
     from elastocal.acquisition.procedures import run_calibration
     from elastocal.acquisition.ui import AutoUI, TerminalUI
     from elastocal.drivers.config import load_cell_config
 
     config = load_cell_config(args.cell)
-    plan = load_plan(args.plan)
+    plan = resolve_plan(args.plan, config, args.resume)
     procedures = None
     if args.procedure:
         procedures = tuple(p.strip() for p in args.procedure.split(",") if p.strip())

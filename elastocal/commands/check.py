@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--log", help="an MCAP log of a check already run")
     proc = parser.add_argument_group("running the check procedure")
     proc.add_argument("--plan", help="plan.toml with a [check] section (default: the plan stored with the "
-                                     "current calibration)")
+                                     "current calibration, else `plan` in [cell] of cell.toml)")
     proc.add_argument("--out", help="the check's MCAP log (default: checks/check-<time>.mcap beside the history)")
     proc.add_argument("--sim", action="store_true", help="serve the cell's simulated devices in this process")
     proc.add_argument("--yes", action="store_true", help="answer every prompt automatically (simulated devices only)")
@@ -79,9 +79,12 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
         plan = load_plan(args.plan)
     elif plan_text is not None:
         plan = parse_plan(plan_text, source="the plan stored with the calibration")
+    elif config.plan is not None:
+        plan = load_plan(config.plan)
     else:
-        raise InputError("no check plan: give --plan plan.toml (with a [check] section), or record the calibration "
-                         "with its log or plan (`elastocal history add --log ...`)", source="--plan")
+        raise InputError("no check plan: give --plan plan.toml (with a [check] section), record the calibration "
+                         "with its log or plan (`elastocal history add --log ...`), or name the plan in [cell] "
+                         "of the cell config", source="--plan")
     if plan.check is None:
         raise InputError("the plan has no [check] section", source=plan.source)
     if args.out:

@@ -132,14 +132,29 @@ def format_runs(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:
 
 
 def diagnosis_json(static, runs) -> dict:
-    """The ``diagnose --json`` object: the static diagnosis (cli.md) when there
-    is one, with the run diagnosis under ``runs``; the run diagnosis alone otherwise."""
-    if static is not None:
-        obj = static.to_json()
-        if runs is not None:
-            obj["runs"] = runs.to_json()
+    """The ``diagnose --json`` object (cli.md): the static diagnosis when there is
+    one, the run diagnosis alone otherwise. With both, the run diagnosis is under
+    ``runs`` too, and ``candidates`` and ``verdict`` cover both data: every
+    candidate says which data tested it (``data``: static or runs), significant
+    ones first by delta_bic, and the verdict is the first when it is its own
+    data's verdict — so null still means "no missing effect found" in either."""
+    if static is None:
+        obj = runs.to_json()
+        for c in obj["candidates"]:
+            c["data"] = "runs"
         return obj
-    return runs.to_json()
+    obj = static.to_json()
+    for c in obj["candidates"]:
+        c["data"] = "static"
+    if runs is None:
+        return obj
+    obj["runs"] = runs.to_json()
+    tagged = [*obj["candidates"], *({**c, "data": "runs"} for c in obj["runs"]["candidates"])]
+    tagged.sort(key=lambda c: (not c["significant"], c["delta_bic"]))
+    obj["candidates"] = tagged
+    verdicts = {"static": static.verdict, "runs": runs.verdict}
+    obj["verdict"] = tagged[0]["effect"] if tagged and verdicts[tagged[0]["data"]] == tagged[0]["effect"] else None
+    return obj
 
 
 def run(args: argparse.Namespace) -> int:
