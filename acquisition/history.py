@@ -186,11 +186,18 @@ class History:
 
     def add_check(self, *, calibration_id: int, time_ns: int, verdict: str, reasons: Sequence[str],
                   result: Mapping[str, Any], log_sha256: str | None = None, log_path: str | None = None) -> int:
-        """Record a check of calibration ``calibration_id``; returns its id."""
+        """Record a check of calibration ``calibration_id``; returns its id. The
+        same data (``log_sha256``) checked again against the same calibration is
+        not recorded twice: the id of the check already recorded is returned."""
         if verdict not in VERDICTS:
             raise InputError(f"verdict must be one of {', '.join(VERDICTS)}, got {verdict!r}")
         if self.calibration(calibration_id) is None:
             raise InputError(f"no calibration {calibration_id} in the history", source=str(self.path))
+        if log_sha256 is not None:
+            row = self._db.execute("SELECT id FROM check_run WHERE calibration_id = ? AND log_sha256 = ? "
+                                   "ORDER BY id LIMIT 1", (int(calibration_id), log_sha256)).fetchone()
+            if row is not None:
+                return int(row[0])
         with self._db:
             cur = self._db.execute(
                 "INSERT INTO check_run (time_ns, calibration_id, verdict, reasons, result, log_sha256, log_path) "

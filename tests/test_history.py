@@ -69,6 +69,14 @@ def test_records_round_trip_and_the_latest_calibration_is_current(tmp_path):
             h.add_check(calibration_id=99, time_ns=T0, verdict="holds", reasons=(), result={})
         with pytest.raises(InputError, match="verdict"):
             h.add_check(calibration_id=first, time_ns=T0, verdict="maybe", reasons=(), result={})
+        # the same data checked again against the same calibration is not recorded twice
+        again = h.add_check(calibration_id=first, time_ns=T0 + 30 * DAY_NS, verdict="holds", reasons=("fine",),
+                            result=check_result(1.43e6, 2e3, 8e-6), log_sha256="22" * 32, log_path="/copy.mcap")
+        assert again == checks[0].id and len(h.checks()) == 2
+        # against another calibration, it is a new check
+        other = h.add_check(calibration_id=second, time_ns=T0 + 30 * DAY_NS, verdict="holds", reasons=(),
+                            result={}, log_sha256="22" * 32)
+        assert other not in (c.id for c in checks) and len(h.checks()) == 3
 
 
 def test_foreign_and_missing_files_are_refused(tmp_path):
