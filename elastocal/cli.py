@@ -38,6 +38,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: commands that stream from devices (real or simulated in this process): they run with a short
+#: interpreter switch interval, so that the SYNC producer and the receive threads get the
+#: interpreter lock within a fraction of a 1 ms cycle (Python's default lets a busy thread
+#: keep it for 5 ms); benchmarks/bench_devices.py measures the difference
+STREAMING_COMMANDS = frozenset({"demo", "sim", "devices", "calibrate", "check"})
+STREAMING_SWITCH_INTERVAL_S = 2e-4
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # usage errors: one line, exit 2
         self.exit(2, f"elastocal: {message}\n")
@@ -74,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     if not args.command:
         parser.print_help()
         return 2
+    previous_interval = sys.getswitchinterval()
+    if args.command in STREAMING_COMMANDS:
+        sys.setswitchinterval(min(previous_interval, STREAMING_SWITCH_INTERVAL_S))
     try:
         return int(modules[args.command].run(args) or 0)
     except InputError as exc:
@@ -97,6 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         except (OSError, ValueError, AttributeError):
             pass
         return 1
+    finally:
+        sys.setswitchinterval(previous_interval)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -21,7 +21,12 @@ device side and adds what a 1 Mbit/s bus imposes:
   the bus, in batches as from a USB CAN adapter: whenever a frame from the
   other side arrives (the next SYNC hands over the TPDOs of the cycle before),
   else ``delivery_interval_s`` (5 ms) after a TPDO ended (other frames: when
-  they ended) — a thread wake-up per batch, not per frame;
+  they ended) — a thread wake-up per batch, not per frame. The frames keep
+  their bus time as timestamp on the virtual bus, so batching does not
+  change what the drivers see. ``udp_multicast`` stamps frames with their
+  arrival instead, so across processes ``delivery_interval_s=0`` hands each
+  burst of TPDOs over as soon as its last frame ended on the bus, as a real
+  bus delivers them: before the next SYNC;
 * a SYNC wins arbitration: a TPDO that has not started on the bus when the
   next SYNC comes is discarded (the CiA 301 synchronous window), and a full
   transmit queue drops frames (overrun); both are counted, so a lossy bus
@@ -189,7 +194,12 @@ class SimCanBus(can.BusABC):
                     return
                 end, _, is_tpdo, _, _ = self._pending[0]
                 now = time.monotonic()
-                at = end + self._interval if is_tpdo else end
+                if not is_tpdo:
+                    at = end
+                elif self._interval > 0.0:
+                    at = end + self._interval
+                else:                          # the whole burst as soon as its last frame ended
+                    at = self._pending[-1][0]
                 if at > now:
                     self._cond.wait(at - now)
                     continue

@@ -254,7 +254,9 @@ class SimCanopenNetwork:
         inner = can.Bus(interface=interface, channel=channel, **bus_kwargs)
         delays = {d.node_id: reply_delay_s for d in drives}
         self.bus = SimCanBus(inner, bitrate=bitrate, reply_delay_s=lambda n: delays.get(n, reply_delay_s),
-                             filter_own=(interface == "udp_multicast"))
+                             filter_own=(interface == "udp_multicast"),
+                             # udp_multicast stamps frames on arrival: deliver each burst as it ends
+                             delivery_interval_s=0.0 if interface == "udp_multicast" else SimCanBus.DELIVERY_INTERVAL_S)
         self.network = canopen.Network(self.bus)
         self.network.NOTIFIER_CYCLE = 0.1     # so that closing does not wait a second
         try:

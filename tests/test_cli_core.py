@@ -141,3 +141,15 @@ def test_a_closed_output_pipe_is_no_traceback(tmp_path):
         os.close(write_end)
     assert proc.returncode == 1
     assert proc.stderr == ""
+
+
+def test_streaming_commands_shorten_the_switch_interval_and_restore_it(monkeypatch):
+    import elastocal.commands.devices as devices
+    from elastocal.cli import STREAMING_SWITCH_INTERVAL_S
+
+    seen = []
+    monkeypatch.setattr(devices, "run", lambda args: seen.append(sys.getswitchinterval()) or 0)
+    before = sys.getswitchinterval()
+    assert main(["devices", "--cell", "x.toml"]) == 0
+    assert seen == [pytest.approx(min(before, STREAMING_SWITCH_INTERVAL_S), rel=1e-6)]
+    assert sys.getswitchinterval() == before
