@@ -181,3 +181,23 @@ def test_sync_stats_account_for_every_cycle():
     finally:
         links.close()
         net.close()
+
+
+def test_burst_delivery_hands_tpdos_over_as_they_end_not_at_the_next_sync():
+    """Across processes (udp_multicast stamps arrival), delivery_interval_s=0:
+    a cycle's TPDOs go out as soon as the burst ended; batching waits."""
+    for interval, expect in ((0.0, 6), (0.5, 0)):
+        p = Pair(delivery_interval_s=interval)
+        try:
+            p.sync()
+            for n in range(1, 7):
+                p.sim.send(tpdo(n))
+            got = []
+            end = time.monotonic() + 0.15
+            while time.monotonic() < end:
+                m = p.other.recv(0.01)
+                if m is not None:
+                    got.append(m)
+            assert len(got) == expect, interval
+        finally:
+            p.close()
