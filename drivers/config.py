@@ -643,6 +643,18 @@ def _sim(t: Mapping, *, source: str) -> SimConfig:
     return SimConfig(**kw)
 
 
+def _optional_path(table: Mapping, key: str, message: str, *, source: str,
+                   base_dir: pathlib.Path | None) -> pathlib.Path | None:
+    """The optional path ``cell.<key>``, relative to the config file's folder."""
+    value = table.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value:
+        raise InputError(message, source=source, column=f"cell.{key}")
+    path = pathlib.Path(value)
+    return base_dir / path if not path.is_absolute() and base_dir is not None else path
+
+
 def parse_cell_config(text: str, *, source: str = "<cell.toml>",
                       base_dir: pathlib.Path | None = None) -> CellConfig:
     """Parse cell.toml text; every error names the file and the key."""
@@ -659,22 +671,9 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
     robot = cell.get("robot")
     if not isinstance(robot, str) or not robot:
         raise InputError('missing robot (a robot.toml path or "hh150")', source=source, column="cell.robot")
-    history = cell.get("history")
-    history_path = None
-    if history is not None:
-        if not isinstance(history, str) or not history:
-            raise InputError("history must be a path", source=source, column="cell.history")
-        history_path = pathlib.Path(history)
-        if not history_path.is_absolute() and base_dir is not None:
-            history_path = base_dir / history_path
-    plan = cell.get("plan")
-    plan_path = None
-    if plan is not None:
-        if not isinstance(plan, str) or not plan:
-            raise InputError("plan must be the path of a plan.toml", source=source, column="cell.plan")
-        plan_path = pathlib.Path(plan)
-        if not plan_path.is_absolute() and base_dir is not None:
-            plan_path = base_dir / plan_path
+    history_path = _optional_path(cell, "history", "history must be a path", source=source, base_dir=base_dir)
+    plan_path = _optional_path(cell, "plan", "plan must be the path of a plan.toml", source=source,
+                               base_dir=base_dir)
     drive_tables = doc.get("drive", [])
     if not isinstance(drive_tables, list):
         raise InputError("drives are [[drive]] tables", source=source, column="drive")
