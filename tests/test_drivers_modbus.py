@@ -12,7 +12,7 @@ from elastocal.drivers import open_drive
 from elastocal.drivers.base import ModbusExceptionError
 from elastocal.drivers.config import RegisterSpec, SimConfig, parse_cell_config, parse_device_url
 from elastocal.drivers.modbus import decode, encode, register_runs
-from elastocal.errors import DeviceFault, DeviceTimeout, InputError
+from elastocal.errors import DeviceFault, DeviceTimeout, InputError, ProtocolError
 from elastocal.identify.robot import bundled_robot
 from elastocal.sims.modbus_server import ModbusServerThread, PtyPair, SimModbusDrive
 from elastocal.sims.world import SimWorld
@@ -170,9 +170,13 @@ def test_disconnect_is_reconnected(tcp):
     assert drive.read().position_rad == pytest.approx(0.2, abs=1e-7)
     with drive.stream(100.0) as stream:
         stream.read_for(0.1)
-        server.drop_connections()
-        batch = stream.read_for(0.3)
-    assert batch.samples[-1].t_ns > (batch.gaps[-1].end_ns if batch.gaps else 0)
+        t_drop = time.monotonic_ns()
+        server.drop_connections()             # the server closes our connection: every later
+        batch = stream.read_for(0.3)          # sample came over a new one
+    after = [x for x in batch.samples if x.t_ns > t_drop]
+    assert len(after) >= 0.5 * 0.3 * 100
+    assert all(abs(x.position_rad - 0.2) < 1e-7 for x in after)
+    assert stream.stats().expected == stream.stats().received + stream.stats().missing
 
 
 def test_garbled_reply_is_a_gap_in_a_stream(tcp):
@@ -210,7 +214,7 @@ def test_wrong_scale_is_caught_by_the_unit_checks(world, drive_config):
     server = ModbusServerThread([sim.device], tcp=("127.0.0.1", 0)).start()
     drive = open_drive(replace(bad, url=bad.url.with_port(server.port)))
     try:
-        with pytest.raises(Exception, match="above max_current_a"):
+        with pytest.raises(ProtocolError, match="above max_current_a"):
             drive.read()
     finally:
         drive.close()

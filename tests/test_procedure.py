@@ -101,6 +101,22 @@ def test_static_procedure_log_identifies_stiffness(robot, poses, tmp_path):
     check_stiffness(fit)
 
 
+def test_the_core_design_identified_from_its_log_meets_the_core_tolerances(robot, tmp_path):
+    """Issue 2's experiment (12 poses, unloaded + 3 loads, 3 markers, 3 repeats) run as
+    a procedure and identified from the log: k1-k3 within 2 %, k4-k6 within 5 %,
+    residual within 1.15x the noise floor."""
+    poses12 = random_poses(robot, 12, np.random.default_rng(21))
+    plan = parse_plan(plan_toml(poses=poses12, loads=LOADS, markers=("R1", "R2", "R3"), repeats=3,
+                                reading_s=0.04, speed_rad_s=0.6, settle=SETTLE), source="plan.toml")
+    out = run_procedures(virtual_io(robot, seed=8), plan, tmp_path / "core.mcap")
+    assert out.status == "completed"
+    _, static, _ = load_log(tmp_path / "core.mcap")
+    assert len(static) == 12 * 4 * 3 * 3
+    fit = identify_static(robot, static, torque="current", form="exact")
+    check_stiffness(fit)
+    assert fit.noise_floor is not None and fit.rms <= 1.15 * fit.noise_floor, (fit.rms, fit.noise_floor)
+
+
 def test_abort_then_resume_gives_the_same_steps_once(robot, poses, tmp_path):
     plan = static_plan(poses[:4])
     first = tmp_path / "first.mcap"

@@ -83,7 +83,26 @@ def test_static_friction_absorbs_part_of_a_load_change(robot):
     reference = cell.equilibrium(START)
     expected = cell.equilibrium(START, w, reference=reference)
     np.testing.assert_allclose(world.sample().currents_a, cell.currents(expected), atol=1e-12)
-    assert np.any(np.abs(expected.friction_torque) > 0)
+    # friction takes up to its limit of each joint's load change; the gear (and the current) sees the rest
+    limit = cell.truth.static_friction
+    delta_gear = expected.gear_torque - reference.gear_torque
+    full_change = delta_gear + expected.friction_torque
+    # (the absorbed part is fixed from the load change before friction acts: 1e-3 N·m of the
+    # hundreds the load changes by)
+    np.testing.assert_allclose(np.abs(expected.friction_torque), np.minimum(np.abs(full_change), limit),
+                               rtol=1e-9, atol=1e-3)
+    moved = np.abs(full_change) > 1e-6
+    assert np.all(np.sign(expected.friction_torque[moved]) == np.sign(full_change[moved]))
+    big = np.abs(full_change) > limit
+    assert big[1] and big[2], "1500 N must overcome joint 2 and 3 friction"
+    np.testing.assert_allclose(np.abs(delta_gear[big]), np.abs(full_change[big]) - limit[big], rtol=1e-9)
+    np.testing.assert_allclose(delta_gear[~big], 0.0, atol=1e-3)
+    # the change of the joints' load torque is that of the rigid statics at the loaded pose
+    th10 = robot.theta_links(expected.theta, expected.link_angles)
+    q2 = expected.theta[1] - robot.joints[1].offset
+    load = robot.load_torque(th10, np.array(w), cell.truth.compensator, links=True, q2=q2)
+    np.testing.assert_allclose(expected.gear_torque + expected.friction_torque, load[[0, 1, 4, 7, 8, 9]],
+                               rtol=1e-9, atol=1e-6)
 
 
 def test_run_currents_include_friction_from_motion_currents(robot):
