@@ -17,6 +17,7 @@ from typing import Any, Mapping, Sequence
 
 from elastocal.errors import InputError
 from elastocal.identify.robot import Robot
+from elastocal.textfiles import read_text_file
 
 try:  # Python 3.11+
     import tomllib
@@ -285,7 +286,7 @@ class _Table:
 def parse_plan(text: str, *, source: str = "<plan.toml>") -> Plan:
     """Parse plan.toml text; errors name the file and the key."""
     try:
-        doc = tomllib.loads(text)
+        doc = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source=source) from None
     top = _Table(doc, source, "")
@@ -414,10 +415,7 @@ def parse_plan(text: str, *, source: str = "<plan.toml>") -> Plan:
 def load_plan(path: str | pathlib.Path) -> Plan:
     """Read a plan.toml file."""
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", source=str(path)) from None
+    text = read_text_file(path)
     return parse_plan(text, source=str(path))
 
 

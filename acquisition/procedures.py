@@ -35,6 +35,7 @@ from elastocal.acquisition.plan import UNLOADED, FrictionSpec, Plan, PoseSpec
 from elastocal.acquisition.recorder import Recorder
 from elastocal.acquisition.ui import Aborted, AutoUI, OperatorUI
 from elastocal.errors import DeviceError, DeviceTimeout, InputError
+from elastocal.textfiles import read_text_file
 
 #: time a person is assumed to need for a load change, for the time-left estimate [s]
 PERSON_S = 60.0
@@ -605,7 +606,7 @@ def _robot_text(robot, robot_path) -> str:
     URDF inline, so that the log stands alone."""
     if robot.urdf is not None and robot.urdf.path:
         return robot.to_toml()
-    return pathlib.Path(robot_path).read_text(encoding="utf-8")
+    return read_text_file(robot_path)
 
 
 def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, yes: bool = True,

@@ -24,6 +24,7 @@ from elastocal.compensation.ik import PlannedPath
 from elastocal.compensation.trajectory import CompensatedPath
 from elastocal.errors import InputError
 from elastocal.identify.robot import Robot
+from elastocal.textfiles import read_text_file
 
 Q_COLS = tuple(f"q{j}" for j in range(1, 7))
 W_COLS = ("fx", "fy", "fz", "mx", "my", "mz")
@@ -86,10 +87,7 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
 
 def read_path(path: str | pathlib.Path, robot: Robot | None = None) -> PlannedPath:
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", source=str(path)) from None
+    text = read_text_file(path)
     return parse_path(text, robot, source=str(path))
 
 

@@ -23,6 +23,7 @@ from typing import Any, Mapping
 from urllib.parse import parse_qsl, urlsplit
 
 from elastocal.errors import InputError
+from elastocal.textfiles import read_text_file
 
 try:  # Python 3.11+
     import tomllib
@@ -659,7 +660,7 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
                       base_dir: pathlib.Path | None = None) -> CellConfig:
     """Parse cell.toml text; every error names the file and the key."""
     try:
-        doc = tomllib.loads(text)
+        doc = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source=source) from None
     _check_keys(doc, {"cell", "drive", "tracker", "controller", "sim"}, source=source, where="(top level)")
@@ -705,10 +706,7 @@ def _check_can_nodes(drives: tuple[DriveConfig, ...], *, source: str) -> None:
 def load_cell_config(path: str | pathlib.Path) -> CellConfig:
     """Read and validate a cell.toml file."""
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", source=str(path)) from None
+    text = read_text_file(path)
     return parse_cell_config(text, source=str(path), base_dir=path.parent)
 
 

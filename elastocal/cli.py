@@ -13,10 +13,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import logging
 import os
 import sys
 
 from elastocal import __version__
+from elastocal.commands._outputs import NOTES
 from elastocal.errors import DeviceError, ElastocalError, InputError
 
 #: command name -> (module, one-line help)
@@ -44,6 +46,27 @@ COMMANDS: dict[str, tuple[str, str]] = {
 #: keep it for 5 ms); benchmarks/bench_devices.py measures the difference
 STREAMING_COMMANDS = frozenset({"demo", "sim", "devices", "calibrate", "check"})
 STREAMING_SWITCH_INTERVAL_S = 2e-4
+
+
+#: third-party libraries whose log records would reach stderr through logging's last resort
+#: (pymodbus "Connection to ... failed", canopen "Transfer aborted ..."): a command reports
+#: their faults itself, as one line, so their records are held back while it runs
+QUIET_LOGGERS = ("pymodbus", "canopen", "can")
+
+
+def _quiet_libraries() -> dict[str, int]:
+    """Raise the third-party loggers above CRITICAL; returns their previous levels."""
+    previous = {}
+    for name in QUIET_LOGGERS:
+        logger = logging.getLogger(name)
+        previous[name] = logger.level
+        logger.setLevel(logging.CRITICAL + 1)
+    return previous
+
+
+def _restore_libraries(previous: dict[str, int]) -> None:
+    for name, level in previous.items():
+        logging.getLogger(name).setLevel(level)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -85,8 +108,13 @@ def main(argv: list[str] | None = None) -> int:
     previous_interval = sys.getswitchinterval()
     if args.command in STREAMING_COMMANDS:
         sys.setswitchinterval(min(previous_interval, STREAMING_SWITCH_INTERVAL_S))
+    previous_levels = _quiet_libraries()
+    NOTES.clear()
     try:
-        return int(modules[args.command].run(args) or 0)
+        code = int(modules[args.command].run(args) or 0)
+        for text in NOTES:  # after the output, and only when the command did not fail on an error
+            print(text, file=sys.stderr)
+        return code
     except InputError as exc:
         print(f"elastocal {args.command}: {exc}", file=sys.stderr)
         return 2
@@ -108,7 +136,18 @@ def main(argv: list[str] | None = None) -> int:
         except (OSError, ValueError, AttributeError):
             pass
         return 1
+    except OSError as exc:
+        # last resort: a file the command could not read or write (commands check their
+        # files first; this catches what slips through) -- one line naming it, no traceback
+        what = exc.strerror or str(exc) or type(exc).__name__
+        if exc.filename is not None:
+            print(f"elastocal {args.command}: {exc.filename}: {what}", file=sys.stderr)
+            return 2
+        print(f"elastocal {args.command}: {type(exc).__name__}: {what}", file=sys.stderr)
+        return 1
     finally:
+        NOTES.clear()
+        _restore_libraries(previous_levels)
         sys.setswitchinterval(previous_interval)
 
 

@@ -11,8 +11,11 @@ from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 from elastocal.errors import InputError
+from elastocal.textfiles import read_text_file
 
 FORMAT = "elastocal.calibration/1"
+#: the torque a calibration was identified from: motor currents or the measured wrench
+TORQUES = ("current", "force")
 
 
 def file_sha256(path: str | pathlib.Path) -> str:
@@ -67,23 +70,40 @@ def write_calibration(path: str | pathlib.Path, cal: Calibration) -> None:
 
 def read_calibration(path: str | pathlib.Path) -> Calibration:
     path = pathlib.Path(path)
+    text = read_text_file(path)
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", source=str(path)) from None
+        doc = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno}", source=str(path)) from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(f"not an elastocal calibration (format must be {FORMAT!r})", source=str(path),
                          column="format")
+    src = str(path)
+    robot = doc.get("robot")
+    if not isinstance(robot, str) or not robot.strip():
+        what = "missing" if robot is None else f"expected the robot's name, got {robot!r}"
+        raise InputError(f"{what}: the calibration must name its robot (formats.md §4)", source=src, column="robot")
     params = doc.get("parameters")
     if not isinstance(params, dict):
-        raise InputError("missing parameters", source=str(path), column="parameters")
+        raise InputError("missing parameters", source=src, column="parameters")
     for name, p in params.items():
         v = p.get("value") if isinstance(p, dict) else None
         if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
-            raise InputError(f"parameter {name} has no finite value", source=str(path), column=f"parameters.{name}")
-    return Calibration(robot=str(doc.get("robot", "")), created=str(doc.get("created", "")),
-                       model=tuple(doc.get("model", ["joint_stiffness"])), torque=str(doc.get("torque", "current")),
-                       parameters=params, residual=doc.get("residual", {}),
-                       data=tuple(doc.get("data", [])))
+            raise InputError(f"parameter {name} has no finite value", source=src, column=f"parameters.{name}")
+    model = doc.get("model", ["joint_stiffness"])
+    if not isinstance(model, list) or not model or not all(isinstance(m, str) and m for m in model):
+        raise InputError(f"expected a list of effect names, got {model!r}", source=src, column="model")
+    torque = doc.get("torque", "current")
+    if torque not in TORQUES:
+        raise InputError(f"expected one of {', '.join(TORQUES)}, got {torque!r}", source=src, column="torque")
+    created = doc.get("created", "")
+    if not isinstance(created, str):
+        raise InputError(f"expected a date-time text, got {created!r}", source=src, column="created")
+    residual = doc.get("residual", {})
+    if not isinstance(residual, dict):
+        raise InputError(f"expected an object, got {residual!r}", source=src, column="residual")
+    data = doc.get("data", [])
+    if not isinstance(data, list) or not all(isinstance(d, dict) for d in data):
+        raise InputError("expected a list of objects with path and sha256", source=src, column="data")
+    return Calibration(robot=robot, created=created, model=tuple(model), torque=torque,
+                       parameters=params, residual=residual, data=tuple(data))

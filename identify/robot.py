@@ -19,6 +19,7 @@ come from Pinocchio.
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import pathlib
@@ -29,6 +30,7 @@ import numpy as np
 import pinocchio as pin
 
 from elastocal.errors import InputError
+from elastocal.textfiles import read_text_file
 from elastocal.identify.urdf import UrdfSource, dh_urdf, urdf_chain
 
 try:  # Python 3.11+
@@ -59,6 +61,34 @@ def _vec3(value, *, source: str, column: str) -> tuple[float, float, float]:
     if len(arr) != 3 or not all(math.isfinite(v) for v in arr):
         raise InputError(f"expected 3 finite numbers, got {value!r}", source=source, column=column)
     return arr  # type: ignore[return-value]
+
+
+#: the keys robot.toml knows (formats.md §1 plus elastocal's optional URDF keys)
+TOP_KEYS = ("name", "convention", "gravity", "urdf", "urdf_xml", "joint", "tool", "compensator")
+JOINT_KEYS = ("name", "a", "alpha", "d", "offset", "lower", "upper", "torque_constant", "mass", "com")
+TOOL_KEYS = ("load_point", "markers", "flange")
+COMPENSATOR_KEYS = {"hydropneumatic": ("kind", "joint", "a", "b", "h", "C", "l_c"),
+                    "spring": ("kind", "joint", "a", "L", "alpha", "K_c", "s0")}
+
+
+def _check_keys(table: Mapping, known: Sequence[str], *, source: str, where: str, what: str = "") -> None:
+    """Refuse keys of ``table`` not in ``known`` (a typo would silently become a default)."""
+    unknown = [str(k) for k in table if k not in known]
+    if not unknown:
+        return
+    hint = ""
+    close = difflib.get_close_matches(unknown[0], known, n=1)
+    if close:
+        hint = f" (did you mean {close[0]}?)"
+    keys = "key" if len(unknown) == 1 else "keys"
+    raise InputError(f"unknown {keys} {', '.join(unknown)}{hint}{what}; known keys: {', '.join(known)}",
+                     source=source, column=f"{where}.{unknown[0]}" if where else unknown[0])
+
+
+def _table(value, *, source: str, column: str) -> Mapping:
+    if not isinstance(value, Mapping):
+        raise InputError(f"expected a table, got {value!r}", source=source, column=column)
+    return value
 
 
 def _number(table: Mapping, key: str, *, source: str, where: str, default: float | None = None) -> float:
@@ -445,17 +475,24 @@ class Robot:
 def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Path | None = None) -> Robot:
     """Parse robot.toml text into a :class:`Robot`; errors name the key."""
     try:
-        doc = tomllib.loads(text)
+        doc = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source=source) from None
+    _check_keys(doc, TOP_KEYS, source=source, where="")
     name = doc.get("name", "robot")
+    if not isinstance(name, str) or not name:
+        raise InputError(f"expected the robot's name as text, got {name!r}", source=source, column="name")
     gravity = _vec3(doc.get("gravity", [0.0, 0.0, -9.81]), source=source, column="gravity")
     tables = doc.get("joint")
     if not isinstance(tables, list) or len(tables) != N_JOINTS:
         raise InputError(f"expected {N_JOINTS} [[joint]] tables", source=source, column="joint")
+    for i, t in enumerate(tables, start=1):
+        _check_keys(_table(t, source=source, column=f"joint[{i}]"), JOINT_KEYS, source=source,
+                    where=f"joint[{i}]")
     tool = doc.get("tool")
     if not isinstance(tool, dict):
         raise InputError("missing [tool] table", source=source, column="tool")
+    _check_keys(tool, TOOL_KEYS, source=source, where="tool")
     urdf = _urdf_source(doc, tool, source=source, base_dir=base_dir)
     if urdf is None:
         convention = doc.get("convention", "modified-dh")
@@ -523,12 +560,13 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
                              source=source, column=f"tool.markers.{mname}")
     comp = None
     if "compensator" in doc:
-        c = doc["compensator"]
+        c = _table(doc["compensator"], source=source, column="compensator")
         kind = c.get("kind")
         keys = ("a", "b", "h") if kind == "hydropneumatic" else ("a", "L", "alpha")
         if kind not in ("hydropneumatic", "spring"):
             raise InputError(f"kind must be 'hydropneumatic' or 'spring', got {kind!r}",
                              source=source, column="compensator.kind")
+        _check_keys(c, COMPENSATOR_KEYS[kind], source=source, where="compensator", what=f" for a {kind} compensator")
         geometry = tuple((k, _number(c, k, source=source, where="compensator")) for k in keys)
         params = HYDRO_PARAMS if kind == "hydropneumatic" else SPRING_PARAMS
         nominal = tuple((k, _number(c, k, source=source, where="compensator")) for k in params if k in c)
@@ -568,20 +606,14 @@ def _urdf_source(doc: Mapping, tool: Mapping, *, source: str, base_dir: pathlib.
     path = pathlib.Path(doc["urdf"])
     if not path.is_absolute() and base_dir is not None:
         path = base_dir / path
-    try:
-        xml = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"cannot read URDF {path}: {exc.strerror}", source=source, column="urdf") from None
+    xml = read_text_file(path, source=source, column="urdf", what=f"URDF {path}")
     return UrdfSource(xml=xml, path=str(path), flange=flange)
 
 
 def load_robot(path: str | pathlib.Path) -> Robot:
     """Read a robot.toml file."""
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", source=str(path)) from None
+    text = read_text_file(path)
     return parse_robot(text, source=str(path), base_dir=path.parent)
 
 

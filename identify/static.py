@@ -345,7 +345,6 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
     robot, ds = pr.robot, pr.ds
     if ds.sigma_tracker is None:
         return None
-    b_theta = bases[0]
     blocks = []
     sig_i = ds.sigma_current if (pr.torque == "current" and ds.sigma_current is not None) else None
     c = None

@@ -18,6 +18,7 @@ from typing import Iterable
 import numpy as np
 
 from elastocal.errors import InputError
+from elastocal.textfiles import read_text_file
 from elastocal.identify.robot import Robot
 
 Q_COLS = tuple(f"q{j}" for j in range(1, 7))
@@ -34,6 +35,16 @@ MAX_POSITION_M = 20.0
 MAX_SPEED_RAD_S = 10.0
 #: a current beyond this is not a motor current in amperes [A]
 MAX_CURRENT_A = 2000.0
+#: a time beyond this (317 years from its origin) is not seconds: milliseconds or nanoseconds of an epoch [s]
+MAX_TIME_S = 1e10
+#: a force or moment beyond this is not newtons or newton-metres [N, N·m]
+MAX_WRENCH = 1e6
+#: joint speeds checked against the motion of q over t (run tables): in each run, a joint that travels
+#: at least MIN_TRAVEL_RAD has the integral of its dq over t compared with its travel; a ratio outside
+#: SPEED_RATIO_OK is refused, as degrees per second when in DEGREE_RATIO (180/pi = 57.3)
+MIN_TRAVEL_RAD = 0.01
+SPEED_RATIO_OK = (1 / 3, 3.0)
+DEGREE_RATIO = (30.0, 120.0)
 DIRECTIONS = ("UV", "VU", "+", "-")
 
 
@@ -129,6 +140,15 @@ class _Rows:
         if not self.rows:
             raise InputError("the table has no rows", source=source)
 
+    def check_groups(self, groups: Iterable[tuple[tuple[str, ...], str]]) -> None:
+        """Columns that go together (a vector) are all in the header or none is."""
+        for cols, what in groups:
+            present = [c in self.index for c in cols]
+            if any(present) and not all(present):
+                missing = [c for c, p in zip(cols, present) if not p]
+                raise InputError(f"missing column(s) {', '.join(missing)}: {what} needs all of {','.join(cols)} "
+                                 "(or none of them)", source=self.source, row=1, column=missing[0])
+
     def text(self, lineno: int, row: list[str], col: str, *, required: bool = True) -> str:
         if col not in self.index:
             return ""
@@ -162,12 +182,7 @@ class _Rows:
 
 def _read_text(path: str | pathlib.Path) -> tuple[str, str]:
     path = pathlib.Path(path)
-    try:
-        return path.read_text(encoding="utf-8-sig"), str(path)
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", source=str(path)) from None
-    except UnicodeDecodeError:
-        raise InputError("not a UTF-8 text file", source=str(path)) from None
+    return read_text_file(path), str(path)
 
 
 def _check_joint_units(rows: _Rows, lineno: int, q: list[float], robot: Robot | None) -> None:
@@ -194,6 +209,20 @@ def _check_position_units(rows: _Rows, lineno: int, xyz: list[float]) -> None:
                              "positions are metres", source=rows.source, row=lineno, column=col)
 
 
+def _check_time(rows: _Rows, lineno: int, t: float) -> None:
+    if abs(t) > MAX_TIME_S:
+        raise InputError(f"{t:g} s is not a plausible time (more than {MAX_TIME_S:g} s from its origin); "
+                         "milliseconds or nanoseconds? times are seconds", source=rows.source, row=lineno, column="t")
+
+
+def _check_wrench(rows: _Rows, lineno: int, wrench: list[float]) -> None:
+    for col, value in zip(W_COLS, wrench):
+        if abs(value) > MAX_WRENCH:
+            unit = "N" if col.startswith("f") else "N*m"
+            raise InputError(f"{value:g} {unit} is not a plausible load; forces are N, moments N*m",
+                             source=rows.source, row=lineno, column=col)
+
+
 def _check_currents(rows: _Rows, lineno: int, currents: list[float]) -> None:
     for col, value in zip(I_COLS, currents):
         if abs(value) > MAX_CURRENT_A:
@@ -208,11 +237,15 @@ def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "
     for lineno, row in rows.rows:
         pose.append(rows.text(lineno, row, "pose"))
         load.append(rows.text(lineno, row, "load"))
-        t.append(rows.number(lineno, row, "t", required=False))
+        tv = rows.number(lineno, row, "t", required=False)
+        _check_time(rows, lineno, tv)
+        t.append(tv)
         qv = [rows.number(lineno, row, c) for c in Q_COLS]
         _check_joint_units(rows, lineno, qv, robot)
         q.append(qv)
-        w.append(rows.group(lineno, row, W_COLS, "the wrench"))
+        wv = rows.group(lineno, row, W_COLS, "the wrench")
+        _check_wrench(rows, lineno, wv)
+        w.append(wv)
         iv = rows.group(lineno, row, I_COLS, "the current vector")
         _check_currents(rows, lineno, [v for v in iv if not math.isnan(v)])
         cur.append(iv)
@@ -279,6 +312,8 @@ def read_static_table(path: str | pathlib.Path, robot: Robot | None = None) -> S
 def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<runs.csv>") -> RunTable:
     required = ("run", "direction", "load", "t") + Q_COLS
     rows = _Rows(text, source, required=required, known=RUN_COLUMNS)
+    rows.check_groups([(DQ_COLS, "the joint speed vector"), (I_COLS, "the current vector"), (W_COLS, "the wrench"),
+                       (("marker",) + XYZ_COLS, "a followed marker")])
     markers = set(robot.marker_names) if robot is not None else None
     run, direction, load, t, q, dq, cur, w, marker, xyz, line = ([] for _ in range(11))
     for lineno, row in rows.rows:
@@ -289,7 +324,9 @@ def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<ru
                              source=source, row=lineno, column="direction")
         direction.append(d)
         load.append(rows.text(lineno, row, "load"))
-        t.append(rows.number(lineno, row, "t"))
+        tv = rows.number(lineno, row, "t")
+        _check_time(rows, lineno, tv)
+        t.append(tv)
         qv = [rows.number(lineno, row, c) for c in Q_COLS]
         _check_joint_units(rows, lineno, qv, robot)
         q.append(qv)
@@ -302,7 +339,9 @@ def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<ru
         iv = rows.group(lineno, row, I_COLS, "the current vector")
         _check_currents(rows, lineno, [v for v in iv if not math.isnan(v)])
         cur.append(iv)
-        w.append(rows.group(lineno, row, W_COLS, "the wrench"))
+        wv = rows.group(lineno, row, W_COLS, "the wrench")
+        _check_wrench(rows, lineno, wv)
+        w.append(wv)
         m = rows.text(lineno, row, "marker", required=False)
         pv = rows.group(lineno, row, XYZ_COLS, "the marker position")
         if m and markers is not None and m not in markers:
@@ -332,7 +371,44 @@ def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<ru
         if back.size:
             raise InputError(f"run {r}: time goes backwards", source=source,
                              row=int(table.line[rr][back[0] + 1]), column="t")
+    _check_speeds_against_motion(table)
     return table
+
+
+def _check_speeds_against_motion(table: RunTable) -> None:
+    """Refuse joint speeds that disagree with the motion of q over t: dq in
+    degrees per second (180/pi times the motion), in rpm, with the opposite sign,
+    zero while the joint moves, or t not in seconds.
+
+    A run goes one way (formats.md §3), so for each run and joint whose dq
+    column is filled, the travel the speeds give, the integral of dq over t, is
+    compared with the travel of q, last minus first sample. Only a joint that
+    travels at least :data:`MIN_TRAVEL_RAD` is judged: a joint held still has
+    no travel to compare, and sample noise does not add up along a run."""
+    for r in dict.fromkeys(table.run):
+        idx = np.flatnonzero(table.run == r)
+        if len(idx) < 3:
+            continue
+        tt = table.t[idx]
+        for j, col in enumerate(DQ_COLS):
+            dq = table.dq[idx, j]
+            if not np.all(np.isfinite(dq)):
+                continue
+            travel = float(table.q[idx[-1], j] - table.q[idx[0], j])
+            if abs(travel) < MIN_TRAVEL_RAD:
+                continue
+            ratio = float(np.sum((dq[1:] + dq[:-1]) * np.diff(tt)) / 2.0) / travel
+            if SPEED_RATIO_OK[0] <= ratio <= SPEED_RATIO_OK[1]:
+                continue
+            what = (f"run {r}: the speeds {col} integrated over t give {ratio:.3g} times the travel of "
+                    f"q{j + 1} ({travel:.4g} rad)")
+            if DEGREE_RATIO[0] <= ratio <= DEGREE_RATIO[1]:
+                reason = f"{what}, near 180/pi = 57.3; degrees per second? speeds are rad/s"
+            elif ratio < 0:
+                reason = f"{what}: {col} has the opposite sign of the motion"
+            else:
+                reason = f"{what}; speeds are rad/s and times seconds"
+            raise InputError(reason, source=table.source, row=int(table.line[idx[0]]), column=col)
 
 
 def read_run_table(path: str | pathlib.Path, robot: Robot | None = None) -> RunTable:

@@ -27,6 +27,7 @@ from importlib import resources
 
 from elastocal.drivers.config import CellConfig, DeviceUrl, parse_cell_config
 from elastocal.errors import InputError
+from elastocal.textfiles import read_text_file
 from elastocal.sims.canbus import BusStats
 from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork
 from elastocal.sims.modbus_server import ModbusServerThread, PtyPair, SimCellController, SimModbusDrive
@@ -49,7 +50,7 @@ def example_cell_config(*, can_channel: str | None = None, **sim_overrides) -> C
     channel (so several simulated cells can run in one process) and
     ``sim_overrides`` replace fields of its ``[sim]`` section."""
     path = example_cell_path()
-    config = parse_cell_config(path.read_text(encoding="utf-8"), source=str(path), base_dir=path.parent)
+    config = parse_cell_config(read_text_file(path), source=str(path), base_dir=path.parent)
     if can_channel is not None:
         config = replace(config, drives=tuple(replace(d, url=d.url.with_path(can_channel)) if d.url.scheme == "canopen"
                                               else d for d in config.drives))

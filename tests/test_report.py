@@ -158,10 +158,10 @@ def test_report_command_writes_the_page(tmp_path, capsys):
     assert "thermal_drift" in page.text_by_id["verdict"] and page.svgs == 7
     # --add shows another candidate beside the model; an effect the data cannot show is refused
     rc = main(["report", "--robot", str(d / "robot.toml"), "--static", str(d / "static.csv"),
-               "--out", str(out), "--add", "backlash"])
+               "--out", str(out), "--add", "backlash", "--force"])
     assert rc == 0 and "model + backlash" in out.read_text(encoding="utf-8")
     capsys.readouterr()
     rc = main(["report", "--robot", str(d / "robot.toml"), "--static", str(d / "static.csv"),
-               "--out", str(out), "--add", "gravity"])
+               "--out", str(out), "--add", "gravity", "--force"])
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and "gravity cancels" in err

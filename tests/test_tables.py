@@ -161,7 +161,7 @@ def run_text():
     q = np.tile([0.1, 0.2, -0.3, 0.0, 0.8, 0.0], (n, 1))
     q[:, 1] = np.linspace(0.1, 0.3, n)
     dq = np.zeros((n, 6))
-    dq[:, 1] = 0.02
+    dq[:, 1] = 0.4                  # q2 moves 0.04 rad per 0.1 s
     t = run_table_from_arrays(run=["1"] * 3 + ["2"] * 3, direction=["UV"] * 3 + ["VU"] * 3, load=["0"] * n,
                               t=[0.0, 0.1, 0.2, 0.0, 0.1, 0.2], q=q, dq=dq, currents=np.ones((n, 6)),
                               marker=["R1"] * n, xyz=np.tile([1.0, 0.0, 1.5], (n, 1)))
@@ -172,7 +172,7 @@ def test_run_table_round_trips():
     table = parse_run_table(run_text(), ROBOT, source="runs.csv")
     assert list(table.direction) == ["UV"] * 3 + ["VU"] * 3
     assert np.all(np.isnan(table.wrench))
-    np.testing.assert_allclose(table.dq[:, 1], 0.02)
+    np.testing.assert_allclose(table.dq[:, 1], 0.4)
 
 
 def run_edit(line, column, value):

@@ -17,6 +17,7 @@ class Inputs:
     static: StaticTable | None
     runs: RunTable | None
     files: tuple[pathlib.Path, ...]
+    log: pathlib.Path | None = None
 
 
 def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = True) -> None:
@@ -34,18 +35,38 @@ def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = 
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
+def input_paths(args: argparse.Namespace) -> list[tuple[str | None, str]]:
+    """The input files of the shared flags, with the flag naming each (outputs must differ)."""
+    return [(getattr(args, "log", None), "the log"), (getattr(args, "robot", None), "--robot"),
+            (getattr(args, "static", None), "--static"), (getattr(args, "runs", None), "--runs")]
+
+
+def load_log_noted(path: str | pathlib.Path):
+    """(robot, static table or None, run table or None) of a log, like
+    ``acquisition.export.load_log``, printing one note on stderr when the log
+    ends without its MCAP summary (a killed recorder): what was read is then
+    only what came before its last complete chunk."""
+    from elastocal.acquisition.export import read_log, robot_from_log, run_table_from_log, static_table_from_log
+    from elastocal.commands._outputs import log_note, note
+
+    contents = read_log(path)
+    robot = robot_from_log(contents)
+    static = static_table_from_log(contents, robot)
+    runs = run_table_from_log(contents)
+    text = log_note(str(path), contents)
+    if text:
+        note(text)
+    return robot, static, runs
+
+
 def load_inputs(args: argparse.Namespace) -> Inputs:
     if args.log:
         if args.static or args.runs:
             raise InputError("give either a log or --static/--runs tables, not both", source=args.log)
-        try:
-            from elastocal.acquisition.export import load_log
-        except ImportError:
-            raise InputError("reading logs needs elastocal.acquisition.export", source=args.log) from None
-        robot, static, runs = load_log(args.log)
+        robot, static, runs = load_log_noted(args.log)
         if args.robot:
             robot = load_robot(args.robot)
-        return Inputs(robot, static, runs, (pathlib.Path(args.log),))
+        return Inputs(robot, static, runs, (pathlib.Path(args.log),), pathlib.Path(args.log))
     if not args.robot:
         raise InputError("missing --robot robot.toml (or give a log)", source="--robot")
     if not args.static and not args.runs:

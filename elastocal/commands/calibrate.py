@@ -51,6 +51,11 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.acquisition.ui import AutoUI, TerminalUI
     from elastocal.drivers.config import load_cell_config
 
+    from elastocal.commands._outputs import Outputs
+
+    # the folder and the name; an existing log is refused by the procedure unless --force
+    Outputs(force=True, inputs=[(args.cell, "--cell"), (args.plan, "--plan"), (args.resume, "--resume")]
+            ).add(args.out, "--out")
     config = load_cell_config(args.cell)
     plan = resolve_plan(args.plan, config, args.resume)
     procedures = None

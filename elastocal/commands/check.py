@@ -33,6 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     proc.add_argument("--plan", help="plan.toml with a [check] section (default: the plan stored with the "
                                      "current calibration, else `plan` in [cell] of cell.toml)")
     proc.add_argument("--out", help="the check's MCAP log (default: checks/check-<time>.mcap beside the history)")
+    proc.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     proc.add_argument("--sim", action="store_true", help="serve the cell's simulated devices in this process")
     proc.add_argument("--yes", action="store_true", help="answer every prompt automatically (simulated devices only)")
     test = parser.add_argument_group("the test")
@@ -98,7 +99,8 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
         raise InputError("--yes answers the prompts of simulated devices only; add --sim, or let a person answer",
                          source="--yes")
     ui = AutoUI(sys.stderr, quiet=args.json) if args.yes else TerminalUI(sys.stderr)
-    outcome = run_calibration(config, plan, out, yes=args.yes, ui=ui, procedures=("check",), simulate=args.sim)
+    outcome = run_calibration(config, plan, out, yes=args.yes, ui=ui, procedures=("check",), simulate=args.sim,
+                              overwrite=args.force)
     if outcome.status != "completed":
         raise InputError(f"the check procedure did not complete ({outcome.status}: {outcome.message})",
                          source=str(out))
@@ -114,6 +116,11 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.identify.tables import read_run_table, read_static_table
 
     now_ns = time.time_ns()
+    if args.out:  # the folder and the name; an existing log is refused by the procedure (as calibrate's)
+        from elastocal.commands._outputs import Outputs
+
+        Outputs(force=True, inputs=[(args.cell, "--cell"), (args.plan, "--plan"), (args.calibration,
+                                    "--calibration")]).add(args.out, "--out")
     config = load_cell_config(args.cell)
     robot = config.load_robot()
     db = pathlib.Path(args.history) if args.history else config.history
@@ -132,11 +139,13 @@ def run(args: argparse.Namespace) -> int:
         runs = read_run_table(args.runs, robot) if args.runs else None
         data_path = pathlib.Path(args.static or args.runs)
     else:
-        from elastocal.acquisition.export import load_log
+        from elastocal.commands._inputs import load_log_noted
 
         log_path = pathlib.Path(args.log) if args.log else _run_procedure(args, config, plan_text, db, now_ns)
-        _, static, runs = load_log(log_path)
+        _, static, runs = load_log_noted(log_path)
         data_path = log_path
+        if static is None and runs is None:
+            raise InputError("nothing to check: the log holds neither static poses nor runs", source=str(log_path))
     result = check_calibration(robot, cal, static=static, runs=runs, alpha=args.alpha,
                                friction_tolerance=args.friction_tolerance)
     obj = clean(result.to_json())

@@ -28,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--validate", action="store_true",
                         help="run the planned and compensated paths on the simulated cell (default truth) and "
                              "report the tool-point errors")
+    parser.add_argument("--force", action="store_true", help="overwrite --out, --krl and --rapid if they exist")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -50,12 +51,22 @@ def _stats(d: np.ndarray) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from elastocal.compensation.files import read_path, write_compensated_csv, write_krl, write_rapid
+    from elastocal.compensation.files import (_program_name, format_krl, format_rapid, read_path,
+                                             write_compensated_csv)
     from elastocal.compensation.model import CompensationModel
     from elastocal.compensation.trajectory import compensate_path, predicted_residual
     from elastocal.identify.calibration import read_calibration
+    from elastocal.commands._outputs import Outputs
     from elastocal.identify.robot import load_robot
 
+    outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot"), (args.calibration, "--calibration"),
+                                                (args.path, "--path")])
+    outputs.add(args.out, "--out")
+    if args.krl:
+        outputs.add(args.krl, "--krl")
+    if args.rapid:
+        outputs.add(args.rapid, "--rapid")
+    fixed = _parse_wrench(args.wrench) if args.wrench is not None else None
     robot = load_robot(args.robot)
     cal = read_calibration(args.calibration)
     model = CompensationModel.from_calibration(robot, cal, source=args.calibration)
@@ -66,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     if args.wrench is None and planned.wrench is None:
         raise InputError("no process wrench: add fx..mz columns to the path or give --wrench "
                          "(0,0,0,0,0,0 for none)", source=args.path)
-    wrench = planned.wrench if planned.wrench is not None else np.tile(_parse_wrench(args.wrench), (len(planned), 1))
+    wrench = planned.wrench if planned.wrench is not None else np.tile(fixed, (len(planned), 1))
     result = compensate_path(model, planned.q, wrench, form=args.form, reference=args.reference)
     outside = (result.q_command < robot.lower) | (result.q_command > robot.upper)
     if np.any(outside):
@@ -74,11 +85,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"the compensated q{j + 1} = {result.q_command[i, j]:.5f} rad leaves the joint limits",
                          source=args.path, row=i + 2, column=f"q{j + 1}")
     residual = predicted_residual(model, result)
-    write_compensated_csv(args.out, planned.t, result)
-    if args.krl:
-        write_krl(args.krl, planned.t, result)
-    if args.rapid:
-        write_rapid(args.rapid, planned.t, result)
+    with outputs:
+        write_compensated_csv(outputs.temp(args.out), planned.t, result)
+        # the program's name comes from the file's name: format here, write the text to the temporary file
+        if args.krl:
+            outputs.temp(args.krl).write_text(format_krl(_program_name(args.krl, 24), planned.t, result),
+                                              encoding="utf-8")
+        if args.rapid:
+            outputs.temp(args.rapid).write_text(format_rapid(_program_name(args.rapid, 32), planned.t, result),
+                                                encoding="utf-8")
     obj = {"n": len(result), "form": result.form, "reference": result.reference, "out": args.out,
            "deflection": _stats(result.tcp_deflection), "residual": _stats(residual),
            "dtheta_max": {f"q{j + 1}": float(v) for j, v in enumerate(np.max(np.abs(result.dtheta), axis=0))},

@@ -33,7 +33,8 @@ DEMO_DRIVE_RATE_HZ = 200.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=1, help="random seed of the simulated cell (default 1)")
-    parser.add_argument("--out", help="directory for the files the demo writes (default: a temporary one)")
+    parser.add_argument("--out", help="directory for the files the demo writes (default: a temporary one); "
+                                      "a second run into it replaces the files of the first")
     parser.add_argument("--hidden", default="link_compliance",
                         help="effect the simulated cell hides from the default model: none, link_compliance, "
                              "thermal_drift, backlash (default link_compliance)")
@@ -78,8 +79,20 @@ def run(args: argparse.Namespace) -> int:
                          source="--hidden")
     if args.poses < 4:
         raise InputError("at least 4 poses", source="--poses")
-    out = pathlib.Path(args.out) if args.out else pathlib.Path(tempfile.mkdtemp(prefix="elastocal-demo-"))
-    out.mkdir(parents=True, exist_ok=True)
+    if args.seed < 0:
+        raise InputError(f"must be >= 0, got {args.seed}", source="--seed")
+    # the demo's folder is its own: a second run into it replaces the files of the first
+    # (cell.toml, plan.toml, calibration.mcap, report.html, cal.json, compensated.*, demo.json)
+    if args.out:
+        from elastocal.commands._outputs import check_folder
+
+        out = check_folder(args.out, "--out")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"cannot create: {exc.strerror}", source=str(out)) from None
+    else:
+        out = pathlib.Path(tempfile.mkdtemp(prefix="elastocal-demo-"))
     say = _Say()
 
     # 1. the simulated cell

@@ -37,6 +37,9 @@ def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str):
             stiffness = stiffness if len(stiffness) == 6 else None
         runs = diagnose_runs(inputs.robot, inputs.runs, model=model, stiffness=stiffness)
     if static is None and runs is None:
+        if inputs.log is not None:
+            raise InputError("nothing to diagnose: the log holds neither a static experiment nor runs",
+                             source=str(inputs.log))
         raise InputError("nothing to diagnose: give a static table and/or runs", source="--static")
     return static, runs
 

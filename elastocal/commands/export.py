@@ -4,32 +4,72 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
+
+#: every file an export can write, in the order it writes them
+EXPORT_FILES = ("robot.toml", "cell.toml", "plan.toml", "static.csv", "runs.csv")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", help="an MCAP log written by `elastocal calibrate`")
     parser.add_argument("--out", required=True, help="folder for robot.toml, static.csv, runs.csv "
                                                      "(and the recorded cell.toml and plan.toml)")
+    parser.add_argument("--force", action="store_true",
+                        help="overwrite the files of an earlier export in --out, and remove those this log "
+                             "does not have (e.g. a static.csv when the log holds runs only)")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
 def run(args: argparse.Namespace) -> int:
-    from elastocal.acquisition.export import export_log
+    from elastocal.acquisition.export import read_log, robot_from_log, run_table_from_log, static_table_from_log
+    from elastocal.commands._outputs import Outputs, check_folder, log_note, note
+    from elastocal.identify.tables import write_run_table, write_static_table
 
-    result = export_log(args.log, args.out)
+    out = check_folder(args.out, "--out")
+    contents = read_log(args.log)
+    robot = robot_from_log(contents)
+    static = static_table_from_log(contents, robot)
+    runs = run_table_from_log(contents)
+    texts = {"robot.toml": contents.robot.text,
+             "cell.toml": None if contents.cell is None else contents.cell.text,
+             "plan.toml": None if contents.plan is None else contents.plan.text}
+    writes = {name: (texts.get(name) if name in texts else (static if name == "static.csv" else runs))
+              for name in EXPORT_FILES}
+    outputs = Outputs(force=args.force, inputs=[(args.log, "the log")])
+    for name, what in writes.items():
+        if what is not None:
+            outputs.add(out / name, "--out", in_folder=True)
+        else:
+            outputs.stale(out / name, "--out", f"not in {args.log}, so this export would leave it from another log")
+    outputs.make_folder(out)
+    files = []
+    with outputs:
+        for name, what in writes.items():
+            if what is None:
+                continue
+            tmp = outputs.temp(out / name)
+            if name == "static.csv":
+                write_static_table(tmp, what)
+            elif name == "runs.csv":
+                write_run_table(tmp, what)
+            else:
+                tmp.write_text(what, encoding="utf-8")
+            files.append(str(out / name))
+    removed = [str(p) for p in outputs.remove]
+    static_rows = 0 if static is None else len(static)
+    run_rows = 0 if runs is None else len(runs)
     if args.json:
-        print(json.dumps({"files": list(result.files), "static_rows": result.static_rows,
-                          "run_rows": result.run_rows, "complete": result.complete,
-                          "truncated": result.truncated, "incomplete_steps": list(result.incomplete_steps)}))
-        return 0
-    for path in result.files:
-        print(f"wrote {path}")
-    print(f"{result.static_rows} static rows, {result.run_rows} run rows")
-    if not result.complete:
-        print(f"note: {args.log} ends without its MCAP summary (the recorder was killed or is still "
-              f"writing); everything up to its last complete chunk was read", file=sys.stderr)
-    if result.incomplete_steps:
-        print(f"note: step(s) {', '.join(result.incomplete_steps)} did not finish and were left out",
-              file=sys.stderr)
+        print(json.dumps({"files": files, "static_rows": static_rows, "run_rows": run_rows,
+                          "complete": contents.complete, "truncated": contents.truncated,
+                          "incomplete_steps": list(contents.incomplete_steps), "removed": removed}))
+    else:
+        for path in files:
+            print(f"wrote {path}")
+        for path in removed:
+            print(f"removed {path} (not in this log)")
+        print(f"{static_rows} static rows, {run_rows} run rows")
+    text = log_note(args.log, contents)
+    if text:
+        note(text)
+    if contents.incomplete_steps:
+        note(f"note: step(s) {', '.join(contents.incomplete_steps)} did not finish and were left out")
     return 0

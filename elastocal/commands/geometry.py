@@ -45,6 +45,16 @@ def run(args: argparse.Namespace) -> int:
     if not cylinder:
         raise InputError("give at least one cylinder marker", source="--cylinder")
     table = read_run_table(args.runs)
+    pivot_rows = table.marker == args.pivot.strip()
+    if pivot_rows.any():
+        import numpy as np
+
+        angles = table.q[pivot_rows, args.joint - 1]
+        distinct = len(np.unique(np.round(angles[np.isfinite(angles)], 9)))
+        if distinct < 3:
+            raise InputError(f"q{args.joint} takes {distinct} distinct value(s) where marker {args.pivot.strip()} "
+                             f"is read; the arc fit needs the swept joint at 3 or more angles: is joint "
+                             f"{args.joint} the one the sweep turns?", source="--joint")
     geo = geometry_from_run_table(table, pivot=args.pivot.strip(), cylinder=cylinder, joint=args.joint)
     obj = geometry_json(geo)
     if args.json:

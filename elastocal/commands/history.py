@@ -56,29 +56,36 @@ def _add(args: argparse.Namespace, db: pathlib.Path) -> int:
     if not args.calibration:
         raise InputError("history add needs --calibration cal.json", source="--calibration")
     cal = read_calibration(args.calibration)
+    if args.cell and cal.robot:
+        from elastocal.drivers.config import load_cell_config
+
+        robot = load_cell_config(args.cell).load_robot()
+        if cal.robot != robot.name:
+            raise InputError(f"the calibration is for {cal.robot!r}, the cell's robot is {robot.name!r}",
+                             source=args.calibration)
     log_sha = log_path = plan_text = None
     if args.log:
+        from elastocal.acquisition.export import read_log
+        from elastocal.commands._outputs import log_note, note
+
         log_path = str(pathlib.Path(args.log).resolve())
         if not pathlib.Path(args.log).is_file():
             raise InputError("cannot read: no such log", source=args.log)
+        contents = read_log(args.log)
         log_sha = file_sha256(args.log)
         if not args.plan:
-            from elastocal.acquisition.export import read_log
-
-            contents = read_log(args.log)
             plan_text = contents.plan.text if contents.plan is not None else None
+        text = log_note(args.log, contents)
+        if text:
+            note(text)
     else:
         logs = [d for d in cal.data if str(d.get("path", "")).endswith(".mcap")] or list(cal.data)
         if logs:
             log_sha, log_path = logs[0].get("sha256"), logs[0].get("path")
     if args.plan:
-        try:
-            plan_text = pathlib.Path(args.plan).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise InputError(f"cannot read: {exc.strerror}", source=args.plan) from None
-        from elastocal.acquisition.plan import parse_plan
+        from elastocal.acquisition.plan import load_plan
 
-        parse_plan(plan_text, source=args.plan)
+        plan_text = load_plan(args.plan).text
     with History(db) as h:
         rid = h.add_calibration(cal, time_ns=time.time_ns(), log_sha256=log_sha, log_path=log_path, plan=plan_text)
     if args.json:
@@ -116,14 +123,22 @@ def _summary(drift) -> dict:
 
 def _show(args: argparse.Namespace, db: pathlib.Path) -> int:
     from elastocal.acquisition.history import History, plot_drift
+    from elastocal.commands._outputs import Outputs
 
+    # the drift plot is redrawn on every call: an existing plot is replaced (it must not be an input)
+    outputs = Outputs(force=True, inputs=[(db, "the history database"), (args.cell, "--cell")])
+    if args.plot:
+        if pathlib.Path(args.plot).suffix.lower() not in (".png", ".svg"):
+            raise InputError("the drift plot is written as .png or .svg", source="--plot")
+        outputs.add(args.plot, "--plot")
     with History(db, create=False) as h:
         cals = h.calibrations()
         checks = h.checks()
         drift = h.drift()
     summary = _summary(drift)
     if args.plot:
-        plot_drift(drift, args.plot)
+        with outputs:
+            plot_drift(drift, outputs.temp(args.plot))
     if args.json:
         obj = {"db": str(db),
                "calibrations": [{"id": r.id, "time": r.time, "created": r.created, "robot": r.robot,

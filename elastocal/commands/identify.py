@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from elastocal.commands._inputs import add_input_arguments, load_inputs
+from elastocal.commands._inputs import add_input_arguments, input_paths, load_inputs
+from elastocal.commands._outputs import Outputs
 from elastocal.commands._format import format_fit
 from elastocal.errors import InputError
 from elastocal.identify.calibration import calibration_from_fit, write_calibration
@@ -15,6 +16,7 @@ from elastocal.identify.effects import parse_model
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser)
     parser.add_argument("--out", help="write the calibration JSON (formats.md §4) here")
+    parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 
 
 def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str) -> tuple[dict, object | None]:
@@ -45,13 +47,17 @@ def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str) -> t
 
 
 def run(args: argparse.Namespace) -> int:
-    inputs = load_inputs(args)
+    outputs = Outputs(force=args.force, inputs=input_paths(args))
+    if args.out:
+        outputs.add(args.out, "--out")
     model = parse_model(args.model)
+    inputs = load_inputs(args)
     if inputs.static is None and inputs.runs is None:
         raise InputError("the log holds neither a static experiment nor runs", source=args.log or "--static")
     obj, fit = identify_inputs(inputs, model, args.torque, args.form)
     if args.out:
-        write_calibration(args.out, calibration_from_fit(inputs.robot.name, obj, inputs.files))
+        with outputs:
+            write_calibration(outputs.temp(args.out), calibration_from_fit(inputs.robot.name, obj, inputs.files))
     if args.json:
         print(json.dumps(obj))
     else:

@@ -66,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     out.add_argument("--map-grid", type=int, default=25, help="grid points per axis of the map (default 25)")
     out.add_argument("--map-load", metavar="FX,FY,FZ[,MX,MY,MZ]",
                      help="load of the map (default: F_max split equally over +x, +y, -z)")
-    out.add_argument("--force", action="store_true", help="overwrite --out")
+    out.add_argument("--force", action="store_true", help="overwrite --out and --map if they exist")
     out.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
@@ -115,7 +115,7 @@ def _prior(args: argparse.Namespace) -> tuple[tuple[float, ...], str]:
     return k, where
 
 
-def _friction(args: argparse.Namespace):
+def _friction(args: argparse.Namespace, robot=None):
     from elastocal.acquisition.plan import FrictionSpec
 
     if not args.friction_path:
@@ -125,6 +125,15 @@ def _friction(args: argparse.Namespace):
         raise InputError("expected U;V: six joint values, ';', six joint values", source="--friction-path")
     u = numbers(halves[0], (6,), "--friction-path")
     v = numbers(halves[1], (6,), "--friction-path")
+    if robot is not None:
+        for half, values in (("U", u), ("V", v)):
+            for j, (x, lo, hi) in enumerate(zip(values, robot.lower, robot.upper), start=1):
+                if not lo <= x <= hi:
+                    raise InputError(f"{half}: q{j} = {x} rad is outside the joint limits [{lo:.4g}, {hi:.4g}]"
+                                     + ("; degrees? angles are radians" if abs(x) > 2 * math.pi else ""),
+                                     source="--friction-path")
+    if u == v:
+        raise InputError("U and V are the same pose; the path must move", source="--friction-path")
     speeds = numbers(args.friction_speeds, tuple(range(1, 9)), "--friction-speeds")
     if not all(s > 0 for s in speeds):
         raise InputError("speeds must be > 0", source="--friction-speeds")
@@ -154,10 +163,23 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.identify import design as dz
     from elastocal.identify.robot import load_robot
 
+    from elastocal.commands._outputs import Outputs
+
     started = time.monotonic()
-    out = pathlib.Path(args.out)
-    if out.exists() and not args.force:
-        raise InputError("already exists; add --force to overwrite", source=str(out))
+    outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot"), (args.cell, "--cell"),
+                                                (args.calibration, "--calibration")])
+    out = outputs.add(args.out, "--out")
+    if args.map:
+        if pathlib.Path(args.map).suffix.lower() not in (".png", ".svg"):
+            raise InputError("the map is written as .png or .svg", source="--map")
+        outputs.add(args.map, "--map")
+    if args.f_max is not None and not (math.isfinite(args.f_max) and args.f_max > 0):
+        raise InputError(f"must be > 0, got {args.f_max}", source="--f-max")
+    for flag in ("poses", "loads_per_pose", "candidates", "repeats", "check_poses", "map_grid"):
+        if getattr(args, flag) < 1:
+            raise InputError(f"must be at least 1, got {getattr(args, flag)}", source="--" + flag.replace("_", "-"))
+    if args.seed < 0:
+        raise InputError(f"must be >= 0, got {args.seed}", source="--seed")
     cell = None
     if args.cell:
         from elastocal.drivers.config import load_cell_config
@@ -186,7 +208,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"q{j} = {v} rad is outside the joint limits [{lo:.4g}, {hi:.4g}]", source="--test-pose")
     f_max = args.f_max if args.f_max is not None else float(np.linalg.norm(test.wrench[:3]))
     if f_max <= 0:
-        raise InputError("the process load has no force: give --f-max", source="--f-max")
+        raise InputError("the process load has no force, so the largest load force is unknown: give --f-max",
+                         source="--load")
     tracker = numbers(args.tracker_position, (3,), "--tracker-position") if args.tracker_position else None
     if tracker is None and cell is not None and cell.tracker is not None and cell.tracker.base_p_tracker is not None:
         tracker = np.array(cell.tracker.base_p_tracker)
@@ -196,9 +219,7 @@ def run(args: argparse.Namespace) -> int:
     noise = dz.NoiseModel(tracker_m=args.tracker_noise, current_a=args.current_noise if args.torque == "current"
                           else 0.0, repeats=args.repeats)
     prior, prior_source = _prior(args)
-    friction = _friction(args)
-    if args.map and pathlib.Path(args.map).suffix.lower() not in (".png", ".svg"):
-        raise InputError("the map is written as .png or .svg", source="--map")
+    friction = _friction(args, robot)
     rng = np.random.default_rng(args.seed)
     candidates = dz.sample_candidates(robot, args.candidates, rng, workspace, markers)
     t_plan = time.monotonic()
@@ -218,16 +239,24 @@ def run(args: argparse.Namespace) -> int:
     text = plan_toml(poses=dict(zip(pose_ids, (tuple(float(v) for v in q) for q in design.q))), loads=loads,
                      markers=markers, name=args.name, repeats=args.repeats, friction=friction, check=check_spec,
                      procedures=("static", "friction") if friction else ("static",))
-    plan = parse_plan(text, source=str(out))
-    plan.validate_for(robot)
+    try:
+        plan = parse_plan(text, source=str(out))
+        plan.validate_for(robot)
+    except InputError as exc:
+        # the text is made here from the flags: name the flag the bad value came from
+        if exc.column and exc.column.startswith("friction"):
+            raise InputError(exc.detail, source="--friction-path") from None
+        raise
     fmap = None
     if args.map:
         map_load = (_wrench(args.map_load, "--map-load") if args.map_load
                     else tuple(f_max / math.sqrt(3.0) * np.array([1.0, 1.0, -1.0])) + (0.0, 0.0, 0.0))
         fmap = dz.first_order_map(robot, q_base=test.q, wrench=map_load, stiffness=prior, markers=markers,
                                   torque=args.torque, n_grid=args.map_grid)
-        dz.plot_first_order_map(fmap, args.map, test_q=test.q, poses=design.q)
-    out.write_text(text, encoding="utf-8")
+    with outputs:
+        if fmap is not None:
+            dz.plot_first_order_map(fmap, outputs.temp(args.map), test_q=test.q, poses=design.q)
+        outputs.temp(out).write_text(text, encoding="utf-8")
     q = design.quality
     names = [f"k{j}" for j in range(1, 7)]
     obj = {

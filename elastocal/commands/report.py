@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import pathlib
 
-from elastocal.commands._inputs import add_input_arguments, load_inputs
+from elastocal.commands._inputs import add_input_arguments, input_paths, load_inputs
+from elastocal.commands._outputs import Outputs
 from elastocal.commands.diagnose import diagnose_inputs, identify_command
 from elastocal.errors import InputError
 from elastocal.identify.effects import get_effect, parse_model
@@ -15,16 +15,22 @@ from elastocal.identify.effects import get_effect, parse_model
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser)
     parser.add_argument("--out", required=True, help="HTML file to write")
+    parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     parser.add_argument("--add", help="effect to show beside the model (default: the diagnosis' verdict)")
 
 
 def run(args: argparse.Namespace) -> int:
-    inputs = load_inputs(args)
+    outputs = Outputs(force=args.force, inputs=input_paths(args))
+    out = outputs.add(args.out, "--out")
     model = parse_model(args.model)
     if args.add is not None:
-        get_effect(args.add)
+        try:
+            get_effect(args.add)
+        except InputError as exc:
+            raise InputError(exc.detail, source="--add") from None
         if args.add in model:
             raise InputError(f"{args.add} is already in the model", source="--add")
+    inputs = load_inputs(args)
     static, runs = diagnose_inputs(inputs, model, args.torque, args.form)
     from elastocal.identify.report import render_report
 
@@ -37,11 +43,8 @@ def run(args: argparse.Namespace) -> int:
     names = ([args.robot] if args.robot else []) + [str(f) for f in inputs.files]
     page = render_report(inputs.robot, static, runs, add=add, inputs=names,
                          command=command)
-    out = pathlib.Path(args.out)
-    try:
-        out.write_text(page, encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"cannot write: {exc.strerror}", source=str(out)) from None
+    with outputs:
+        outputs.temp(out).write_text(page, encoding="utf-8")
     verdict = static.verdict if static is not None else (runs.verdict if runs is not None else None)
     if args.json:
         print(json.dumps({"out": str(out), "verdict": verdict, "bytes": len(page.encode("utf-8"))}))

@@ -100,6 +100,23 @@ def _systemd_quote(arg: str) -> str:
     return arg
 
 
+def parse_check_args(cell: pathlib.Path, extra: list[str]) -> argparse.Namespace:
+    """``elastocal check --cell CELL EXTRA...`` parsed by the check command's own
+    parser, so that a scheduled check fails now rather than at every run."""
+    from elastocal.commands import check
+
+    class _Raising(argparse.ArgumentParser):
+        def error(self, message: str) -> None:  # one line naming the flag, not argparse's usage and exit
+            raise InputError(f"`elastocal check` would refuse them: {message}", source="--check-args")
+
+    parser = _Raising(prog="elastocal check", add_help=False)
+    check.add_arguments(parser)
+    try:
+        return parser.parse_args(["--cell", str(cell), *extra])
+    except SystemExit:  # --help and the like
+        raise InputError("not arguments a scheduled check can run with", source="--check-args") from None
+
+
 def check_command(python: str, cell: pathlib.Path, extra: list[str]) -> list[str]:
     return [python, "-m", "elastocal", "check", "--cell", str(cell), *extra]
 
@@ -160,8 +177,14 @@ def run(args: argparse.Namespace) -> int:
         extra = shlex.split(args.check_args)
     except ValueError as exc:
         raise InputError(f"cannot split: {exc}", source="--check-args") from None
-    if "--cell" in extra:
+    if "--cell" in extra or any(a.startswith("--cell=") for a in extra):
         raise InputError("--cell is given by `schedule --cell`", source="--check-args")
+    check_args = parse_check_args(cell_path, extra)
+    db = pathlib.Path(check_args.history) if check_args.history else config.history
+    if not check_args.calibration and db is None:
+        raise InputError(f"the scheduled check would have no calibration to check: {args.cell} names no history "
+                         "(`history = \"history.sqlite\"` in its [cell] table) and the arguments give no "
+                         "--calibration", source="--check-args")
     command = check_command(sys.executable, cell_path, extra)
     if args.crontab:
         line = f"{crontab_schedule(every, at, args.on)} cd {shlex.quote(str(cell_path.parent))} && " \
@@ -177,7 +200,8 @@ def run(args: argparse.Namespace) -> int:
     timer = unit_dir / f"{args.name}.timer"
     for path in (service, timer):
         if path.exists() and not args.force:
-            raise InputError("already exists; add --force to overwrite", source=str(path))
+            raise InputError("already exists; choose another --name or --unit-dir, or --force to overwrite it",
+                             source=str(path))
     calendar = on_calendar(every, at, args.on)
     try:
         unit_dir.mkdir(parents=True, exist_ok=True)

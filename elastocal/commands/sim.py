@@ -22,6 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
         p.add_argument("--out", required=True, help="output directory")
         p.add_argument("--robot", help="robot.toml to simulate (default: the bundled HH-150)")
+        p.add_argument("--force", action="store_true", help="overwrite the files of an earlier dataset in --out")
         p.add_argument("--json", action="store_true", help="print the written files as one JSON object")
         if name == "static":
             p.add_argument("--poses", type=int, default=12, help="number of poses (default 12)")
@@ -109,57 +110,68 @@ def _robot(args):
 def run(args: argparse.Namespace) -> int:
     if args.sim_command == "serve":
         return _serve(args)
+    from elastocal.commands._outputs import Outputs, check_folder
     from elastocal.sims.cell import HIDDEN_EFFECTS, CellTruth
+    from elastocal.sims.runs import RUN_HIDDEN
 
-    out = pathlib.Path(args.out)
-    robot = _robot(args)
-    out.mkdir(parents=True, exist_ok=True)
-    written = {"robot": str(out / "robot.toml")}
-    (out / "robot.toml").write_text(robot.to_toml(), encoding="utf-8")
-    if args.sim_command == "static":
-        if args.hidden not in HIDDEN_EFFECTS:
-            raise InputError(f"the simulator cannot hide {args.hidden!r} in static data; one of "
-                             f"{', '.join(HIDDEN_EFFECTS)}", source="--hidden")
+    # everything is checked before anything is written
+    static = args.sim_command == "static"
+    hidden = HIDDEN_EFFECTS if static else RUN_HIDDEN
+    if args.hidden not in hidden:
+        raise InputError(f"the simulator cannot hide {args.hidden!r} in {'static' if static else 'run'} data; "
+                         f"one of {', '.join(hidden)}", source="--hidden")
+    if args.seed < 0:
+        raise InputError(f"must be >= 0, got {args.seed}", source="--seed")
+    if static:
         for flag in ("poses", "loads", "repeats"):
             if getattr(args, flag) < 1:
-                raise InputError("must be at least 1", source=f"--{flag}")
+                raise InputError(f"must be at least 1, got {getattr(args, flag)}", source=f"--{flag}")
+    out = check_folder(args.out, "--out")
+    outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot")])
+    table_name = "static.csv" if static else "runs.csv"
+    for name in ("robot.toml", table_name, "log.mcap", "truth.json"):
+        outputs.add(out / name, "--out", in_folder=True)
+    robot = _robot(args)
+
+    from elastocal.acquisition.export import write_log_from_tables
+
+    written = {"robot": str(out / "robot.toml")}
+    if static:
         from elastocal.identify.tables import write_static_table
         from elastocal.sims.static import StaticPlan, simulate_static
 
         truth = CellTruth().with_hidden(args.hidden)
         plan = StaticPlan(n_poses=args.poses, n_loads=args.loads, repeats=args.repeats)
         table = simulate_static(robot, truth, seed=args.seed, plan=plan)
-        write_static_table(out / "static.csv", table)
-        written["static"] = str(out / "static.csv")
         params = truth.parameters(robot)
-        from elastocal.acquisition.export import write_log_from_tables
-
-        write_log_from_tables(out / "log.mcap", robot, static=table)
-        written["log"] = str(out / "log.mcap")
     else:
         from elastocal.identify.tables import read_run_table
-        from elastocal.sims.runs import RUN_HIDDEN, hide_in_runs, simulate_run_dataset
+        from elastocal.sims.runs import hide_in_runs, simulate_runs, write_runs_csv
 
-        if args.hidden not in RUN_HIDDEN:
-            raise InputError(f"the simulator cannot hide {args.hidden!r} in run data; one of "
-                             f"{', '.join(RUN_HIDDEN)}", source="--hidden")
         truth = hide_in_runs(CellTruth(), args.hidden)
-        extra = simulate_run_dataset(robot, truth, seed=args.seed, out_dir=out)
-        written["runs"] = str(out / "runs.csv")
+        table = simulate_runs(robot, truth, seed=args.seed, source=str(out / "runs.csv"))
         params = truth.parameters(robot)
-        params.update(extra or {})
-        from elastocal.acquisition.export import write_log_from_tables
-
-        write_log_from_tables(out / "log.mcap", robot, runs=read_run_table(out / "runs.csv", robot))
-        written["log"] = str(out / "log.mcap")
     truth_doc = {"hidden": args.hidden, "seed": args.seed, "robot": robot.name, "parameters": params,
                  "noise": {"tracker_m": truth.tracker_noise_m, "current_a": truth.current_noise_a}}
-    (out / "truth.json").write_text(json.dumps(truth_doc, indent=2) + "\n", encoding="utf-8")
-    written["truth"] = str(out / "truth.json")
+    outputs.make_folder(out)
+    with outputs:
+        outputs.temp(out / "robot.toml").write_text(robot.to_toml(), encoding="utf-8")
+        if static:
+            write_static_table(outputs.temp(out / "static.csv"), table)
+            written["static"] = str(out / "static.csv")
+            write_log_from_tables(outputs.temp(out / "log.mcap"), robot, static=table)
+        else:
+            write_runs_csv(outputs.temp(out / "runs.csv"), table)
+            written["runs"] = str(out / "runs.csv")
+            # the log holds what the CSV holds (read back: the same numbers as a user's table)
+            back = read_run_table(outputs.temp(out / "runs.csv"), robot)
+            write_log_from_tables(outputs.temp(out / "log.mcap"), robot, runs=back)
+        written["log"] = str(out / "log.mcap")
+        outputs.temp(out / "truth.json").write_text(json.dumps(truth_doc, indent=2) + "\n", encoding="utf-8")
+        written["truth"] = str(out / "truth.json")
     if args.json:
         print(json.dumps(written))
     else:
         for kind, path in written.items():
             print(f"wrote {kind:<6} {path}")
     return 0
-

@@ -1,0 +1,178 @@
+"""Output files of the commands: checked before any work, written all or nothing.
+
+Every command that writes files checks all of them first (:class:`Outputs`):
+the parent folder exists, the target is not a folder, it is none of the
+command's inputs (refused even with ``--force``) and, unless ``--force``, it
+does not exist yet. The files are then written to temporary siblings and moved
+into place together (:meth:`Outputs.commit`), so a refused or failed command
+leaves every existing file as it was and writes nothing half-way.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+from collections.abc import Iterable
+
+from elastocal.errors import InputError
+
+#: the one wording of "the output exists" (acquisition/procedures.py uses the same)
+EXISTS = "already exists; choose another {flag}, or --force to overwrite it"
+
+
+def _same(a: pathlib.Path, b: pathlib.Path) -> bool:
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return a.resolve() == b.resolve()
+
+
+def check_folder(path: str | os.PathLike, flag: str) -> pathlib.Path:
+    """An output folder: a folder, or a path that can become one."""
+    out = pathlib.Path(path)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"is not a folder; {flag} names the folder to write into", source=str(out))
+    parent = out
+    while not parent.exists():
+        if parent.parent == parent:
+            break
+        parent = parent.parent
+    if parent.exists() and not parent.is_dir():
+        raise InputError(f"cannot create the folder: {parent} is not a folder", source=str(out))
+    if parent.exists() and not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write into {parent}: permission denied", source=str(out))
+    return out
+
+
+class Outputs:
+    """The files a command writes; see the module doc."""
+
+    def __init__(self, *, force: bool, inputs: Iterable[tuple[str | os.PathLike | None, str]] = ()) -> None:
+        self.force = force
+        self.inputs = [(pathlib.Path(p), flag) for p, flag in inputs if p]
+        self.files: list[tuple[pathlib.Path, str]] = []
+        self.remove: list[pathlib.Path] = []
+        self._temps: dict[pathlib.Path, pathlib.Path] = {}
+        self._made_folder: pathlib.Path | None = None
+
+    def add(self, path: str | os.PathLike, flag: str = "--out", *, in_folder: bool = False) -> pathlib.Path:
+        """Check one output file (``in_folder``: its folder may not exist yet)."""
+        out = pathlib.Path(path)
+        if out.is_dir():
+            raise InputError(f"is a folder; {flag} names a file to write", source=str(out))
+        parent = out.parent
+        if not in_folder:
+            if not parent.exists():
+                raise InputError(f"cannot write: no such folder {str(parent)!r}", source=str(out))
+            if not parent.is_dir():
+                raise InputError(f"cannot write: {str(parent)!r} is not a folder", source=str(out))
+        for other, other_flag in self.inputs:
+            if _same(out, other):
+                raise InputError(f"is also an input ({other_flag}); {flag} must name another file", source=str(out))
+        for other, other_flag in self.files:
+            if _same(out, other):
+                raise InputError(f"is given twice as an output ({other_flag} and {flag})", source=str(out))
+        if out.exists() and not self.force:
+            raise InputError(EXISTS.format(flag=flag), source=str(out))
+        self.files.append((out, flag))
+        return out
+
+    def stale(self, path: str | os.PathLike, flag: str, why: str) -> None:
+        """A file this command does not write but that would mislead beside its
+        outputs: refused without --force, removed on commit with it."""
+        p = pathlib.Path(path)
+        if p.exists() or p.is_symlink():
+            if p.is_dir():
+                raise InputError(f"is a folder in the way ({why})", source=str(p))
+            if not self.force:
+                raise InputError(f"{why}; choose another {flag}, or --force to remove it", source=str(p))
+            self.remove.append(p)
+
+    def make_folder(self, folder: str | os.PathLike) -> None:
+        folder = pathlib.Path(folder)
+        if folder.is_dir():
+            return
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"cannot create: {exc.strerror}", source=str(folder)) from None
+        self._made_folder = folder
+
+    def temp(self, path: str | os.PathLike) -> pathlib.Path:
+        """Where to write ``path`` until :meth:`commit` (same folder, same suffix)."""
+        out = pathlib.Path(path)
+        tmp = out.with_name(f".{out.stem}.elastocal-{os.getpid()}-partial{out.suffix}")
+        self._temps[out] = tmp
+        return tmp
+
+    def commit(self) -> None:
+        """Move every written temporary file into place; remove stale files."""
+        for out, tmp in self._temps.items():
+            try:
+                os.replace(tmp, out)
+            except OSError as exc:
+                self.abort()
+                raise InputError(f"cannot write: {exc.strerror}", source=str(out)) from None
+        self._temps.clear()
+        for p in self.remove:
+            try:
+                p.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                raise InputError(f"cannot remove: {exc.strerror}", source=str(p)) from None
+
+    def abort(self) -> None:
+        """Remove the temporary files (and the folder made for them, if empty)."""
+        for tmp in self._temps.values():
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+        self._temps.clear()
+        if self._made_folder is not None:
+            try:
+                self._made_folder.rmdir()
+            except OSError:
+                pass
+
+    def __enter__(self) -> "Outputs":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            self.commit()
+            return False
+        self.abort()
+        finals = {str(tmp): str(out) for out, tmp in self._temps_seen()}
+        if isinstance(exc, InputError) and exc.source in finals:
+            # a writer's error about the temporary file: name the file the user gave
+            raise InputError(exc.detail, source=finals[exc.source], row=exc.row, column=exc.column) from None
+        if isinstance(exc, OSError):
+            name = finals.get(str(exc.filename), exc.filename)
+            raise InputError(f"cannot write: {exc.strerror or exc}", source=str(name or self.files[0][0])) from None
+        return False
+
+    def _temps_seen(self):
+        return [(out, out.with_name(f".{out.stem}.elastocal-{os.getpid()}-partial{out.suffix}"))
+                for out, _ in self.files]
+
+
+#: notes for stderr, printed by cli.main when the command succeeds (a failing command prints one line)
+NOTES: list[str] = []
+
+
+def note(text: str) -> None:
+    """Queue a one-line note for stderr (shown after the command's output, unless it fails)."""
+    if text not in NOTES:
+        NOTES.append(text)
+
+
+def log_note(command_path: str, contents) -> str | None:
+    """The one-line note for a log that ends without its MCAP summary (or None)."""
+    if getattr(contents, "complete", True):
+        return None
+    return (f"note: {command_path} ends without its MCAP summary (the recorder was killed or is still "
+            f"writing); everything up to its last complete chunk was read")
