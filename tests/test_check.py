@@ -194,6 +194,13 @@ def test_check_procedure_log_through_the_cli(robot, cell, capsys):
     with History(cell / "history.sqlite") as h:
         assert h.current().plan == plan_text
         assert [c.log_path.endswith(".mcap") for c in h.checks()] == [True, True]
+    # running the check procedure into an existing log is refused before any device is opened
+    (cell / "exists.mcap").write_bytes(b"old")
+    capsys.readouterr()
+    assert main(["check", "--cell", str(cell / "cell.toml"), "--sim", "--yes", "--out", str(cell / "exists.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert "exists.mcap: already exists; choose another --out, or --force to overwrite it" in err, err
+    assert (cell / "exists.mcap").read_bytes() == b"old"
 
 
 def test_check_command_input_errors(cell, capsys):
