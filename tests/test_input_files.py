@@ -225,11 +225,15 @@ def test_a_calibration_without_its_robot_is_refused(tmp_path, robot, reason):
     doc = _calibration(robot)
     if robot is not None:
         doc["robot"] = robot
+    _assert_calibration_refused(tmp_path, doc, "robot", reason)
+
+
+def _assert_calibration_refused(tmp_path, doc, key, reason):
     path = tmp_path / "cal.json"
     path.write_text(json.dumps(doc))
     with pytest.raises(InputError) as err:
         read_calibration(path)
-    assert str(err.value).startswith(f"{path}, column robot: {reason}")
+    assert str(err.value).startswith(f"{path}, column {key}: {reason}")
 
 
 @pytest.mark.parametrize("key, value, reason", [
@@ -241,11 +245,7 @@ def test_a_calibration_without_its_robot_is_refused(tmp_path, robot, reason):
 def test_calibration_fields_of_the_wrong_type_are_refused(tmp_path, key, value, reason):
     doc = _calibration()
     doc[key] = value
-    path = tmp_path / "cal.json"
-    path.write_text(json.dumps(doc))
-    with pytest.raises(InputError) as err:
-        read_calibration(path)
-    assert str(err.value).startswith(f"{path}, column {key}: {reason}")
+    _assert_calibration_refused(tmp_path, doc, key, reason)
 
 
 @pytest.mark.parametrize("argv", [
