@@ -341,6 +341,7 @@ class Session:
         one ``reading`` event per marker and repeat with its window on the log clock."""
         wrench = list(self.wrench(load_id))
         self.event("hold_start", pose=pose.id, load=load_id, q=list(pose.q), wrench=wrench)
+        t1 = self.io.clock()
         for r in range(1, repeats + 1):
             for m in markers:  # a laser tracker measures one reflector at a time
                 t0 = self.io.clock()
@@ -349,9 +350,11 @@ class Session:
                 if not any(s.marker == m and t0 <= s.t_ns <= t1 for s in samples.tracker):
                     raise DeviceTimeout(f"the tracker gave no reading of marker {m} in {reading_s:g} s at "
                                         f"pose {pose.id}, load {load_id}")
-                self.drain(t1)
                 self.event("reading", pose=pose.id, load=load_id, marker=m, repeat=r, q=list(pose.q),
                            wrench=wrench, window_ns=[t0, t1])
+        # the drive samples of every reading's window are in the log before the hold ends (a
+        # reading counts only once its step is done; the drives deliver a cycle a little late)
+        self.drain(t1)
         self.event("hold_end", pose=pose.id, load=load_id)
 
     def run(self, run_id: str, direction: str, start: Sequence[float], target: Sequence[float],
