@@ -23,6 +23,7 @@ frame and per cycle, the load average and the CPU pressure of the machine.
 
 from __future__ import annotations
 
+import contextlib
 import argparse
 import multiprocessing
 import os
@@ -76,10 +77,8 @@ def _serve_tracker(conn, channel: str) -> None:
     cfg = example_cell_config(can_channel=channel)
     with SimulatedCell(replace(cfg, drives=(), controller=None)) as sim:
         conn.send(sim.config.tracker)
-        try:
-            conn.recv()                        # the parent says stop (or goes away)
-        except EOFError:
-            pass
+        with contextlib.suppress(EOFError):    # EOF: the parent went away, which also means stop
+            conn.recv()                        # the parent says stop
         conn.send(time.process_time())
 
 
@@ -120,12 +119,10 @@ class _Sims:
             self.sim.close()
         finally:
             if self._child is not None:
-                try:
+                with contextlib.suppress(OSError, EOFError):   # a child already gone has no CPU figure
                     self._conn.send("stop")
                     if self._conn.poll(10.0):
                         self.child_cpu_s = self._conn.recv()
-                except (OSError, EOFError):
-                    pass
                 self._child.join(timeout=10.0)
                 if self._child.is_alive():
                     self._child.kill()

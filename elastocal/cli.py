@@ -10,6 +10,7 @@ Expected errors print one line on stderr and exit 2 (bad input or usage) or
 
 from __future__ import annotations
 
+import contextlib
 import argparse
 import importlib
 import importlib.util
@@ -130,11 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:
         # the reader of our output went away (`elastocal … | head`): stop quietly, and
         # point stdout at /dev/null so that Python's flush at exit does not fail again
-        try:
+        with contextlib.suppress(OSError, ValueError, AttributeError):   # stdout without a file descriptor
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
-        except (OSError, ValueError, AttributeError):
-            pass
         return 1
     except OSError as exc:
         # last resort: a file the command could not read or write (commands check their

@@ -10,6 +10,7 @@ leaves every existing file as it was and writes nothing half-way.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 from collections.abc import Iterable
@@ -21,11 +22,9 @@ EXISTS = "already exists; choose another {flag}, or --force to overwrite it"
 
 
 def _same(a: pathlib.Path, b: pathlib.Path) -> bool:
-    try:
+    with contextlib.suppress(OSError):        # unreadable: fall back to comparing the resolved paths
         if a.exists() and b.exists():
             return os.path.samefile(a, b)
-    except OSError:
-        pass
     return a.resolve() == b.resolve()
 
 
@@ -118,25 +117,20 @@ class Outputs:
         self._temps.clear()
         for p in self.remove:
             try:
-                p.unlink()
-            except FileNotFoundError:
-                pass
+                p.unlink(missing_ok=True)
             except OSError as exc:
                 raise InputError(f"cannot remove: {exc.strerror}", source=str(p)) from None
 
     def abort(self) -> None:
         """Remove the temporary files (and the folder made for them, if empty)."""
+        # best effort: the command is failing already, and its own error is the one to report
         for tmp in self._temps.values():
-            try:
+            with contextlib.suppress(OSError):
                 tmp.unlink()
-            except OSError:
-                pass
         self._temps.clear()
         if self._made_folder is not None:
-            try:
+            with contextlib.suppress(OSError):     # not empty: something else was put there
                 self._made_folder.rmdir()
-            except OSError:
-                pass
 
     def __enter__(self) -> "Outputs":
         return self

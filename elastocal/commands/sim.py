@@ -51,6 +51,7 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _serve(args: argparse.Namespace) -> int:
     """``elastocal sim serve``: serve the simulated devices until interrupted (or ``--duration``)."""
+    import contextlib
     import signal
     import sys
     import threading
@@ -87,14 +88,12 @@ def _serve(args: argparse.Namespace) -> int:
                     print(f"  cell config with these URLs: {args.write_cell}")
                 sys.stdout.flush()
             end = None if args.duration is None else time.monotonic() + args.duration
-            try:
+            with contextlib.suppress(KeyboardInterrupt):   # Ctrl-C is the way to stop serving
                 while not stop.is_set():
                     remaining = None if end is None else end - time.monotonic()
                     if remaining is not None and remaining <= 0:
                         break
                     stop.wait(0.5 if remaining is None else min(0.5, remaining))
-            except KeyboardInterrupt:
-                pass
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
