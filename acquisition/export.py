@@ -556,7 +556,11 @@ def robot_from_log(contents: LogContents) -> Robot:
 
 def load_log(path: str | pathlib.Path) -> tuple[Robot, StaticTable | None, RunTable | None]:
     """Robot, static table and run table of a log (each table None when the log has none)."""
-    contents = read_log(path)
+    return tables_from_log(read_log(path))
+
+
+def tables_from_log(contents: "LogContents") -> tuple[Robot, StaticTable | None, RunTable | None]:
+    """Robot, static table and run table of a log already read."""
     robot = robot_from_log(contents)
     return robot, static_table_from_log(contents, robot), run_table_from_log(contents)
 

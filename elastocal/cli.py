@@ -19,7 +19,6 @@ import os
 import sys
 
 from elastocal import __version__
-from elastocal.commands._outputs import NOTES
 from elastocal.errors import DeviceError, ElastocalError, InputError
 
 #: command name -> (module, one-line help)
@@ -110,10 +109,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.command in STREAMING_COMMANDS:
         sys.setswitchinterval(min(previous_interval, STREAMING_SWITCH_INTERVAL_S))
     previous_levels = _quiet_libraries()
-    NOTES.clear()
+    args.notes = []
     try:
         code = int(modules[args.command].run(args) or 0)
-        for text in NOTES:  # after the output, and only when the command did not fail on an error
+        for text in args.notes:  # after the output, and only when the command did not fail on an error
             print(text, file=sys.stderr)
         return code
     except InputError as exc:
@@ -145,7 +144,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"elastocal {args.command}: {type(exc).__name__}: {what}", file=sys.stderr)
         return 1
     finally:
-        NOTES.clear()
         _restore_libraries(previous_levels)
         sys.setswitchinterval(previous_interval)
 

@@ -41,29 +41,26 @@ def input_paths(args: argparse.Namespace) -> list[tuple[str | None, str]]:
             (getattr(args, "static", None), "--static"), (getattr(args, "runs", None), "--runs")]
 
 
-def load_log_noted(path: str | pathlib.Path):
-    """(robot, static table or None, run table or None) of a log, like
-    ``acquisition.export.load_log``, printing one note on stderr when the log
-    ends without its MCAP summary (a killed recorder): what was read is then
-    only what came before its last complete chunk."""
-    from elastocal.acquisition.export import read_log, robot_from_log, run_table_from_log, static_table_from_log
+def load_log_noted(args: argparse.Namespace, path: str | pathlib.Path):
+    """(robot, static table or None, run table or None) of a log, as
+    ``acquisition.export.load_log``, with one note for stderr when the log ends
+    without its MCAP summary (a killed recorder): what was read is then only
+    what came before its last complete chunk."""
+    from elastocal.acquisition.export import read_log, tables_from_log
     from elastocal.commands._outputs import log_note, note
 
     contents = read_log(path)
-    robot = robot_from_log(contents)
-    static = static_table_from_log(contents, robot)
-    runs = run_table_from_log(contents)
     text = log_note(str(path), contents)
     if text:
-        note(text)
-    return robot, static, runs
+        note(args, text)
+    return tables_from_log(contents)
 
 
 def load_inputs(args: argparse.Namespace) -> Inputs:
     if args.log:
         if args.static or args.runs:
             raise InputError("give either a log or --static/--runs tables, not both", source=args.log)
-        robot, static, runs = load_log_noted(args.log)
+        robot, static, runs = load_log_noted(args, args.log)
         if args.robot:
             robot = load_robot(args.robot)
         return Inputs(robot, static, runs, (pathlib.Path(args.log),), pathlib.Path(args.log))

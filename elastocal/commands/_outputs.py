@@ -45,6 +45,11 @@ def check_folder(path: str | os.PathLike, flag: str) -> pathlib.Path:
     return out
 
 
+def _temp_name(out: pathlib.Path) -> pathlib.Path:
+    """Where ``out`` is written until the command commits its outputs (same folder, same suffix)."""
+    return out.with_name(f".{out.stem}.elastocal-{os.getpid()}-partial{out.suffix}")
+
+
 class Outputs:
     """The files a command writes; see the module doc."""
 
@@ -102,8 +107,7 @@ class Outputs:
     def temp(self, path: str | os.PathLike) -> pathlib.Path:
         """Where to write ``path`` until :meth:`commit` (same folder, same suffix)."""
         out = pathlib.Path(path)
-        tmp = out.with_name(f".{out.stem}.elastocal-{os.getpid()}-partial{out.suffix}")
-        self._temps[out] = tmp
+        tmp = self._temps[out] = _temp_name(out)
         return tmp
 
     def commit(self) -> None:
@@ -140,7 +144,7 @@ class Outputs:
             self.commit()
             return False
         self.abort()
-        finals = {str(tmp): str(out) for out, tmp in self._temps_seen()}
+        finals = {str(_temp_name(out)): str(out) for out, _ in self.files}
         if isinstance(exc, InputError) and exc.source in finals:
             # a writer's error about the temporary file: name the file the user gave
             raise InputError(exc.detail, source=finals[exc.source], row=exc.row, column=exc.column) from None
@@ -149,19 +153,14 @@ class Outputs:
             raise InputError(f"cannot write: {exc.strerror or exc}", source=str(name or self.files[0][0])) from None
         return False
 
-    def _temps_seen(self):
-        return [(out, out.with_name(f".{out.stem}.elastocal-{os.getpid()}-partial{out.suffix}"))
-                for out, _ in self.files]
 
 
-#: notes for stderr, printed by cli.main when the command succeeds (a failing command prints one line)
-NOTES: list[str] = []
-
-
-def note(text: str) -> None:
-    """Queue a one-line note for stderr (shown after the command's output, unless it fails)."""
-    if text not in NOTES:
-        NOTES.append(text)
+def note(args, text: str) -> None:
+    """Queue a one-line note for stderr on the command's ``args.notes`` (cli.main
+    prints them after the command's output, unless the command fails)."""
+    notes = args.__dict__.setdefault("notes", [])
+    if text not in notes:
+        notes.append(text)
 
 
 def log_note(command_path: str, contents) -> str | None:

@@ -142,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
         from elastocal.commands._inputs import load_log_noted
 
         log_path = pathlib.Path(args.log) if args.log else _run_procedure(args, config, plan_text, db, now_ns)
-        _, static, runs = load_log_noted(log_path)
+        _, static, runs = load_log_noted(args, log_path)
         data_path = log_path
         if static is None and runs is None:
             raise InputError("nothing to check: the log holds neither static poses nor runs", source=str(log_path))

@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{static_rows} static rows, {run_rows} run rows")
     text = log_note(args.log, contents)
     if text:
-        note(text)
+        note(args, text)
     if contents.incomplete_steps:
-        note(f"note: step(s) {', '.join(contents.incomplete_steps)} did not finish and were left out")
+        note(args, f"note: step(s) {', '.join(contents.incomplete_steps)} did not finish and were left out")
     return 0

@@ -77,7 +77,7 @@ def _add(args: argparse.Namespace, db: pathlib.Path) -> int:
             plan_text = contents.plan.text if contents.plan is not None else None
         text = log_note(args.log, contents)
         if text:
-            note(text)
+            note(args, text)
     else:
         logs = [d for d in cal.data if str(d.get("path", "")).endswith(".mcap")] or list(cal.data)
         if logs:
