@@ -170,9 +170,15 @@ def format_rapid(name: str, t: np.ndarray, result: CompensatedPath) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_krl(path: str | pathlib.Path, t: np.ndarray, result: CompensatedPath) -> None:
-    pathlib.Path(path).write_text(format_krl(_program_name(path, 24), t, result), encoding="utf-8")
+def write_krl(path: str | pathlib.Path, t: np.ndarray, result: CompensatedPath, *,
+              name_from: str | pathlib.Path | None = None) -> None:
+    """The KRL program at ``path``, named after ``name_from`` (default: ``path``)."""
+    name = _program_name(path if name_from is None else name_from, 24)
+    pathlib.Path(path).write_text(format_krl(name, t, result), encoding="utf-8")
 
 
-def write_rapid(path: str | pathlib.Path, t: np.ndarray, result: CompensatedPath) -> None:
-    pathlib.Path(path).write_text(format_rapid(_program_name(path, 32), t, result), encoding="utf-8")
+def write_rapid(path: str | pathlib.Path, t: np.ndarray, result: CompensatedPath, *,
+                name_from: str | pathlib.Path | None = None) -> None:
+    """The RAPID module at ``path``, named after ``name_from`` (default: ``path``)."""
+    name = _program_name(path if name_from is None else name_from, 32)
+    pathlib.Path(path).write_text(format_rapid(name, t, result), encoding="utf-8")

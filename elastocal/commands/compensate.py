@@ -51,8 +51,7 @@ def _stats(d: np.ndarray) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from elastocal.compensation.files import (_program_name, format_krl, format_rapid, read_path,
-                                             write_compensated_csv)
+    from elastocal.compensation.files import read_path, write_compensated_csv, write_krl, write_rapid
     from elastocal.compensation.model import CompensationModel
     from elastocal.compensation.trajectory import compensate_path, predicted_residual
     from elastocal.identify.calibration import read_calibration
@@ -87,13 +86,11 @@ def run(args: argparse.Namespace) -> int:
     residual = predicted_residual(model, result)
     with outputs:
         write_compensated_csv(outputs.temp(args.out), planned.t, result)
-        # the program's name comes from the file's name: format here, write the text to the temporary file
+        # the program is named after the file the user asked for, not the temporary one
         if args.krl:
-            outputs.temp(args.krl).write_text(format_krl(_program_name(args.krl, 24), planned.t, result),
-                                              encoding="utf-8")
+            write_krl(outputs.temp(args.krl), planned.t, result, name_from=args.krl)
         if args.rapid:
-            outputs.temp(args.rapid).write_text(format_rapid(_program_name(args.rapid, 32), planned.t, result),
-                                                encoding="utf-8")
+            write_rapid(outputs.temp(args.rapid), planned.t, result, name_from=args.rapid)
     obj = {"n": len(result), "form": result.form, "reference": result.reference, "out": args.out,
            "deflection": _stats(result.tcp_deflection), "residual": _stats(residual),
            "dtheta_max": {f"q{j + 1}": float(v) for j, v in enumerate(np.max(np.abs(result.dtheta), axis=0))},
