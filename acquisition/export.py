@@ -559,7 +559,7 @@ def load_log(path: str | pathlib.Path) -> tuple[Robot, StaticTable | None, RunTa
     return tables_from_log(read_log(path))
 
 
-def tables_from_log(contents: "LogContents") -> tuple[Robot, StaticTable | None, RunTable | None]:
+def tables_from_log(contents: LogContents) -> tuple[Robot, StaticTable | None, RunTable | None]:
     """Robot, static table and run table of a log already read."""
     robot = robot_from_log(contents)
     return robot, static_table_from_log(contents, robot), run_table_from_log(contents)
@@ -575,34 +575,48 @@ class ExportResult:
     incomplete_steps: tuple[str, ...]
 
 
+def export_files(contents: LogContents) -> dict[str, str | StaticTable | RunTable | None]:
+    """What an export of a log writes: file name -> its text or table (None:
+    the log has none, e.g. no static experiment)."""
+    robot, static, runs = tables_from_log(contents)
+    return {"robot.toml": contents.robot.text,
+            "cell.toml": None if contents.cell is None else contents.cell.text,
+            "plan.toml": None if contents.plan is None else contents.plan.text,
+            "static.csv": static, "runs.csv": runs}
+
+
+def write_export_file(path: str | pathlib.Path, what: str | StaticTable | RunTable) -> None:
+    """One file of :func:`export_files` at ``path``."""
+    if isinstance(what, StaticTable):
+        write_static_table(path, what)
+    elif isinstance(what, RunTable):
+        write_run_table(path, what)
+    else:
+        pathlib.Path(path).write_text(what, encoding="utf-8")
+
+
 def export_log(path: str | pathlib.Path, out_dir: str | pathlib.Path) -> ExportResult:
     """Write ``robot.toml``, ``static.csv`` and/or ``runs.csv`` (and the recorded
     ``cell.toml`` and ``plan.toml``) of a log into ``out_dir``."""
     contents = read_log(path)
-    robot = robot_from_log(contents)
-    static = static_table_from_log(contents, robot)
-    runs = run_table_from_log(contents)
+    writes = export_files(contents)
     out = pathlib.Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"cannot create: {exc.strerror}", source=str(out)) from None
     files = []
-    (out / "robot.toml").write_text(contents.robot.text, encoding="utf-8")
-    files.append(str(out / "robot.toml"))
-    for doc, name in ((contents.cell, "cell.toml"), (contents.plan, "plan.toml")):
-        if doc is not None:
-            (out / name).write_text(doc.text, encoding="utf-8")
+    for name, what in writes.items():
+        if what is not None:
+            write_export_file(out / name, what)
             files.append(str(out / name))
-    if static is not None:
-        write_static_table(out / "static.csv", static)
-        files.append(str(out / "static.csv"))
-    if runs is not None:
-        write_run_table(out / "runs.csv", runs)
-        files.append(str(out / "runs.csv"))
-    return ExportResult(files=tuple(files), static_rows=0 if static is None else len(static),
-                        run_rows=0 if runs is None else len(runs), complete=contents.complete,
+    return ExportResult(files=tuple(files), static_rows=_rows(writes["static.csv"]),
+                        run_rows=_rows(writes["runs.csv"]), complete=contents.complete,
                         truncated=contents.truncated, incomplete_steps=contents.incomplete_steps)
+
+
+def _rows(table) -> int:
+    return 0 if table is None else len(table)
 
 
 # ------------------------------------------------------------------ tables -> log

@@ -5,9 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 
-#: every file an export can write, in the order it writes them
-EXPORT_FILES = ("robot.toml", "cell.toml", "plan.toml", "static.csv", "runs.csv")
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", help="an MCAP log written by `elastocal calibrate`")
@@ -20,20 +17,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from elastocal.acquisition.export import read_log, robot_from_log, run_table_from_log, static_table_from_log
+    from elastocal.acquisition.export import export_files, read_log, write_export_file
     from elastocal.commands._outputs import Outputs, check_folder, log_note, note
-    from elastocal.identify.tables import write_run_table, write_static_table
 
     out = check_folder(args.out, "--out")
     contents = read_log(args.log)
-    robot = robot_from_log(contents)
-    static = static_table_from_log(contents, robot)
-    runs = run_table_from_log(contents)
-    texts = {"robot.toml": contents.robot.text,
-             "cell.toml": None if contents.cell is None else contents.cell.text,
-             "plan.toml": None if contents.plan is None else contents.plan.text}
-    writes = {name: (texts.get(name) if name in texts else (static if name == "static.csv" else runs))
-              for name in EXPORT_FILES}
+    writes = export_files(contents)
     outputs = Outputs(force=args.force, inputs=[(args.log, "the log")])
     for name, what in writes.items():
         if what is not None:
@@ -46,17 +35,11 @@ def run(args: argparse.Namespace) -> int:
         for name, what in writes.items():
             if what is None:
                 continue
-            tmp = outputs.temp(out / name)
-            if name == "static.csv":
-                write_static_table(tmp, what)
-            elif name == "runs.csv":
-                write_run_table(tmp, what)
-            else:
-                tmp.write_text(what, encoding="utf-8")
+            write_export_file(outputs.temp(out / name), what)
             files.append(str(out / name))
     removed = [str(p) for p in outputs.remove]
-    static_rows = 0 if static is None else len(static)
-    run_rows = 0 if runs is None else len(runs)
+    static_rows = 0 if writes["static.csv"] is None else len(writes["static.csv"])
+    run_rows = 0 if writes["runs.csv"] is None else len(writes["runs.csv"])
     if args.json:
         print(json.dumps({"files": files, "static_rows": static_rows, "run_rows": run_rows,
                           "complete": contents.complete, "truncated": contents.truncated,
