@@ -22,7 +22,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Mapping
 from urllib.parse import parse_qsl, urlsplit
 
-from elastocal.errors import InputError
+from elastocal.errors import InputError, check_known_keys
 from elastocal.textfiles import read_text_file
 
 try:  # Python 3.11+
@@ -223,10 +223,8 @@ def _register(name: str, table: Mapping[str, Any], *, source: str, where: str,
     col = f"{where}.{name}"
     if not isinstance(table, Mapping):
         raise InputError("expected an inline table {address = ..., type = ...}", source=source, column=col)
-    unknown = set(table) - {"address", "type", "count", "scale", "unit", "table", "access", "word_order",
-                            "fault_mask", "ready_mask"}
-    if unknown:
-        raise InputError(f"unknown keys {', '.join(sorted(unknown))}", source=source, column=col)
+    check_known_keys(table, ("address", "type", "count", "scale", "unit", "table", "access", "word_order",
+                             "fault_mask", "ready_mask"), source=source, where=col)
     address = table.get("address")
     if isinstance(address, bool) or not isinstance(address, int) or not 0 <= address <= 65535:
         raise InputError(f"address must be an integer 0..65535, got {address!r}", source=source, column=col)
@@ -458,17 +456,11 @@ def _vec(table: Mapping, key: str, default: tuple[float, ...] | None, *, source:
     return out
 
 
-def _check_keys(table: Mapping, allowed: set[str], *, source: str, where: str) -> None:
-    unknown = set(table) - allowed
-    if unknown:
-        raise InputError(f"unknown keys {', '.join(sorted(unknown))}", source=source, column=where)
-
-
 def _drive(t: Mapping, i: int, *, source: str) -> DriveConfig:
     where = f"drive[{i}]"
     if not isinstance(t, Mapping):
         raise InputError("expected a table", source=source, column=where)
-    _check_keys(t, {"joint", "url", "registers", "rate_hz", "timeout_s", "retries", "max_current_a"},
+    check_known_keys(t, ("joint", "url", "registers", "rate_hz", "timeout_s", "retries", "max_current_a"),
                 source=source, where=where)
     joint = t.get("joint")
     if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= N_JOINTS:
@@ -519,7 +511,7 @@ def _tracker(t: Mapping, *, source: str) -> TrackerConfig:
     where = "tracker"
     if not isinstance(t, Mapping):
         raise InputError("expected a table", source=source, column=where)
-    _check_keys(t, {"url", "markers", "rate_hz", "timeout_s", "retries", "base_p_tracker"}, source=source,
+    check_known_keys(t, ("url", "markers", "rate_hz", "timeout_s", "retries", "base_p_tracker"), source=source,
                 where=where)
     if "url" not in t:
         raise InputError("missing required key", source=source, column="tracker.url")
@@ -549,7 +541,7 @@ def _controller(t: Mapping, *, source: str) -> ControllerConfig:
     where = "controller"
     if not isinstance(t, Mapping):
         raise InputError("expected a table", source=source, column=where)
-    _check_keys(t, {"url", "registers", "poses", "path", "timeout_s", "retries", "move_timeout_s"},
+    check_known_keys(t, ("url", "registers", "poses", "path", "timeout_s", "retries", "move_timeout_s"),
                 source=source, where=where)
     if "url" not in t:
         raise InputError("missing required key", source=source, column="controller.url")
@@ -593,7 +585,7 @@ def _controller(t: Mapping, *, source: str) -> ControllerConfig:
         pw = f"controller.path[{i}]"
         if not isinstance(p, Mapping):
             raise InputError("expected a table", source=source, column=pw)
-        _check_keys(p, {"id", "u", "v", "speed_rad_s"}, source=source, where=pw)
+        check_known_keys(p, ("id", "u", "v", "speed_rad_s"), source=source, where=pw)
         pid = _int(p, "id", i, source=source, where=pw, low=1)
         paths.append(PathSpec(id=pid, u=_vec(p, "u", None, source=source, where=pw),
                               v=_vec(p, "v", None, source=source, where=pw),
@@ -611,7 +603,7 @@ def _sim(t: Mapping, *, source: str) -> SimConfig:
     if not isinstance(t, Mapping):
         raise InputError("expected a table", source=source, column=where)
     d = SimConfig()
-    _check_keys(t, set(SimConfig.__dataclass_fields__), source=source, where=where)
+    check_known_keys(t, tuple(SimConfig.__dataclass_fields__), source=source, where=where)
     hidden = t.get("hidden", d.hidden)
     if hidden not in HIDDEN_EFFECTS:
         raise InputError(f"hidden must be one of {', '.join(HIDDEN_EFFECTS)}, got {hidden!r}",
@@ -663,11 +655,11 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
         doc = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source=source) from None
-    _check_keys(doc, {"cell", "drive", "tracker", "controller", "sim"}, source=source, where="(top level)")
+    check_known_keys(doc, ("cell", "drive", "tracker", "controller", "sim"), source=source, where="")
     cell = doc.get("cell")
     if not isinstance(cell, Mapping):
         raise InputError("missing [cell] table", source=source, column="cell")
-    _check_keys(cell, {"name", "robot", "history", "plan"}, source=source, where="cell")
+    check_known_keys(cell, ("name", "robot", "history", "plan"), source=source, where="cell")
     name = cell.get("name", "cell")
     robot = cell.get("robot")
     if not isinstance(robot, str) or not robot:

@@ -35,6 +35,23 @@ class InputError(ElastocalError, ValueError):
         super().__init__(f"{prefix}: {message}" if prefix else message)
 
 
+def check_known_keys(table, known, *, source: str | None, where: str, what: str = "") -> None:
+    """Refuse keys of the TOML ``table`` that are not in ``known`` (a typo would
+    silently become a default): one line naming the first unknown key
+    (``where.key``), the closest known key and the known keys."""
+    import difflib
+
+    known = list(known)
+    unknown = [str(k) for k in table if k not in known]
+    if not unknown:
+        return
+    close = difflib.get_close_matches(unknown[0], known, n=1)
+    hint = f" (did you mean {close[0]}?)" if close else ""
+    keys = "key" if len(unknown) == 1 else "keys"
+    raise InputError(f"unknown {keys} {', '.join(unknown)}{hint}{what}; known keys: {', '.join(known)}",
+                     source=source, column=f"{where}.{unknown[0]}" if where else unknown[0])
+
+
 class UnidentifiableError(ElastocalError):
     """The data cannot determine the requested parameters."""
 

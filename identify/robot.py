@@ -19,7 +19,6 @@ come from Pinocchio.
 
 from __future__ import annotations
 
-import difflib
 import json
 import math
 import pathlib
@@ -29,7 +28,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 
-from elastocal.errors import InputError
+from elastocal.errors import InputError, check_known_keys
 from elastocal.textfiles import read_text_file
 from elastocal.identify.urdf import UrdfSource, dh_urdf, urdf_chain
 
@@ -69,20 +68,6 @@ JOINT_KEYS = ("name", "a", "alpha", "d", "offset", "lower", "upper", "torque_con
 TOOL_KEYS = ("load_point", "markers", "flange")
 COMPENSATOR_KEYS = {"hydropneumatic": ("kind", "joint", "a", "b", "h", "C", "l_c"),
                     "spring": ("kind", "joint", "a", "L", "alpha", "K_c", "s0")}
-
-
-def _check_keys(table: Mapping, known: Sequence[str], *, source: str, where: str, what: str = "") -> None:
-    """Refuse keys of ``table`` not in ``known`` (a typo would silently become a default)."""
-    unknown = [str(k) for k in table if k not in known]
-    if not unknown:
-        return
-    hint = ""
-    close = difflib.get_close_matches(unknown[0], known, n=1)
-    if close:
-        hint = f" (did you mean {close[0]}?)"
-    keys = "key" if len(unknown) == 1 else "keys"
-    raise InputError(f"unknown {keys} {', '.join(unknown)}{hint}{what}; known keys: {', '.join(known)}",
-                     source=source, column=f"{where}.{unknown[0]}" if where else unknown[0])
 
 
 def _table(value, *, source: str, column: str) -> Mapping:
@@ -478,7 +463,7 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
         doc = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source=source) from None
-    _check_keys(doc, TOP_KEYS, source=source, where="")
+    check_known_keys(doc, TOP_KEYS, source=source, where="")
     name = doc.get("name", "robot")
     if not isinstance(name, str) or not name:
         raise InputError(f"expected the robot's name as text, got {name!r}", source=source, column="name")
@@ -487,12 +472,12 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
     if not isinstance(tables, list) or len(tables) != N_JOINTS:
         raise InputError(f"expected {N_JOINTS} [[joint]] tables", source=source, column="joint")
     for i, t in enumerate(tables, start=1):
-        _check_keys(_table(t, source=source, column=f"joint[{i}]"), JOINT_KEYS, source=source,
+        check_known_keys(_table(t, source=source, column=f"joint[{i}]"), JOINT_KEYS, source=source,
                     where=f"joint[{i}]")
     tool = doc.get("tool")
     if not isinstance(tool, dict):
         raise InputError("missing [tool] table", source=source, column="tool")
-    _check_keys(tool, TOOL_KEYS, source=source, where="tool")
+    check_known_keys(tool, TOOL_KEYS, source=source, where="tool")
     urdf = _urdf_source(doc, tool, source=source, base_dir=base_dir)
     if urdf is None:
         convention = doc.get("convention", "modified-dh")
@@ -566,7 +551,7 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
         if kind not in ("hydropneumatic", "spring"):
             raise InputError(f"kind must be 'hydropneumatic' or 'spring', got {kind!r}",
                              source=source, column="compensator.kind")
-        _check_keys(c, COMPENSATOR_KEYS[kind], source=source, where="compensator", what=f" for a {kind} compensator")
+        check_known_keys(c, COMPENSATOR_KEYS[kind], source=source, where="compensator", what=f" for a {kind} compensator")
         geometry = tuple((k, _number(c, k, source=source, where="compensator")) for k in keys)
         params = HYDRO_PARAMS if kind == "hydropneumatic" else SPRING_PARAMS
         nominal = tuple((k, _number(c, k, source=source, where="compensator")) for k in params if k in c)

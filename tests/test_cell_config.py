@@ -96,7 +96,7 @@ def test_relative_paths_resolve_next_to_the_file(tmp_path):
      'status = { address = 0, access = "write" }', "controller.registers.status", "elastocal only reads it"),
     ('[sim]\nhidden = "gremlins"', "sim.hidden", "hidden must be one of"),
     ('[sim]\nstart_q = [0, 0]', "sim.start_q", "expected 6 finite numbers"),
-    ('[sim]\nseeed = 1', "sim", "unknown keys seeed"),
+    ('[sim]\nseeed = 1', "sim.seeed", "unknown key seeed \\(did you mean seed\\?\\)"),
 ])
 def test_config_errors_name_the_file_and_key(extra, column, message):
     with pytest.raises(InputError, match=message) as err:
