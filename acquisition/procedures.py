@@ -20,6 +20,7 @@ masses times the robot's gravity vector.
 
 from __future__ import annotations
 
+import bisect
 import math
 import pathlib
 import time
@@ -43,6 +44,8 @@ PERSON_S = 60.0
 MOVE_MARGIN_S = 30.0
 #: longest wait for late drive samples after a reading [s]
 DRAIN_TIMEOUT_S = 5.0
+#: how many more times a reading is taken when a drive lost every sample of its window (a stream gap)
+READING_RETRIES = 3
 #: how often progress is redrawn during a step [s]
 PROGRESS_EVERY_S = 0.5
 
@@ -175,6 +178,7 @@ class Session:
         self._last_progress_ns = 0
         self._last_label = "starting"
         self._latest_drive_ns: dict[int, int] = {}
+        self._drive_times: dict[int, list[int]] = {}     # sample times per joint since the hold began
 
     # ------------------------------------------------------------ recording
     def event(self, kind: str, **fields) -> int:
@@ -196,6 +200,7 @@ class Session:
         for d in samples.drives:
             if d.t_ns > self._latest_drive_ns.get(d.joint, -1):
                 self._latest_drive_ns[d.joint] = d.t_ns
+            self._drive_times.setdefault(d.joint, []).append(d.t_ns)
         for g in samples.gaps:  # samples a drive reported lost will not come
             if g.joint is not None and g.end_ns > self._latest_drive_ns.get(g.joint, -1):
                 self._latest_drive_ns[g.joint] = g.end_ns
@@ -338,24 +343,51 @@ class Session:
 
     def hold(self, pose: PoseSpec, load_id: str, markers: Sequence[str], repeats: int, reading_s: float) -> None:
         """``repeats`` readings of every marker at rest, one marker after the other;
-        one ``reading`` event per marker and repeat with its window on the log clock."""
+        one ``reading`` event per marker and repeat with its window on the log clock.
+
+        A reading counts only when every drive has a sample in its window: the
+        drives deliver their cycles a little late, so the windows are judged
+        once the hold's samples are in (and logged), and a reading whose window
+        a drive's stream gap swallowed is taken again (:data:`READING_RETRIES`).
+        The reading events follow, before the hold ends."""
         wrench = list(self.wrench(load_id))
         self.event("hold_start", pose=pose.id, load=load_id, q=list(pose.q), wrench=wrench)
-        t1 = self.io.clock()
-        for r in range(1, repeats + 1):
-            for m in markers:  # a laser tracker measures one reflector at a time
+        self._drive_times = {}
+        order = [(r, m) for r in range(1, repeats + 1) for m in markers]
+        todo = list(order)
+        good: dict[tuple[int, str], tuple[int, int]] = {}
+        for _ in range(1 + READING_RETRIES):
+            windows = []
+            for r, m in todo:  # a laser tracker measures one reflector at a time
                 t0 = self.io.clock()
                 samples = self.poll([m], reading_s)
                 t1 = self.io.clock()
                 if not any(s.marker == m and t0 <= s.t_ns <= t1 for s in samples.tracker):
                     raise DeviceTimeout(f"the tracker gave no reading of marker {m} in {reading_s:g} s at "
                                         f"pose {pose.id}, load {load_id}")
-                self.event("reading", pose=pose.id, load=load_id, marker=m, repeat=r, q=list(pose.q),
-                           wrench=wrench, window_ns=[t0, t1])
-        # the drive samples of every reading's window are in the log before the hold ends (a
-        # reading counts only once its step is done; the drives deliver a cycle a little late)
-        self.drain(t1)
+                windows.append((r, m, t0, t1))
+            self.drain(windows[-1][3])
+            todo = []
+            for r, m, t0, t1 in windows:
+                if all(self._has_sample(j, t0, t1) for j in self._latest_drive_ns):
+                    good[(r, m)] = (t0, t1)
+                else:
+                    todo.append((r, m))
+            if not todo:
+                break
+        else:
+            raise DeviceTimeout(f"the drives lost every sample of {len(todo)} reading window(s) in "
+                                f"{1 + READING_RETRIES} tries at pose {pose.id}, load {load_id}")
+        for r, m in order:
+            t0, t1 = good[(r, m)]
+            self.event("reading", pose=pose.id, load=load_id, marker=m, repeat=r, q=list(pose.q),
+                       wrench=wrench, window_ns=[t0, t1])
         self.event("hold_end", pose=pose.id, load=load_id)
+
+    def _has_sample(self, joint: int, t0: int, t1: int) -> bool:
+        times = self._drive_times.get(joint, [])
+        i = bisect.bisect_left(times, t0)
+        return i < len(times) and times[i] <= t1
 
     def run(self, run_id: str, direction: str, start: Sequence[float], target: Sequence[float],
             speed_rad_s: float, load_id: str, marker: str | None, joint: int | None = None) -> None:

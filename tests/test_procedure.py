@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
+from elastocal.acquisition.cellio import SampleGap, Samples, VirtualCellIO, VirtualTiming
 from elastocal.acquisition.export import load_log, read_log
 from elastocal.acquisition.plan import (
     CheckSpec,
@@ -316,3 +316,47 @@ def test_resume_after_a_kill_continues_a_truncated_log(robot, poses, tmp_path):
     for p in set(before.pose):
         np.testing.assert_array_equal(before.subset(before.pose == p).xyz, after.subset(after.pose == p).xyz)
     check_stiffness(identify_static(robot, after, torque="current", form="exact"))
+
+
+class LosesJoint2InReadings(VirtualCellIO):
+    """Joint 2's stream loses every sample of the first ``n`` reading windows (a gap)."""
+
+    def __init__(self, *args, n: int, reading_s: float, **kw):
+        super().__init__(*args, **kw)
+        self.n, self.reading_s, self.lost = n, reading_s, []
+
+    def poll(self, markers, duration_s):
+        samples = super().poll(markers, duration_s)
+        if not (markers and duration_s == self.reading_s and len(self.lost) < self.n):
+            return samples
+        gone = [d for d in samples.drives if d.joint == 2]
+        if not gone:
+            return samples
+        self.lost.append((gone[0].t_ns, gone[-1].t_ns))
+        gap = SampleGap("drive J2", gone[0].t_ns, gone[-1].t_ns, len(gone), "no TPDO in the SYNC cycle", 2)
+        return Samples(tuple(d for d in samples.drives if d.joint != 2), samples.tracker, samples.gaps + (gap,))
+
+
+def test_a_reading_whose_window_a_drive_gap_swallowed_is_taken_again(robot, poses, tmp_path):
+    plan = static_plan(poses[:2])
+    io = LosesJoint2InReadings(SimCell(robot, CellTruth()), seed=5, timing=TIMING, n=2, reading_s=0.04)
+    out = run_procedures(io, plan, tmp_path / "log.mcap")
+    assert out.status == "completed" and len(io.lost) == 2
+    contents = read_log(tmp_path / "log.mcap")
+    readings = [e for e in contents.events if e["kind"] == "reading"]
+    assert len(readings) == 2 * 4 * 2 * 3                    # every reading once, none of the lost windows
+    assert not any(r["window_ns"] == list(w) for r in readings for w in io.lost)
+    assert sum(e["kind"] == "gap" for e in contents.events) == 2
+    _, static, _ = load_log(tmp_path / "log.mcap")
+    assert np.all(np.isfinite(static.currents))            # every row has every drive's current
+
+
+def test_a_drive_that_loses_every_try_of_a_reading_ends_the_procedure(robot, poses, tmp_path):
+    plan = static_plan(poses[:1])
+    io = LosesJoint2InReadings(SimCell(robot, CellTruth()), seed=5, timing=TIMING, n=10**6, reading_s=0.04)
+    with pytest.raises(DeviceTimeout, match=r"lost every sample of 6 reading window\(s\) in 4 tries at pose P1"):
+        run_procedures(io, plan, tmp_path / "log.mcap")
+    contents = read_log(tmp_path / "log.mcap")                 # the log up to the fault is readable
+    assert contents.complete and contents.end_status == "failed"
+    assert [e["error"] for e in contents.events if e["kind"] == "fault"] == ["DeviceTimeout"]
+    assert sum(e["kind"] == "gap" for e in contents.events) == 4 * 6   # every try of every window, recorded
