@@ -53,11 +53,12 @@ DRIVE_REGISTER_QUANTITY = {"current": "current", "position": "angle", "velocity"
                            "torque": "torque", "status": "count"}
 #: registers of the cell-controller handshake (docs/cell-config.md)
 CONTROLLER_REGISTERS = {
-    # name: (quantity, default access, count)
-    "command": ("count", "write", 1), "sequence": ("count", "write", 1), "pose": ("count", "write", 1),
-    "path": ("count", "write", 1), "speed": ("angular_velocity", "write", 1), "target": ("angle", "write", 6),
-    "ack": ("count", "read", 1), "status": ("count", "read", 1), "error": ("count", "read", 1),
-    "q": ("angle", "read", 6),
+    # name: (quantity, may elastocal write it, count); every register is read unless the config
+    # declares it `access = "write"` (the app writes only what a person declared writable)
+    "command": ("count", True, 1), "sequence": ("count", True, 1), "pose": ("count", True, 1),
+    "path": ("count", True, 1), "speed": ("angular_velocity", True, 1), "target": ("angle", True, 6),
+    "ack": ("count", False, 1), "status": ("count", False, 1), "error": ("count", False, 1),
+    "q": ("angle", False, 6),
 }
 CONTROLLER_REQUIRED = ("command", "sequence", "ack", "status")
 HIDDEN_EFFECTS = ("none", "link_compliance", "thermal_drift", "static_friction", "backlash")
@@ -554,8 +555,8 @@ def _controller(t: Mapping, *, source: str) -> ControllerConfig:
         if name not in CONTROLLER_REGISTERS:
             raise InputError(f"unknown controller register {name!r}; one of {', '.join(CONTROLLER_REGISTERS)}",
                              source=source, column=f"controller.registers.{name}")
-        quantity, access, count = CONTROLLER_REGISTERS[name]
-        spec = _register(name, spec_table, source=source, where="controller.registers", default_access=access,
+        quantity, writable, count = CONTROLLER_REGISTERS[name]
+        spec = _register(name, spec_table, source=source, where="controller.registers", default_access="read",
                          default_count=count)
         if spec.quantity != quantity:
             raise InputError(f"unit {spec.unit!r} is not a unit of {quantity.replace('_', ' ')}",
@@ -563,7 +564,7 @@ def _controller(t: Mapping, *, source: str) -> ControllerConfig:
         if spec.count != count:
             raise InputError(f"{name} holds {count} value(s), got count = {spec.count}", source=source,
                              column=f"controller.registers.{name}")
-        if access == "read" and spec.access == "write":
+        if not writable and spec.access == "write":
             raise InputError(f"{name} is written by the controller; elastocal only reads it",
                              source=source, column=f"controller.registers.{name}")
         specs.append(spec)
@@ -764,7 +765,7 @@ def _to_toml(c: CellConfig) -> str:
         k = c.controller
         lines += ["", "[controller]", f"url = {_toml_value(k.url.text)}", f"timeout_s = {k.timeout_s!r}",
                   f"retries = {k.retries}", f"move_timeout_s = {k.move_timeout_s!r}", "[controller.registers]"]
-        lines += [_register_toml(r, default_access=CONTROLLER_REGISTERS[r.name][1]) for r in k.registers]
+        lines += [_register_toml(r, default_access="read") for r in k.registers]
         if k.poses:
             lines.append("[controller.poses]")
             lines += [f'"{n}" = {_toml_value(list(q))}' for n, q in k.poses]

@@ -309,11 +309,21 @@ class ModbusServerThread:
         self._corrupt = 0
         self._lock = threading.Lock()
         self.port: int | None = None
+        #: every request received, decoded by pymodbus: (device id, function code, first address,
+        #: registers or bits read or written)
+        self.requests: list[tuple[int, int, int, int]] = []
 
     def corrupt_replies(self, count: int = 1) -> None:
         """Flip a bit in the next ``count`` replies (a TCP reply gets a wrong protocol id)."""
         with self._lock:
             self._corrupt += count
+
+    def _trace_pdu(self, sending: bool, pdu):
+        if not sending:
+            with self._lock:
+                count = len(pdu.registers) if pdu.registers else (len(pdu.bits) if pdu.bits else pdu.count)
+                self.requests.append((pdu.dev_id, pdu.function_code, pdu.address, count))
+        return pdu
 
     def _trace(self, sending: bool, data: bytes) -> bytes:
         if not sending:
@@ -355,10 +365,11 @@ class ModbusServerThread:
     async def _serve(self) -> None:
         if self._tcp is not None:
             self._server = ModbusTcpServer(self._devices, address=self._tcp, identity=identity(),
-                                           trace_packet=self._trace)
+                                           trace_packet=self._trace, trace_pdu=self._trace_pdu)
         else:
             self._server = ModbusSerialServer(self._devices, port=self._serial, baudrate=self._baudrate,
-                                              identity=identity(), trace_packet=self._trace)
+                                              identity=identity(), trace_packet=self._trace,
+                                              trace_pdu=self._trace_pdu)
         await self._server.serve_forever(background=True)
         if self._tcp is not None:
             self.port = self._server.transport.sockets[0].getsockname()[1]
