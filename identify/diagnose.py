@@ -65,13 +65,20 @@ from elastocal.identify.static import (
     build_dataset,
     identify_static,
 )
+from elastocal.identify.plausibility import implausible_reason
+from elastocal.identify.stepwise import (
+    EXCESS_P,
+    Step,
+    Unexplained,
+    stepwise,
+    unexplained_of,
+    verdict_of,
+)
 from elastocal.identify.tables import StaticTable
 
 #: verdict rule of cli.md
 VERDICT_P = 0.01
 VERDICT_DELTA_BIC = -10.0
-#: excess over the noise that calls for an "unexplained" report
-EXCESS_P = 1e-3
 #: a feature the excess follows (rank correlation) is reported below this p
 FEATURE_P = 5e-3
 #: a pose holding more than this share of the excess is named
@@ -100,6 +107,9 @@ class Candidate:
     n_model_parameters: int    # all parameters of the augmented model
     condition_number: float
     fit: StaticFit = field(repr=False)
+    #: why the fitted values are physically implausible or the fit near-singular
+    #: (never a step, identify/plausibility.py); None when plausible
+    implausible: str | None = None
 
     @property
     def significant(self) -> bool:
@@ -123,6 +133,7 @@ class Candidate:
             "n_parameters": self.n_model_parameters,
             "condition_number": _finite(self.condition_number),
             "explanation": self.explanation,
+            **({"implausible": self.implausible} if self.implausible else {}),
         }
 
 
@@ -198,6 +209,12 @@ class Diagnosis:
     #: False without repeated readings: the tests then assume tracker noise at
     #: the level the model's residual shows, and no noise floor is reported
     noise_known: bool = True
+    #: effects added in order (identify/stepwise.py); final is the model with all of them
+    steps: tuple[Step, ...] = ()
+    #: what stays above the floor that no candidate explains (None when nothing does)
+    unexplained_detail: Unexplained | None = None
+    #: readings far off their repeats (identify/outliers.py), left out of the noise floor
+    outliers: tuple = ()
 
     @property
     def noise_floor(self) -> float | None:
@@ -205,7 +222,7 @@ class Diagnosis:
 
     @property
     def verdict_candidate(self) -> Candidate | None:
-        return self.candidates[0] if self.verdict is not None else None
+        return self.steps[0].candidate if self.verdict is not None else None
 
     def to_json(self) -> dict:
         f = self.fit
@@ -218,11 +235,20 @@ class Diagnosis:
             "candidates": [c.to_json() for c in self.candidates],
             "verdict": self.verdict,
             "not_testable": [{"effect": n.effect, "reason": n.reason} for n in self.not_testable],
+            "steps": [{"effect": st.effect,
+                       "residual": {"rms": st.rms_after, "max": st.candidate.max_after, "n": f.n, "unit": "m"},
+                       "noise_floor": st.noise_floor_after if self.noise_known else None,
+                       "delta_bic": st.candidate.delta_bic, "p_value": st.candidate.p_value,
+                       "parameters": {p.name: {"value": p.value, "std": p.std, "unit": p.unit}
+                                      for p in st.candidate.parameters}}
+                      for st in self.steps],
             "final": {"model": list(self.final.model),
                       "residual": {"rms": self.final.rms, "max": self.final.max, "n": self.final.n, "unit": "m"},
                       "noise_floor": self.final.noise_floor if self.noise_known else None,
                       "excess_p_value": self.excess_p_value},
-            "unexplained": list(self.unexplained),
+            "unexplained": None if self.unexplained_detail is None else {
+                **self.unexplained_detail.to_json(), "sentences": list(self.unexplained)},
+            "outliers": [o.to_json() for o in self.outliers],
             "where": self.where.to_json(),
         }
 
@@ -469,22 +495,11 @@ def _evidence(effect, params: Sequence[Parameter], fallback: str) -> str:
 
 
 # =================================================================== diagnose
-def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
-                    model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
-                    form: str = "exact", effects: Sequence[str] | None = None) -> Diagnosis:
-    """Fit ``model``, then each effect it lacks; rank them and give the verdict.
-
-    ``effects``: the candidate effects to try (default: every effect of the
-    table). Effects these data cannot show are listed in ``not_testable`` with
-    the reason.
-    """
-    ds = data if isinstance(data, StaticDataset) else build_dataset(data)
-    noise_known = ds.sigma_tracker is not None
-    if not noise_known:
-        ds = _assumed_noise(robot, ds, model, torque, form)
-    base = identify_static(robot, ds, model=model, torque=torque, form=form)
+def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequence[str], *, torque: str,
+                    form: str, noise_known: bool) -> tuple[list[Candidate], list[NotTestable]]:
+    """Fit ``base``'s model plus each effect of ``pool`` it lacks and test it
+    against ``base``: candidates best first, and the effects these data cannot show."""
     model_names = base.model
-    pool = ALL_EFFECTS if effects is None else tuple(effects)
     candidates: list[Candidate] = []
     skipped: list[NotTestable] = []
     for name in pool:
@@ -521,23 +536,59 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
             delta_bic=float(dbic),
             p_value=p, statistic=float(stat), dof=dof, dispersion=_dispersion(aug), parameters=params,
             unidentifiable=unident, rank=aug.n_params, n_model_parameters=len(aug.beta_names),
-            condition_number=aug.condition_number, fit=aug))
+            condition_number=aug.condition_number, fit=aug,
+            implausible=implausible_reason(eff, aug, params)))
     candidates.sort(key=lambda c: (c.delta_bic, c.rms_after))
-    verdict = candidates[0].effect if candidates and candidates[0].significant else None
-    final = candidates[0].fit if verdict is not None else base
+    return candidates, skipped
+
+
+def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
+                    model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
+                    form: str = "exact", effects: Sequence[str] | None = None) -> Diagnosis:
+    """Fit ``model``, test each effect it lacks, and diagnose stepwise (cli.md).
+
+    ``candidates`` are the effects tested against the model as given, best
+    first; the best significant, plausible one is added and the rest tested
+    again until none is (identify/stepwise.py). The verdict is the first step
+    when the final model sits at the noise floor, else None with what stays
+    unexplained. ``effects``: the candidate effects to try (default: every
+    effect of the table). Effects these data cannot show are listed in
+    ``not_testable`` with the reason.
+    """
+    ds = data if isinstance(data, StaticDataset) else build_dataset(data)
+    noise_known = ds.sigma_tracker is not None
+    if not noise_known:
+        ds = _assumed_noise(robot, ds, model, torque, form)
+    base = identify_static(robot, ds, model=model, torque=torque, form=form)
+    pool = ALL_EFFECTS if effects is None else tuple(effects)
+    skipped_first: list[NotTestable] = []
+
+    def test(fit: StaticFit, added: Sequence[str]) -> list[Candidate]:
+        cands, skipped = test_candidates(robot, ds, fit, pool, torque=torque, form=form, noise_known=noise_known)
+        if not added:
+            skipped_first.extend(skipped)
+        return cands
+
+    candidates, steps, final, _ = stepwise(base, test)
     excess = excess_p_value(final) if noise_known else None
+    floor = final.noise_floor if noise_known else None
+    verdict = verdict_of(steps, final.rms, floor, excess) if noise_known else (steps[0].effect if steps else None)
     where = where_it_fails(robot, base, noise=noise_known)
     where_final = where_it_fails(robot, final, noise=noise_known) if final is not base else where
     unexplained: tuple[str, ...] = ()
+    detail = None
     if excess is not None and excess < EXCESS_P:
         unexplained = unexplained_structure(where_final)
-        ratio = final.rms / final.noise_floor if final.noise_floor else float("nan")
-        if not unexplained:
-            unexplained = (f"residual stays {ratio:.2f}x the noise floor with no pattern in pose, marker, "
-                           "joint angle, load or time",)
-    return Diagnosis(model=model_names, torque=torque, form=form, fit=base, candidates=tuple(candidates),
-                     not_testable=tuple(skipped), verdict=verdict, final=final, excess_p_value=excess,
-                     unexplained=unexplained, where=where, where_final=where_final, noise_known=noise_known)
+        detail = unexplained_of(base.rms, steps, final.rms, floor, excess, unexplained)
+        if detail is not None:
+            if not unexplained:
+                unexplained = (f"residual stays {detail.ratio:.2f}x the noise floor with no pattern in pose, "
+                               "marker, joint angle, load or time",)
+            detail = replace(detail, follows=unexplained)
+    return Diagnosis(model=base.model, torque=torque, form=form, fit=base, candidates=tuple(candidates),
+                     not_testable=tuple(skipped_first), verdict=verdict, final=final, excess_p_value=excess,
+                     unexplained=unexplained, where=where, where_final=where_final, noise_known=noise_known,
+                     steps=steps, unexplained_detail=detail)
 
 
 # =================================================================== run data

@@ -242,7 +242,7 @@ def _fmt(x: float) -> str:
 def _verdict_html(diag: Diagnosis) -> str:
     fit = diag.fit
     if diag.verdict is not None:
-        c = diag.candidates[0]
+        c = diag.verdict_candidate
         return (f'<div class="verdict found" id="verdict">Residual {_um(fit.rms)} rms, noise floor '
                 f'{_um(diag.noise_floor)}: the model misses something. Missing effect: '
                 f'<b>{_e(diag.verdict)}</b> — {_e(c.evidence)}. Adding it brings the residual to '

@@ -63,7 +63,7 @@ class StaticDataset:
     state_load: np.ndarray        # (S,) str
     state_ref: np.ndarray         # (S,) index of the pose's reference state
     state_currents: np.ndarray    # (S, 6) mean currents [A], NaN when absent
-    state_n_currents: np.ndarray  # (S,) readings averaged
+    state_n_currents: np.ndarray  # (S,) distinct drive readings averaged (formats.md §2)
     state_wrench: np.ndarray      # (S, 6) [N, N·m], NaN when unknown; 0 for references without one
     defl_state: np.ndarray        # (D,)
     defl_ref: np.ndarray          # (D,)
@@ -93,6 +93,17 @@ class StaticDataset:
         return bool(np.all(np.isfinite(self.state_wrench)))
 
 
+def distinct_readings(currents: np.ndarray) -> np.ndarray:
+    """The distinct drive readings among a load state's rows (formats.md §2):
+    rows that carry identical currents share one reading (the currents of one
+    repeat read once for all its markers), which counts once in the mean and
+    in the noise estimate. Order of first appearance is kept."""
+    if len(currents) < 2 or not np.all(np.isfinite(currents)):
+        return currents
+    _, first = np.unique(currents, axis=0, return_index=True)
+    return currents[np.sort(first)]
+
+
 def build_dataset(table: StaticTable) -> StaticDataset:
     """Average repeated readings and form the deflections of a validated table."""
     pose_ids = tuple(dict.fromkeys(table.pose))
@@ -109,7 +120,7 @@ def build_dataset(table: StaticTable) -> StaticDataset:
         means: dict[tuple[str, str], tuple[np.ndarray, int, float]] = {}
         for ld in loads:
             rows = rows_p & (table.load == ld)
-            c = table.currents[rows]
+            c = distinct_readings(table.currents[rows])
             state_pose.append(pi)
             state_load.append(ld)
             state_ref.append(ref_index)

@@ -79,7 +79,13 @@ class CellTruth:
             raise ValueError("stiffness must be positive")
 
     def with_hidden(self, effect: str) -> "CellTruth":
-        """The same truth with one hidden effect switched on at a typical size."""
+        """The same truth with one hidden effect switched on at a typical size
+        (``"a,b"``: each of several)."""
+        if "," in effect:
+            out = self
+            for name in (e.strip() for e in effect.split(",")):
+                out = out.with_hidden(name)
+            return out
         if effect == "none":
             return self
         if effect == "link_compliance":

@@ -215,11 +215,13 @@ def hide_in_runs(truth: CellTruth, effect: str) -> CellTruth:
     :func:`default_run_truth`); ``none`` switches friction off, ``friction``
     switches on all three terms. The compensator and the link masses are always
     in the run physics: the run torque model always holds them (cli.md)."""
-    if effect not in RUN_HIDDEN:
-        raise ValueError(f"the simulator cannot hide {effect!r} in run data; one of {', '.join(RUN_HIDDEN)}")
+    names = {e.strip() for e in effect.split(",")}     # "a,b": several
+    for name in names:
+        if name not in RUN_HIDDEN:
+            raise ValueError(f"the simulator cannot hide {name!r} in run data; one of {', '.join(RUN_HIDDEN)}")
     zero = np.zeros(6)
     full = default_run_truth(truth)
     return replace(truth,
-                   coulomb=full.coulomb if effect in ("coulomb_friction", "friction") else zero,
-                   viscous=full.viscous if effect in ("viscous_friction", "friction") else zero,
-                   load_friction=full.load_friction if effect in ("load_dependent_friction", "friction") else zero)
+                   coulomb=full.coulomb if names & {"coulomb_friction", "friction"} else zero,
+                   viscous=full.viscous if names & {"viscous_friction", "friction"} else zero,
+                   load_friction=full.load_friction if names & {"load_dependent_friction", "friction"} else zero)

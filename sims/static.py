@@ -29,6 +29,9 @@ class StaticPlan:
     reading_s: float = 2.0      # time between two readings
     load_change_s: float = 45.0
     move_s: float = 30.0
+    #: one drive reading per repeat, copied to the rows of all its markers
+    #: (formats.md §2), instead of one reading per row
+    shared_currents: bool = False
 
     def __post_init__(self) -> None:
         if self.n_poses < 1 or self.n_loads < 1 or self.repeats < 1:
@@ -74,7 +77,8 @@ def simulate_static(robot: Robot, truth: CellTruth, *, seed: int, plan: StaticPl
     """Run a static experiment on the simulated cell and return its table.
 
     Per pose: the unloaded reference, then each load state; ``repeats`` readings
-    of every marker per state, each reading with its own current sample.
+    of every marker per state, each reading with its own current sample (or,
+    with ``plan.shared_currents``, one current sample per repeat for all markers).
     ``poses`` (n, 6) and ``wrenches`` (one (n_loads, 6) array per pose) override
     the random ones.
     """
@@ -97,6 +101,7 @@ def simulate_static(robot: Robot, truth: CellTruth, *, seed: int, plan: StaticPl
             if index:
                 t += plan.load_change_s
             for _ in range(plan.repeats):
+                shared = cell.read_currents(eq, rng) if plan.shared_currents else None
                 for m in markers:
                     t += plan.reading_s
                     cols["pose"].append(str(p))
@@ -104,7 +109,7 @@ def simulate_static(robot: Robot, truth: CellTruth, *, seed: int, plan: StaticPl
                     cols["t"].append(t)
                     cols["q"].append(q)
                     cols["wrench"].append(w)
-                    cols["currents"].append(cell.read_currents(eq, rng))
+                    cols["currents"].append(shared if shared is not None else cell.read_currents(eq, rng))
                     cols["marker"].append(m)
                     cols["xyz"].append(cell.read_tracker(eq, [m], t, rng)[0])
     return static_table_from_arrays(pose=cols["pose"], load=cols["load"], t=cols["t"], q=cols["q"],

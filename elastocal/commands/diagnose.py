@@ -79,16 +79,18 @@ def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str
         lines.append(f"  residual {_um(fit.rms)} rms; no repeated readings, so the noise floor is unknown")
     elif diag.verdict is not None:
         lines.append(f"  residual {_um(fit.rms)} rms, noise floor {_um(floor)}: the model misses something.")
-    elif diag.unexplained:
+    elif diag.unexplained_detail is not None:
         lines.append(f"  residual {_um(fit.rms)} rms, noise floor {_um(floor)}: above the floor, "
-                     "and no candidate effect explains it.")
+                     "and no candidate effect explains all of it.")
     else:
         lines.append(f"  residual {_um(fit.rms)} rms, noise floor {_um(floor)}: "
                      "residual at the noise floor; no missing effect found.")
     width = max([len(c.effect) for c in diag.candidates] + [10])
     for k, c in enumerate(diag.candidates, start=1):
         change = f"{fit.rms * 1e6:.1f} → {c.rms_after * 1e6:.1f} µm"
-        if c.significant:
+        if c.implausible:
+            words = f"implausible: {c.implausible}"
+        elif c.significant:
             words = f"ΔBIC {c.delta_bic:.0f}   {_p(c.p_value)}   {c.evidence}"
         else:
             words = f"not significant (ΔBIC {c.delta_bic:+.0f}, {_p(c.p_value)})"
@@ -96,8 +98,17 @@ def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str
         if c.unidentifiable:
             lines.append(f"     {' ' * width}  unidentifiable here: {', '.join(c.unidentifiable)} "
                          f"(rank {c.rank} of {c.n_model_parameters}, condition number {c.condition_number:.3g})")
+    if diag.steps:
+        lines.append("  stepwise: " + " → ".join(
+            [_um(fit.rms)] + [f"+{st.effect} {_um(st.rms_after)}" for st in diag.steps])
+            + ("" if floor is None else f" (floor {_um(diag.final.noise_floor)})"))
+    if diag.unexplained_detail is not None:
+        lines.append(f"  {diag.unexplained_detail.summary()}.")
     for u in diag.unexplained:
         lines.append(f"  unexplained: {u}")
+    for o in diag.outliers:
+        lines.append(f"  outlier: line {o.line} (pose {o.pose}, load {o.load}, marker {o.marker}) is "
+                     f"{_um(o.residual)} off its repeats{'; left out' if o.excluded else ''}")
     if diag.not_testable:
         lines.append("  not testable from these data:")
         for n in diag.not_testable:

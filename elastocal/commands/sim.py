@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     # everything is checked before anything is written
     static = args.sim_command == "static"
     hidden = HIDDEN_EFFECTS if static else RUN_HIDDEN
-    if args.hidden not in hidden:
+    if not all(name.strip() in hidden for name in args.hidden.split(",")):
         raise InputError(f"the simulator cannot hide {args.hidden!r} in {'static' if static else 'run'} data; "
                          f"one of {', '.join(hidden)}", source="--hidden")
     if args.seed < 0:

@@ -14,10 +14,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis, strongest
+from elastocal.identify.effects.base import (
+    Effect,
+    StaticBasis,
+    StaticContext,
+    diagonal_basis,
+    strongest,
+    wrong_sign,
+)
 
 #: torque over which the play is taken up [N·m]
 TAU_BAND_NM = 20.0
+#: lost motion beyond this is no gear's play (catalogue gears: a few arcmin) [rad]
+MAX_PLAY_RAD = np.radians(1.0)
 #: a joint shows its play only if some load state changes tanh(tau/band)/2 by at
 #: least this fraction of the play (one tenth of it)
 MIN_VISIBLE_FRACTION = 0.1
@@ -62,6 +71,17 @@ def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> s
             f"(play {values[k] * 180 / np.pi * 60:.2f} arcmin)")
 
 
+def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> str | None:
+    reason = wrong_sign(names, values, stds, "a lost motion")
+    if reason:
+        return reason
+    k = int(np.argmax(np.abs(values)))
+    if abs(values[k]) > MAX_PLAY_RAD:
+        return (f"a lost motion of {values[k] * 180 / np.pi * 60:.0f} arcmin on joint {names[k][1:]} "
+                f"(no gear has more than {MAX_PLAY_RAD * 180 / np.pi * 60:.0f} arcmin)")
+    return None
+
+
 EFFECT = Effect(
     name="backlash",
     parameters=tuple(f"b{j}" for j in range(1, 7)),
@@ -73,6 +93,7 @@ EFFECT = Effect(
     static_refusal=_refusal,
     torque_sensitivity=_sensitivity,
     describe=_describe,
+    plausibility=_plausibility,
     static_model="each joint angle gains (b_j/2) tanh(tau_j / 20 N·m) besides the spring's c_j tau_j",
     run_model="at a direction reversal the motor turns through the play before the link follows; "
               "it shows in tracked positions, not in currents",

@@ -81,6 +81,9 @@ class Effect:
     torque_sensitivity: Optional[Callable[[StaticContext, np.ndarray], np.ndarray]] = None
     #: (parameter names, values, stds) of a fit -> the evidence in these data, in words
     describe: Optional[Callable[[tuple[str, ...], np.ndarray, np.ndarray], str]] = None
+    #: (parameter names, values, stds) of a fit -> why the values are physically
+    #: implausible (identify/plausibility.py), or None
+    plausibility: Optional[Callable[[tuple[str, ...], np.ndarray, np.ndarray], Optional[str]]] = None
     #: how the effect enters the static model and the run (torque) model, in words
     static_model: str = ""
     run_model: str = ""
@@ -104,3 +107,17 @@ def strongest(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> i
     """Index of the parameter the data show most clearly (largest |value/std|)."""
     z = np.abs(values) / np.where(stds > 0, stds, np.inf)
     return int(np.argmax(z))
+
+
+#: a value this many std on the wrong side of zero is a wrong sign, not noise
+WRONG_SIGN_STD = 3.0
+
+
+def wrong_sign(names, values, stds, words: str) -> str | None:
+    """Reason when some parameter that must be positive is significantly negative."""
+    bad = [(n, v, s) for n, v, s in zip(names, values, stds) if v < -WRONG_SIGN_STD * max(s, 0.0)]
+    if not bad:
+        return None
+    n, v, s = min(bad, key=lambda x: x[1] / x[2] if x[2] > 0 else -np.inf)
+    return f"{words} of the wrong sign ({n} = {v:.3g}, {abs(v) / s:.0f} std below zero)" if s > 0 else \
+        f"{words} of the wrong sign ({n} = {v:.3g})"

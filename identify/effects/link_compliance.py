@@ -11,7 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis, strongest
+from elastocal.identify.effects.base import (
+    Effect,
+    StaticBasis,
+    StaticContext,
+    diagonal_basis,
+    strongest,
+    wrong_sign,
+)
 from elastocal.identify.robot import LINK_SPRINGS
 
 
@@ -29,6 +36,10 @@ def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> s
             f"({names[k]} = {values[k]:.3g} rad/(N*m), {abs(values[k]) / stds[k]:.0f} std)")
 
 
+def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> str | None:
+    return wrong_sign(names, values, stds, "a compliance")
+
+
 EFFECT = Effect(
     name="link_compliance",
     parameters=LINK_SPRINGS,
@@ -38,6 +49,7 @@ EFFECT = Effect(
     evidence="lateral deflection follows the torsion and bending moments on links 2 and 3",
     static_basis=_basis,
     describe=_describe,
+    plausibility=_plausibility,
     static_model="two extra rotations (about x and y) at the ends of links 2 and 3, "
                  "cl times the moment of the load change there",
     run_model="not in the torque model: link springs change positions, not joint torques",

@@ -13,6 +13,9 @@ import numpy as np
 
 from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext
 
+#: drift faster than this is no room warming up (typical: tenths of a mm/h) [m/s]
+MAX_DRIFT_M_S = 5e-3 / 3600.0
+
 
 def _basis(ctx: StaticContext) -> StaticBasis:
     add = np.zeros((ctx.n_deflections, 3, 3))
@@ -36,6 +39,14 @@ def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> s
             f"mostly along {axis}")
 
 
+def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> str | None:
+    speed = float(np.linalg.norm(values))
+    if speed > MAX_DRIFT_M_S:
+        return (f"a drift of {speed * 3.6e6:.3g} mm/h, faster than a room or a tracker warms "
+                f"(at most {MAX_DRIFT_M_S * 3.6e6:.0f} mm/h)")
+    return None
+
+
 EFFECT = Effect(
     name="thermal_drift",
     parameters=("vx", "vy", "vz"),
@@ -46,6 +57,7 @@ EFFECT = Effect(
     static_basis=_basis,
     static_refusal=_refusal,
     describe=_describe,
+    plausibility=_plausibility,
     static_model="each deflection gains v (t_loaded - t_reference)",
     run_model="tracked positions of a run gain v t; joint torques are not affected",
 )
