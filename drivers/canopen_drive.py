@@ -28,7 +28,8 @@ needs:
 
 URL parameters: ``node`` (1..127), ``bitrate`` (budget, default 1000000),
 ``eds`` (the drive's EDS file; default: the generic CiA 402 objects of the
-packaged ``elastocal_drive.eds``), ``port`` (udp_multicast port).
+packaged ``elastocal_drive.eds``), ``port`` (the UDP port of ``udp_loopback`` and
+``udp_multicast``).
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from elastocal.drivers.base import DeviceInfo, Drive, DriveSample, SharedLinks, Stream
+from elastocal.drivers.can_loopback import INTERFACE as CAN_LOOPBACK, open_can_bus
 from elastocal.drivers.canframes import worst_frame_bits
 from elastocal.drivers.config import DeviceUrl, DriveConfig
 from elastocal.errors import DeviceError, DeviceFault, DeviceTimeout, InputError, ProtocolError
@@ -168,10 +170,10 @@ class CanopenLink:
         self.channel = url.can_channel
         self.bitrate = url.int_param("bitrate", 1_000_000, low=10_000, high=1_000_000)
         kwargs: dict = {}
-        if self.interface == "udp_multicast" and url.param("port") is not None:
+        if self.interface in ("udp_multicast", CAN_LOOPBACK) and url.param("port") is not None:
             kwargs["port"] = url.int_param("port", 43113, low=1, high=65535)
         try:
-            bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
+            bus = open_can_bus(self.interface, self.channel, **kwargs)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise DeviceError(f"cannot open CAN {self.interface}/{self.channel}: {exc}") from exc
         self.network = canopen.Network(bus)

@@ -132,6 +132,13 @@ class DeviceUrl:
         text = f"{self.scheme}://{netloc}{path}" + (f"?{query}" if query else "")
         return replace(self, text=text, path=path)
 
+    def with_param(self, key: str, value) -> "DeviceUrl":
+        """The same URL with the query parameter ``key`` set to ``value`` (added or replaced)."""
+        params = tuple((k, v) for k, v in self.params if k != key) + ((key, str(value)),)
+        query = "&".join(f"{k}={v}" for k, v in params)
+        netloc = self.host + (f":{self.port}" if self.port is not None else "")
+        return replace(self, text=f"{self.scheme}://{netloc}{self.path}?{query}", params=params)
+
     def with_host(self, host: str) -> "DeviceUrl":
         query = "&".join(f"{k}={v}" for k, v in self.params)
         netloc = host + (f":{self.port}" if self.port is not None else "")

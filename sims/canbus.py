@@ -1,6 +1,6 @@
 """A CAN bus with the timing of a real one, for the simulated drives.
 
-python-can's ``virtual`` and ``udp_multicast`` interfaces deliver frames
+python-can's ``virtual`` and ``udp_multicast`` (``udp_loopback``) interfaces deliver frames
 instantly and without limit. :class:`SimCanBus` wraps one of them on the
 device side and adds what a 1 Mbit/s bus imposes:
 
@@ -23,7 +23,7 @@ device side and adds what a 1 Mbit/s bus imposes:
   else ``delivery_interval_s`` (5 ms) after a TPDO ended (other frames: when
   they ended) — a thread wake-up per batch, not per frame. The frames keep
   their bus time as timestamp on the virtual bus, so batching does not
-  change what the drivers see. ``udp_multicast`` stamps frames with their
+  change what the drivers see. Over UDP (``udp_loopback``) frames are stamped with their
   arrival instead, so across processes ``delivery_interval_s=0`` hands each
   burst of TPDOs over as soon as its last frame ended on the bus, as a real
   bus delivers them: before the next SYNC;
@@ -31,7 +31,7 @@ device side and adds what a 1 Mbit/s bus imposes:
   next SYNC comes is discarded (the CiA 301 synchronous window), and a full
   transmit queue drops frames (overrun); both are counted, so a lossy bus
   shows up as gaps on the driver side, never as late data with a wrong time;
-* with ``filter_own=True`` (udp_multicast loops our own frames back) the echo
+* with ``filter_own=True`` (UDP multicast loops our own frames back) the echo
   of every frame we sent is dropped.
 
 :meth:`SimCanBus.stats` reports frames, bits and the bus load.
@@ -80,7 +80,7 @@ class SimCanBus(can.BusABC):
     """Device-side bus with frame timing (see the module docstring).
 
     ``reply_delay_s(node_id)`` gives each node's reply delay; ``inner`` is the
-    python-can bus that carries the frames (virtual or udp_multicast).
+    python-can bus that carries the frames (virtual or udp_loopback).
     """
 
     #: how long after it ended a TPDO waits, at most, for the next SYNC to hand it over with its cycle

@@ -29,11 +29,15 @@ import time
 from importlib import resources
 from typing import Sequence
 
-import can
 import canopen
 
+from elastocal.drivers.can_loopback import INTERFACE as CAN_LOOPBACK, open_can_bus
 from elastocal.sims.canbus import BusStats, SimCanBus
 from elastocal.sims.world import SimWorld, WorldSample
+
+#: python-can interfaces that carry frames between processes as UDP datagrams (stamped on arrival,
+#: our own frames looped back)
+UDP_INTERFACES = ("udp_multicast", CAN_LOOPBACK)
 
 SW_SWITCH_ON_DISABLED = 0x0250
 SW_READY_TO_SWITCH_ON = 0x0231
@@ -251,12 +255,15 @@ class SimCanopenNetwork:
         self.world = drives[0].world if drives else None
         if interface == "virtual":
             bus_kwargs.setdefault("preserve_timestamps", True)
-        inner = can.Bus(interface=interface, channel=channel, **bus_kwargs)
+        inner = open_can_bus(interface, channel, **bus_kwargs)
+        #: the UDP port of a bus across processes (``udp_loopback`` opened with port 0: the kernel's choice)
+        self.port: int | None = getattr(inner, "port", bus_kwargs.get("port"))
         delays = {d.node_id: reply_delay_s for d in drives}
+        udp = interface in UDP_INTERFACES
         self.bus = SimCanBus(inner, bitrate=bitrate, reply_delay_s=lambda n: delays.get(n, reply_delay_s),
-                             filter_own=(interface == "udp_multicast"),
-                             # udp_multicast stamps frames on arrival: deliver each burst as it ends
-                             delivery_interval_s=0.0 if interface == "udp_multicast" else SimCanBus.DELIVERY_INTERVAL_S)
+                             filter_own=udp,
+                             # over UDP frames are stamped on arrival: deliver each burst as it ends
+                             delivery_interval_s=0.0 if udp else SimCanBus.DELIVERY_INTERVAL_S)
         self.network = canopen.Network(self.bus)
         self.network.NOTIFIER_CYCLE = 0.1     # so that closing does not wait a second
         try:

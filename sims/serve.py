@@ -11,7 +11,9 @@ In Python (tests, the demo, the guided procedure)::
         with open_cell(sim.config) as cell: ...
 
 CiA 402 drives become canopen ``LocalNode`` s on the config's CAN channel
-(``virtual`` in-process, ``udp_multicast`` across processes), Modbus drives and
+(``virtual`` in-process; across processes ``udp_loopback``, multicast on the
+loopback interface only, on a free UDP port of its own:
+:mod:`elastocal.drivers.can_loopback`), Modbus drives and
 the cell controller pymodbus servers on 127.0.0.1 (port 0: an ephemeral port)
 or on a pseudo-terminal pair (``modbus+rtu``), the tracker a line server on
 TCP or on a pseudo-terminal (``tracker+serial``). All read one
@@ -25,6 +27,7 @@ import pathlib
 from dataclasses import replace
 from importlib import resources
 
+from elastocal.drivers.can_loopback import DEFAULT_GROUP as CAN_LOOPBACK_GROUP, INTERFACE as CAN_LOOPBACK
 from elastocal.drivers.config import CellConfig, DeviceUrl, parse_cell_config
 from elastocal.errors import InputError
 from elastocal.textfiles import read_text_file
@@ -35,9 +38,9 @@ from elastocal.sims.tracker_server import SimTracker
 from elastocal.sims.world import SimWorld
 
 LOOPBACK = ("127.0.0.1", "localhost")
-SIM_CAN_INTERFACES = ("virtual", "udp_multicast")
-UDP_GROUP = "239.74.163.2"
-UDP_PORT = 43113
+#: CAN interfaces simulated drives may use: both keep the frames on this machine (python-can's
+#: udp_multicast would bind 0.0.0.0 and join on the external interface)
+SIM_CAN_INTERFACES = ("virtual", CAN_LOOPBACK)
 
 
 def example_cell_path() -> pathlib.Path:
@@ -108,26 +111,32 @@ class SimulatedCell:
                 continue
             iface = d.url.can_interface
             if iface not in SIM_CAN_INTERFACES:
-                raise InputError(f"{d.url.text}: simulated drives run on {' or '.join(SIM_CAN_INTERFACES)}, "
-                                 f"not {iface!r}")
+                raise InputError(f"{d.url.text}: simulated drives run on {' or '.join(SIM_CAN_INTERFACES)} "
+                                 f"(both stay on this machine), not {iface!r}")
             node = d.url.int_param("node", 1, low=1, high=127)
             drive = SimCanopenDrive(node, d.joint, self.world, gear_ratio=sim.gear_ratios[d.joint - 1],
                                     serial=1000 + d.joint, tpdo2=self._tpdo2)
             self.canopen_drives[d.joint] = drive
             bitrate = d.url.int_param("bitrate", 1_000_000, low=10_000, high=1_000_000)
             groups.setdefault((iface, d.url.can_channel, bitrate), []).append(drive)
+        resolved_drives = {d.joint: d for d in cfg.drives}
         for (iface, channel, bitrate), drives in groups.items():
             kwargs = {}
-            port = next((d.url.param("port") for d in cfg.drives if d.url.scheme == "canopen"
-                         and d.url.can_channel == channel and d.url.param("port")), None)
-            if iface == "udp_multicast" and port is not None:
-                kwargs["port"] = int(port)
-            self.can_networks[(iface, channel)] = SimCanopenNetwork(
-                iface, channel, drives, bitrate=bitrate, reply_delay_s=sim.can_reply_delay_s, **kwargs)
+            if iface == CAN_LOOPBACK:    # port 0 or none: a free port, written into the resolved URLs
+                kwargs["port"] = next((d.url.int_param("port", 0, high=65535) for d in cfg.drives
+                                       if d.url.scheme == "canopen" and d.url.can_channel == channel
+                                       and d.url.param("port")), 0)
+            network = SimCanopenNetwork(iface, channel, drives, bitrate=bitrate,
+                                        reply_delay_s=sim.can_reply_delay_s, **kwargs)
+            self.can_networks[(iface, channel)] = network
+            if iface == CAN_LOOPBACK:
+                for d in drives:
+                    resolved_drives[d.joint] = replace(resolved_drives[d.joint],
+                                                       url=resolved_drives[d.joint].url.with_param("port",
+                                                                                                   network.port))
 
         # Modbus devices, one server per endpoint
         endpoints: dict[tuple, list] = {}
-        resolved_drives = {d.joint: d for d in cfg.drives}
         for d in cfg.drives:
             if d.url.scheme.startswith("modbus"):
                 sd = SimModbusDrive(d, self.world, reply_delay_s=sim.modbus_reply_delay_s)
@@ -221,16 +230,14 @@ class SimulatedCell:
 
 
 # -------------------------------------------------------- across processes
-def to_udp_multicast(config: CellConfig) -> CellConfig:
-    """``config`` with its virtual CAN channels moved to udp_multicast (one UDP
-    port per channel), so that other processes reach the simulated drives."""
-    ports: dict[str, int] = {}
+def to_loopback_can(config: CellConfig) -> CellConfig:
+    """``config`` with its virtual CAN channels moved to ``udp_loopback``
+    (multicast on the loopback interface only, a free UDP port per channel
+    chosen when the simulated drives start), so that other processes on this
+    machine reach the simulated drives and nothing else does."""
     drives = []
     for d in config.drives:
         if d.url.scheme == "canopen" and d.url.can_interface == "virtual":
-            port = ports.setdefault(d.url.can_channel, UDP_PORT + len(ports))
-            url = d.url.with_host("udp_multicast").with_path(UDP_GROUP)
-            url = replace(url, params=url.params + (("port", str(port)),), text=f"{url.text}&port={port}")
-            d = replace(d, url=url)
+            d = replace(d, url=d.url.with_host(CAN_LOOPBACK).with_path(CAN_LOOPBACK_GROUP).with_param("port", 0))
         drives.append(d)
     return replace(config, drives=tuple(drives))

@@ -86,3 +86,144 @@ def test_a_full_procedure_writes_only_the_registers_declared_writable(tmp_path):
                for a in range(first, first + n)}
     # joint moves (target) and the taught path (path, speed), each strobed by command and sequence
     assert written == {"command", "sequence", "target", "path", "speed"}, written
+
+
+# ------------------------------------------------------------------ item 3: simulated CAN on loopback
+def _hex_address(field: str) -> tuple[str, int]:
+    """``0100007F:1F90`` of /proc/net/{udp,tcp} -> ("127.0.0.1", 8080)."""
+    import socket
+    import struct
+
+    addr, port = field.split(":")
+    return socket.inet_ntoa(struct.pack("<I", int(addr, 16))), int(port, 16)
+
+
+def _bound_addresses(pid: int) -> dict[str, list[tuple[str, int]]]:
+    """Local addresses of the sockets process ``pid`` holds, per /proc/net table."""
+    import os
+    import pathlib
+
+    inodes = set()
+    for fd in pathlib.Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found: dict[str, list[tuple[str, int]]] = {}
+    for table in ("udp", "tcp", "udp6", "tcp6"):
+        for line in pathlib.Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[9] in inodes:
+                local = _hex_address(fields[1]) if not table.endswith("6") else (fields[1], 0)
+                found.setdefault(table, []).append(local)
+    return found
+
+
+def _igmp_groups() -> dict[str, set[str]]:
+    """Multicast groups joined per interface (/proc/net/igmp)."""
+    import pathlib
+    import socket
+    import struct
+
+    groups: dict[str, set[str]] = {}
+    device = None
+    for line in pathlib.Path("/proc/net/igmp").read_text().splitlines()[1:]:
+        if not line.startswith((" ", "\t")):
+            device = line.split()[1]
+            groups.setdefault(device, set())
+        else:
+            groups[device].add(socket.inet_ntoa(struct.pack("<I", int(line.split()[0], 16))))
+    return groups
+
+
+def test_loopback_can_bus_binds_the_group_joins_on_lo_and_takes_a_free_port():
+    import socket
+
+    import can
+
+    from elastocal.drivers.can_loopback import DEFAULT_GROUP, LoopbackUdpBus
+
+    a = LoopbackUdpBus(port=0)
+    b = LoopbackUdpBus(port=a.port)
+    c = LoopbackUdpBus(port=0)
+    try:
+        assert a.local_address() == (DEFAULT_GROUP, a.port) and a.port not in (0, 43113)
+        assert c.port != a.port                              # another cell: a port of its own
+        sock = a._multicast._socket
+        assert socket.inet_ntoa(sock.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, 4)) == "127.0.0.1"
+        assert sock.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) == 0
+        assert DEFAULT_GROUP in _igmp_groups()["lo"]
+        assert not [dev for dev, groups in _igmp_groups().items() if dev != "lo" and DEFAULT_GROUP in groups]
+        msg = can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False)
+        a.send(msg)
+        got = b.recv(2.0)
+        assert got is not None and got.arbitration_id == 0x181 and bytes(got.data) == b"\x01\x02"
+        assert c.recv(0.2) is None                           # the other cell's bus hears nothing
+        # a datagram sent to the port on an address of the machine is not delivered
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.sendto(b"\x00" * 16, ("127.0.0.1", a.port))
+        assert b.recv(0.2) is None
+    finally:
+        for bus in (a, b, c):
+            bus.shutdown()
+
+
+def test_sim_serve_listens_on_loopback_only_on_ports_of_its_own(tmp_path):
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from elastocal.drivers.can_loopback import DEFAULT_GROUP
+    from elastocal.drivers.config import load_cell_config
+
+    procs, cells = [], []
+    try:
+        for i in range(2):
+            cell = tmp_path / f"served{i}.toml"
+            cells.append(cell)
+            procs.append(subprocess.Popen([sys.executable, "-m", "elastocal", "sim", "serve", "--write-cell",
+                                           str(cell), "--duration", "60"], stdout=subprocess.PIPE,
+                                          stderr=subprocess.PIPE, text=True))
+        for p, cell in zip(procs, cells):
+            deadline = time.monotonic() + 60
+            while not cell.exists() and time.monotonic() < deadline and p.poll() is None:
+                time.sleep(0.1)
+            assert cell.exists(), p.stderr.read() if p.poll() is not None else "no cell written"
+        time.sleep(0.5)
+        ports = []
+        for p, cell in zip(procs, cells):
+            config = load_cell_config(cell)
+            urls = {d.url.can_interface for d in config.drives}
+            assert urls == {"udp_loopback"}, urls
+            port = {d.url.int_param("port", 0) for d in config.drives}
+            assert len(port) == 1 and port != {0} and port != {43113}
+            ports.append(port.pop())
+            bound = _bound_addresses(p.pid)
+            assert not bound.get("udp6") and not bound.get("tcp6"), bound
+            assert bound["udp"] and bound["tcp"], bound
+            assert {a for a, _ in bound["tcp"]} == {"127.0.0.1"}, bound
+            assert set(bound["udp"]) <= {(DEFAULT_GROUP, ports[-1])}, bound       # never 0.0.0.0
+            assert os.path.exists(f"/proc/{p.pid}")
+        assert ports[0] != ports[1]
+        groups = _igmp_groups()
+        assert DEFAULT_GROUP in groups["lo"]
+        assert not [dev for dev, g in groups.items() if dev != "lo" and DEFAULT_GROUP in g], groups
+        # another process reaches the served drives through the written config
+        out = subprocess.run([sys.executable, "-m", "elastocal", "devices", "--cell", str(cells[0]), "--json",
+                              "--duration", "1.0"], capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+        import json
+
+        streams = {s["device"]: s for s in json.loads(out.stdout)["streams"]}
+        assert streams["drive J1"]["received"] > 0
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:
+                p.kill()

@@ -29,8 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             p.add_argument("--loads", type=int, default=3, help="loaded states per pose (default 3)")
             p.add_argument("--repeats", type=int, default=3, help="readings per marker and state (default 3)")
     serve = sub.add_parser("serve", help="serve simulated devices on loopback and a CAN bus",
-                           description="serve simulated devices on loopback and a CAN bus (udp_multicast by "
-                                       "default, so other processes reach it)")
+                           description="serve simulated devices on 127.0.0.1 and a CAN bus on the loopback "
+                                       "interface (udp_loopback on a port of its own, so other processes on this "
+                                       "machine reach it and nothing off it does)")
     _add_serve_arguments(serve)
 
 
@@ -38,9 +39,10 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags of ``elastocal sim serve``."""
     parser.add_argument("--cell", metavar="CELL.toml",
                         help="cell config to serve (default: the packaged simulated HH-150 cell)")
-    parser.add_argument("--can", choices=("udp_multicast", "as-configured"), default="udp_multicast",
-                        help="CAN bus of the simulated drives: udp_multicast (reachable from other "
-                             "processes; default) or as the config says (virtual = this process only)")
+    parser.add_argument("--can", choices=("loopback", "as-configured"), default="loopback",
+                        help="CAN bus of the simulated drives: loopback (python-can interface udp_loopback: "
+                             "multicast on 127.0.0.1 only, on a free port; reachable from other processes on "
+                             "this machine; default) or as the config says (virtual = this process only)")
     parser.add_argument("--write-cell", metavar="PATH",
                         help="write the cell config with the actual ports and device paths here, "
                              "for `elastocal devices --cell PATH`")
@@ -58,13 +60,13 @@ def _serve(args: argparse.Namespace) -> int:
     import time
 
     from elastocal.drivers.config import load_cell_config
-    from elastocal.sims.serve import SimulatedCell, example_cell_config, to_udp_multicast
+    from elastocal.sims.serve import SimulatedCell, example_cell_config, to_loopback_can
 
     if args.duration is not None and not args.duration > 0:
         raise InputError(f"--duration must be > 0, got {args.duration}")
     config = load_cell_config(args.cell) if args.cell else example_cell_config()
-    if args.can == "udp_multicast":
-        config = to_udp_multicast(config)
+    if args.can == "loopback":
+        config = to_loopback_can(config)
     stop = threading.Event()
     previous = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
     if previous is not None:
@@ -83,7 +85,7 @@ def _serve(args: argparse.Namespace) -> int:
                 for name, url in sim.urls.items():
                     print(f"  {name:12s} {url}")
                 if any(d.url.scheme == "canopen" and d.url.can_interface == "virtual" for d in sim.config.drives):
-                    print("  note: CAN 'virtual' reaches this process only; use --can udp_multicast for others")
+                    print("  note: CAN 'virtual' reaches this process only; use --can loopback for others")
                 if args.write_cell:
                     print(f"  cell config with these URLs: {args.write_cell}")
                 sys.stdout.flush()
