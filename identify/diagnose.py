@@ -65,6 +65,7 @@ from elastocal.identify.static import (
     build_dataset,
     identify_static,
 )
+from elastocal.identify.outliers import without_outliers
 from elastocal.identify.plausibility import implausible_reason
 from elastocal.identify.stepwise import (
     EXCESS_P,
@@ -544,7 +545,8 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
 
 def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
                     model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
-                    form: str = "exact", effects: Sequence[str] | None = None) -> Diagnosis:
+                    form: str = "exact", effects: Sequence[str] | None = None,
+                    exclude_outliers: bool = False) -> Diagnosis:
     """Fit ``model``, test each effect it lacks, and diagnose stepwise (cli.md).
 
     ``candidates`` are the effects tested against the model as given, best
@@ -553,8 +555,13 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     when the final model sits at the noise floor, else None with what stays
     unexplained. ``effects``: the candidate effects to try (default: every
     effect of the table). Effects these data cannot show are listed in
-    ``not_testable`` with the reason.
+    ``not_testable`` with the reason. Readings far off their repeats are listed
+    in ``outliers`` and left out of the noise floor; ``exclude_outliers`` (a
+    table only) refits without them.
     """
+    excluded: tuple = ()
+    if exclude_outliers and isinstance(data, StaticTable):
+        data, excluded = without_outliers(data)
     ds = data if isinstance(data, StaticDataset) else build_dataset(data)
     noise_known = ds.sigma_tracker is not None
     if not noise_known:
@@ -584,11 +591,16 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
             if not unexplained:
                 unexplained = (f"residual stays {detail.ratio:.2f}x the noise floor with no pattern in pose, "
                                "marker, joint angle, load or time",)
+            kept = [o for o in ds.outliers if not o.excluded]
+            if kept:
+                unexplained = (f"{len(kept)} reading(s) far off their repeats (lines "
+                               f"{', '.join(str(o.line) for o in kept)}) are in the fit: diagnose again with "
+                               "--exclude-outliers", *unexplained)
             detail = replace(detail, follows=unexplained)
     return Diagnosis(model=base.model, torque=torque, form=form, fit=base, candidates=tuple(candidates),
                      not_testable=tuple(skipped_first), verdict=verdict, final=final, excess_p_value=excess,
                      unexplained=unexplained, where=where, where_final=where_final, noise_known=noise_known,
-                     steps=steps, unexplained_detail=detail)
+                     steps=steps, unexplained_detail=detail, outliers=(*excluded, *ds.outliers))
 
 
 # =================================================================== run data

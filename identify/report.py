@@ -261,8 +261,8 @@ def _candidates_html(diag: Diagnosis) -> str:
     rows = ["<tr><th class=l>#</th><th class=l>effect</th><th>rms before</th><th>rms after</th>"
             "<th>ΔBIC</th><th>p</th><th class=l>significant</th><th class=l>evidence</th></tr>"]
     for k, c in enumerate(diag.candidates, start=1):
-        cls = ' class="sig"' if c.significant else ""
-        note = ""
+        cls = ' class="sig"' if c.significant and not c.implausible else ""
+        note = f" (implausible: {_e(c.implausible)}; never a step)" if c.implausible else ""
         if c.unidentifiable:
             note = (f" (unidentifiable here: {_e(', '.join(c.unidentifiable))}; rank {c.rank} of "
                     f"{c.n_model_parameters}, condition number {c.condition_number:.3g})")
@@ -271,6 +271,17 @@ def _candidates_html(diag: Diagnosis) -> str:
                     f"<td class=l>{'yes' if c.significant else 'no'}</td>"
                     f"<td class=l>{_e(c.evidence if c.significant else c.explanation)}{note}</td></tr>")
     out = [f'<table id="candidates">{"".join(rows)}</table>']
+    if diag.steps:
+        out.append('<p id="steps"><b>Stepwise:</b> ' + _e(" → ".join(
+            [_um(diag.fit.rms)] + [f"+{st.effect} {_um(st.rms_after)}" for st in diag.steps])) + "</p>")
+    if diag.unexplained_detail is not None:
+        out.append(f'<p id="unexplained-summary">{_e(diag.unexplained_detail.summary())}.</p>')
+    if diag.outliers:
+        out.append('<p><b>Outliers</b> (readings far off their repeats; left out of the noise floor):</p>'
+                   '<ul id="outliers">' + "".join(
+                       f"<li>line {o.line}: pose {_e(o.pose)}, load {_e(o.load)}, marker {_e(o.marker)}, "
+                       f"{_um(o.residual)} off{' (excluded from the fit)' if o.excluded else ''}</li>"
+                       for o in diag.outliers) + "</ul>")
     if diag.unexplained:
         out.append("<p><b>Unexplained:</b></p><ul>" + "".join(f"<li>{_e(u)}</li>" for u in diag.unexplained)
                    + "</ul>")

@@ -75,6 +75,9 @@ class StaticDataset:
     defl_t: np.ndarray            # (D,) mean time of the loaded readings [s], NaN if unknown
     sigma_tracker: float | None   # repeatability per coordinate [m]
     sigma_current: np.ndarray | None  # (6,) repeatability per joint [A]
+    #: tracker readings far off their repeats (identify/outliers.py): left out of
+    #: sigma_tracker; in the means unless the table was refitted without them
+    outliers: tuple = ()
 
     @property
     def n_states(self) -> int:
@@ -105,7 +108,14 @@ def distinct_readings(currents: np.ndarray) -> np.ndarray:
 
 
 def build_dataset(table: StaticTable) -> StaticDataset:
-    """Average repeated readings and form the deflections of a validated table."""
+    """Average repeated readings and form the deflections of a validated table.
+
+    The tracker's repeatability leaves out the readings far off their repeats
+    (identify/outliers.py); they are listed in ``outliers``."""
+    from elastocal.identify.outliers import find_outliers, outlier_mask
+
+    outliers = find_outliers(table)
+    bad = outlier_mask(len(table), outliers)
     pose_ids = tuple(dict.fromkeys(table.pose))
     markers = tuple(dict.fromkeys(table.marker))
     q = np.array([table.q[table.pose == p][0] for p in pose_ids])
@@ -136,9 +146,10 @@ def build_dataset(table: StaticTable) -> StaticDataset:
             for m in markers:
                 rm = rows & (table.marker == m)
                 x = table.xyz[rm]
-                if len(x) > 1:
-                    dev_sq_p += float(((x - x.mean(axis=0)) ** 2).sum())
-                    dof_p += 3 * (len(x) - 1)
+                good = table.xyz[rm & ~bad]
+                if len(good) > 1:
+                    dev_sq_p += float(((good - good.mean(axis=0)) ** 2).sum())
+                    dof_p += 3 * (len(good) - 1)
                 means[(ld, m)] = (x.mean(axis=0), len(x), float(np.mean(table.t[rm])))
         for li, ld in enumerate(loads[1:], start=1):
             for mi, m in enumerate(markers):
@@ -162,6 +173,7 @@ def build_dataset(table: StaticTable) -> StaticDataset:
         defl_marker=np.array(defl["marker"]), dP=np.array(defl["dP"]).reshape(-1, 3),
         defl_n=np.array(defl["n"]), defl_n_ref=np.array(defl["n_ref"]), defl_dt=np.array(defl["dt"]),
         defl_t=np.array(defl["t"]), sigma_tracker=sigma_tracker, sigma_current=sigma_current,
+        outliers=outliers,
     )
 
 

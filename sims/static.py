@@ -115,3 +115,29 @@ def simulate_static(robot: Robot, truth: CellTruth, *, seed: int, plan: StaticPl
     return static_table_from_arrays(pose=cols["pose"], load=cols["load"], t=cols["t"], q=cols["q"],
                                     wrench=cols["wrench"], currents=cols["currents"], marker=cols["marker"],
                                     xyz=cols["xyz"], source=source)
+
+
+#: size of a simulated bad tracker reading (a beam break, a knocked reflector) [m]
+OUTLIER_RANGE_M = (3e-4, 5e-4)
+
+
+def add_outliers(table: StaticTable, n: int, rng: np.random.Generator) -> tuple[StaticTable, np.ndarray]:
+    """``n`` tracker readings of distinct repeat groups moved 0.3-0.5 mm in a
+    random direction: (the table, the 1-based file lines of the bad readings)."""
+    from dataclasses import replace
+
+    if n <= 0:
+        return table, np.zeros(0, dtype=int)
+    groups: dict[tuple[str, str, str], list[int]] = {}
+    for i, key in enumerate(zip(table.pose, table.load, table.marker)):
+        groups.setdefault(key, []).append(i)
+    keys = list(groups)
+    if n > len(keys):
+        raise ValueError(f"cannot add {n} outliers to {len(keys)} repeat groups")
+    chosen = rng.choice(len(keys), size=n, replace=False)
+    rows = np.array(sorted(int(rng.choice(groups[keys[k]])) for k in chosen))
+    xyz = table.xyz.copy()
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    xyz[rows] += direction * rng.uniform(*OUTLIER_RANGE_M, size=(n, 1))
+    return replace(table, xyz=xyz), table.line[rows]

@@ -35,6 +35,11 @@ def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = 
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
+def add_outlier_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--exclude-outliers", action="store_true",
+                        help="refit without the static readings far off their repeats (listed as outliers)")
+
+
 def input_paths(args: argparse.Namespace) -> list[tuple[str | None, str]]:
     """The input files of the shared flags, with the flag naming each (outputs must differ)."""
     return [(getattr(args, "log", None), "the log"), (getattr(args, "robot", None), "--robot"),

@@ -6,16 +6,17 @@ import argparse
 import json
 import shlex
 
-from elastocal.commands._inputs import add_input_arguments, load_inputs
+from elastocal.commands._inputs import add_input_arguments, add_outlier_argument, load_inputs
 from elastocal.errors import InputError
 from elastocal.identify.effects import ALL_EFFECTS, get_effect, parse_model
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser)
+    add_outlier_argument(parser)
 
 
-def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str):
+def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *, exclude_outliers: bool = False):
     """(static Diagnosis or None, run Diagnosis or None) for the loaded inputs."""
     from elastocal.identify.diagnose import diagnose_static
 
@@ -27,7 +28,7 @@ def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str):
             static_model = tuple(m for m in model if "static" in get_effect(m).seen_in)
         pool = tuple(e for e in ALL_EFFECTS if e not in model)
         static = diagnose_static(inputs.robot, inputs.static, model=static_model, torque=torque, form=form,
-                                 effects=pool)
+                                 effects=pool, exclude_outliers=exclude_outliers)
     if inputs.runs is not None:
         from elastocal.identify.diagnose import diagnose_runs
 
@@ -67,6 +68,8 @@ def identify_command(args: argparse.Namespace, model: tuple[str, ...]) -> str:
         parts += ["--torque", args.torque]
     if getattr(args, "form", "exact") != "exact":
         parts += ["--form", args.form]
+    if getattr(args, "exclude_outliers", False):
+        parts.append("--exclude-outliers")
     return " ".join(shlex.quote(p) for p in parts)
 
 
@@ -174,7 +177,8 @@ def diagnosis_json(static, runs) -> dict:
 def run(args: argparse.Namespace) -> int:
     inputs = load_inputs(args)
     model = parse_model(args.model)
-    static, runs = diagnose_inputs(inputs, model, args.torque, args.form)
+    static, runs = diagnose_inputs(inputs, model, args.torque, args.form,
+                                   exclude_outliers=getattr(args, "exclude_outliers", False))
     if args.json:
         print(json.dumps(diagnosis_json(static, runs)))
         return 0

@@ -28,6 +28,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             p.add_argument("--poses", type=int, default=12, help="number of poses (default 12)")
             p.add_argument("--loads", type=int, default=3, help="loaded states per pose (default 3)")
             p.add_argument("--repeats", type=int, default=3, help="readings per marker and state (default 3)")
+            p.add_argument("--outliers", type=int, default=0,
+                           help="bad tracker readings (0.3-0.5 mm off) to put among the repeats (default 0); "
+                                "truth.json lists their lines")
+            p.add_argument("--shared-currents", action="store_true",
+                           help="one drive reading per repeat for all its marker rows (formats.md §2)")
     serve = sub.add_parser("serve", help="serve simulated devices on loopback and a CAN bus",
                            description="serve simulated devices on 127.0.0.1 and a CAN bus on the loopback "
                                        "interface (udp_loopback on a port of its own, so other processes on this "
@@ -127,6 +132,10 @@ def run(args: argparse.Namespace) -> int:
         for flag in ("poses", "loads", "repeats"):
             if getattr(args, flag) < 1:
                 raise InputError(f"must be at least 1, got {getattr(args, flag)}", source=f"--{flag}")
+        if args.outliers < 0:
+            raise InputError(f"must be >= 0, got {args.outliers}", source="--outliers")
+        if args.outliers and args.repeats < 3:
+            raise InputError("outliers need 3 or more repeats to be told from their repeats", source="--outliers")
     out = check_folder(args.out, "--out")
     outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot")])
     table_name = "static.csv" if static else "runs.csv"
@@ -139,11 +148,18 @@ def run(args: argparse.Namespace) -> int:
     written = {"robot": str(out / "robot.toml")}
     if static:
         from elastocal.identify.tables import write_static_table
-        from elastocal.sims.static import StaticPlan, simulate_static
+        import numpy as np
+
+        from elastocal.sims.static import StaticPlan, add_outliers, simulate_static
 
         truth = CellTruth().with_hidden(args.hidden)
-        plan = StaticPlan(n_poses=args.poses, n_loads=args.loads, repeats=args.repeats)
+        plan = StaticPlan(n_poses=args.poses, n_loads=args.loads, repeats=args.repeats,
+                          shared_currents=args.shared_currents)
         table = simulate_static(robot, truth, seed=args.seed, plan=plan)
+        try:
+            table, outlier_lines = add_outliers(table, args.outliers, np.random.default_rng([args.seed, 18]))
+        except ValueError as exc:
+            raise InputError(str(exc), source="--outliers") from None
         params = truth.parameters(robot)
     else:
         from elastocal.identify.tables import read_run_table
@@ -154,6 +170,8 @@ def run(args: argparse.Namespace) -> int:
         params = truth.parameters(robot)
     truth_doc = {"hidden": args.hidden, "seed": args.seed, "robot": robot.name, "parameters": params,
                  "noise": {"tracker_m": truth.tracker_noise_m, "current_a": truth.current_noise_a}}
+    if static:
+        truth_doc["outliers"] = [int(x) for x in outlier_lines]
     outputs.make_folder(out)
     with outputs:
         outputs.temp(out / "robot.toml").write_text(robot.to_toml(), encoding="utf-8")
