@@ -18,7 +18,9 @@ from dataclasses import replace
 import numpy as np
 
 from elastocal.drivers import open_drive
-from elastocal.drivers.config import SimConfig, parse_cell_config, parse_device_url
+from elastocal.drivers.config import parse_cell_config
+from elastocal.drivers.urls import parse_device_url
+from elastocal.sims.config import SimConfig
 from elastocal.identify.robot import bundled_robot
 from elastocal.sims.modbus_server import ModbusServerThread, PtyPair, SimModbusDrive
 from elastocal.sims.world import SimWorld

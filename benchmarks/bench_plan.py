@@ -16,6 +16,7 @@ import time
 import numpy as np
 
 from elastocal.identify import design as dz
+from elastocal.identify import design_candidates as dzc
 from elastocal.identify.robot import bundled_robot
 
 
@@ -34,7 +35,7 @@ def main() -> None:
     sample_s, plan_s = [], []
     for r in range(args.repeat):
         t0 = time.perf_counter()
-        cand = dz.sample_candidates(robot, args.candidates, np.random.default_rng(r), workspace, markers)
+        cand = dzc.sample_candidates(robot, args.candidates, np.random.default_rng(r), workspace, markers)
         t1 = time.perf_counter()
         design = dz.plan_experiment(robot, cand, test, n_poses=args.poses, loads_per_pose=args.loads_per_pose,
                                     workspace=workspace, markers=markers)

@@ -1,6 +1,8 @@
 """Compensation checked on the simulated cell (Yang §6, Fig. 17).
 
-The planned path and its compensated versions run on :class:`SimCell` under the
+The planned path and its compensated versions run on a simulated cell (any object
+with the :class:`RunnableCell` methods, in practice :class:`elastocal.sims.cell.SimCell`,
+which the caller builds: compensation never imports the simulation) under the
 process wrench; the tool-point error along the path is measured against the
 reference pose (:mod:`elastocal.compensation.trajectory`): the simulated robot
 running the plan without process load (``reference="unloaded"``) or the rigid
@@ -10,6 +12,7 @@ kinematic pose (``"rigid"``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -17,10 +20,21 @@ from elastocal.compensation.ik import PlannedPath, yang_path
 from elastocal.compensation.model import CompensationModel
 from elastocal.compensation.trajectory import compensate_path
 from elastocal.identify.robot import LOAD_FRAME, Robot
-from elastocal.sims.cell import CellTruth, SimCell
 
 #: Yang Table 8: W = 1500 N. Taken as the workpiece pushing the tool up.
 YANG_WRENCH = (0.0, 0.0, 1500.0, 0.0, 0.0, 0.0)
+
+
+class RunnableCell(Protocol):
+    """What validation needs of a simulated cell: its robot, its true parameters
+    (``truth.stiffness``, ``truth.compensator``) and its statics."""
+
+    robot: Robot
+    truth: object
+
+    def equilibrium(self, q, wrench=None): ...
+
+    def load_point(self, equilibrium) -> np.ndarray: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,7 +69,7 @@ class ValidationResult:
                 "unloaded_sag": self._stats(self.unloaded_sag)}
 
 
-def validate_on_sim(cell: SimCell, model: CompensationModel, path: PlannedPath, wrench, *,
+def validate_on_sim(cell: RunnableCell, model: CompensationModel, path: PlannedPath, wrench, *,
                     reference: str = "unloaded") -> ValidationResult:
     """Run the planned, first-order and exact compensated paths on ``cell``."""
     robot = cell.robot
@@ -79,14 +93,13 @@ def validate_on_sim(cell: SimCell, model: CompensationModel, path: PlannedPath, 
                             predicted_deflection=exact.tcp_deflection, unloaded_sag=unloaded - rigid)
 
 
-def yang_validation(robot: Robot, truth: CellTruth | None = None, model: CompensationModel | None = None, *,
+def yang_validation(cell: RunnableCell, model: CompensationModel | None = None, *,
                     wrench=YANG_WRENCH, reference: str = "unloaded", step_m: float = 0.005) -> ValidationResult:
     """The Yang Table 8 path (x 1.2 -> 1.8 m at z 0.116 m, 10 mm/s, 1500 N) on the
-    simulated cell. ``model`` defaults to the cell's true stiffness and
+    simulated ``cell``. ``model`` defaults to the cell's true stiffness and
     compensator (a perfect calibration); pass an identified one to see what a
     calibration achieves."""
-    truth = CellTruth() if truth is None else truth
-    cell = SimCell(robot, truth)
+    robot = cell.robot
     if model is None:
         model = CompensationModel(robot=robot, stiffness=cell.truth.stiffness, compensator=cell.truth.compensator)
     return validate_on_sim(cell, model, yang_path(robot, step_m=step_m), wrench, reference=reference)

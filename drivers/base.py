@@ -26,7 +26,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Generic, Iterable, Sequence, TypeVar
 
-from elastocal.drivers.config import DeviceUrl
+from elastocal.drivers.urls import DeviceUrl
 from elastocal.errors import (
     DeviceDisconnected,
     DeviceError,

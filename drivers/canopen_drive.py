@@ -50,7 +50,8 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from elastocal.drivers.base import DeviceInfo, Drive, DriveSample, SharedLinks, Stream
 from elastocal.drivers.can_loopback import INTERFACE as CAN_LOOPBACK, open_can_bus
 from elastocal.drivers.canframes import worst_frame_bits
-from elastocal.drivers.config import DeviceUrl, DriveConfig
+from elastocal.drivers.config import DriveConfig
+from elastocal.drivers.urls import DeviceUrl
 from elastocal.errors import DeviceError, DeviceFault, DeviceTimeout, InputError, ProtocolError
 
 #: the largest share of the bus time streams may plan to use

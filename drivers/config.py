@@ -1,27 +1,32 @@
 """The cell configuration (``cell.toml``) resolved into frozen dataclasses.
 
 ``cell.toml`` names every device of a calibration cell by a URL
-(docs/cell-config.md)::
-
-    canopen://virtual/cell?node=5            CiA 402 drive on a python-can bus
-    modbus+tcp://127.0.0.1:1502?unit=1       Modbus TCP drive or cell controller
-    modbus+rtu:///dev/pts/3?baud=115200&unit=1
-    tracker+tcp://127.0.0.1:7000             laser tracker, line protocol over TCP
-    tracker+serial:///dev/ttyUSB0?baud=115200
+(:mod:`elastocal.drivers.urls`, docs/cell-config.md), Modbus devices with their
+register maps (:mod:`elastocal.drivers.registers`).
 
 :func:`load_cell_config` reads the file once; every value is validated here,
 so errors name the file and the key. Nothing in this module does I/O on a
-device.
+device. The ``[sim]`` section belongs to the simulated cell: it is kept as the
+raw table here and validated by :func:`elastocal.sims.config.sim_config`.
 """
 
 from __future__ import annotations
 
 import math
 import pathlib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, Mapping
-from urllib.parse import parse_qsl, urlsplit
 
+from elastocal.drivers.registers import (
+    CONTROLLER_REGISTERS,
+    CONTROLLER_REQUIRED,
+    DRIVE_REGISTER_QUANTITY,
+    RegisterSpec,
+    _check_overlaps,
+    _register,
+)
+from elastocal.drivers.urls import CONTROLLER_SCHEMES, DRIVE_SCHEMES, TRACKER_SCHEMES, DeviceUrl, parse_device_url
 from elastocal.errors import InputError, check_known_keys
 from elastocal.textfiles import read_text_file
 
@@ -31,255 +36,6 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 N_JOINTS = 6
-
-#: URL schemes per device kind (the backends live in the lazy tables of drivers/__init__.py)
-DRIVE_SCHEMES = ("canopen", "modbus+tcp", "modbus+rtu")
-TRACKER_SCHEMES = ("tracker+tcp", "tracker+serial")
-CONTROLLER_SCHEMES = ("modbus+tcp", "modbus+rtu")
-
-#: register value types and their size in 16-bit registers
-REGISTER_TYPES = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2, "float64": 4}
-#: unit -> (quantity, factor to SI)
-UNITS: dict[str, tuple[str, float]] = {
-    "A": ("current", 1.0), "mA": ("current", 1e-3),
-    "rad": ("angle", 1.0), "mrad": ("angle", 1e-3), "urad": ("angle", 1e-6),
-    "deg": ("angle", math.pi / 180.0),
-    "rad/s": ("angular_velocity", 1.0), "mrad/s": ("angular_velocity", 1e-3),
-    "deg/s": ("angular_velocity", math.pi / 180.0),
-    "N*m": ("torque", 1.0), "1": ("count", 1.0),
-}
-#: quantity each named drive register must have
-DRIVE_REGISTER_QUANTITY = {"current": "current", "position": "angle", "velocity": "angular_velocity",
-                           "torque": "torque", "status": "count"}
-#: registers of the cell-controller handshake (docs/cell-config.md)
-CONTROLLER_REGISTERS = {
-    # name: (quantity, may elastocal write it, count); every register is read unless the config
-    # declares it `access = "write"` (the app writes only what a person declared writable)
-    "command": ("count", True, 1), "sequence": ("count", True, 1), "pose": ("count", True, 1),
-    "path": ("count", True, 1), "speed": ("angular_velocity", True, 1), "target": ("angle", True, 6),
-    "ack": ("count", False, 1), "status": ("count", False, 1), "error": ("count", False, 1),
-    "q": ("angle", False, 6),
-}
-CONTROLLER_REQUIRED = ("command", "sequence", "ack", "status")
-HIDDEN_EFFECTS = ("none", "link_compliance", "thermal_drift", "static_friction", "backlash")
-
-
-# ------------------------------------------------------------------- URLs
-@dataclass(frozen=True)
-class DeviceUrl:
-    """A parsed device URL. ``host`` is the CAN interface for ``canopen``;
-    ``path`` the CAN channel, serial device or empty; ``params`` the query."""
-
-    text: str
-    scheme: str
-    host: str
-    port: int | None
-    path: str
-    params: tuple[tuple[str, str], ...] = ()
-
-    def param(self, key: str, default: str | None = None) -> str | None:
-        for k, v in self.params:
-            if k == key:
-                return v
-        return default
-
-    def int_param(self, key: str, default: int, *, source: str = "url", low: int = 0,
-                  high: int = 2**31) -> int:
-        raw = self.param(key)
-        if raw is None:
-            return default
-        try:
-            value = int(raw, 0)
-        except ValueError:
-            raise InputError(f"{key}={raw!r} is not an integer in {self.text}", source=source) from None
-        if not low <= value <= high:
-            raise InputError(f"{key}={value} is outside {low}..{high} in {self.text}", source=source)
-        return value
-
-    def float_param(self, key: str, default: float, *, source: str = "url") -> float:
-        raw = self.param(key)
-        if raw is None:
-            return default
-        try:
-            value = float(raw)
-        except ValueError:
-            raise InputError(f"{key}={raw!r} is not a number in {self.text}", source=source) from None
-        if not math.isfinite(value) or value <= 0:
-            raise InputError(f"{key}={raw} must be a positive number in {self.text}", source=source)
-        return value
-
-    # --------------------------------------------------------- per scheme
-    @property
-    def can_interface(self) -> str:
-        return self.host
-
-    @property
-    def can_channel(self) -> str:
-        return self.path.lstrip("/")
-
-    def with_port(self, port: int) -> "DeviceUrl":
-        """The same URL with another TCP port (used for ephemeral ports)."""
-        query = "&".join(f"{k}={v}" for k, v in self.params)
-        text = f"{self.scheme}://{self.host}:{port}{self.path}" + (f"?{query}" if query else "")
-        return replace(self, text=text, port=port)
-
-    def with_path(self, path: str) -> "DeviceUrl":
-        """The same URL with another path (serial device or CAN channel)."""
-        query = "&".join(f"{k}={v}" for k, v in self.params)
-        netloc = self.host + (f":{self.port}" if self.port is not None else "")
-        if not path.startswith("/"):
-            path = "/" + path
-        text = f"{self.scheme}://{netloc}{path}" + (f"?{query}" if query else "")
-        return replace(self, text=text, path=path)
-
-    def with_param(self, key: str, value) -> "DeviceUrl":
-        """The same URL with the query parameter ``key`` set to ``value`` (added or replaced)."""
-        params = tuple((k, v) for k, v in self.params if k != key) + ((key, str(value)),)
-        query = "&".join(f"{k}={v}" for k, v in params)
-        netloc = self.host + (f":{self.port}" if self.port is not None else "")
-        return replace(self, text=f"{self.scheme}://{netloc}{self.path}?{query}", params=params)
-
-    def with_host(self, host: str) -> "DeviceUrl":
-        query = "&".join(f"{k}={v}" for k, v in self.params)
-        netloc = host + (f":{self.port}" if self.port is not None else "")
-        text = f"{self.scheme}://{netloc}{self.path}" + (f"?{query}" if query else "")
-        return replace(self, text=text, host=host)
-
-    def __str__(self) -> str:
-        return self.text
-
-
-def parse_device_url(text: str, *, allowed: tuple[str, ...] | None = None,
-                     source: str = "url") -> DeviceUrl:
-    """Parse and check a device URL (see the module docstring)."""
-    if not isinstance(text, str) or "://" not in text:
-        raise InputError(f"expected a device URL like modbus+tcp://127.0.0.1:1502?unit=1, got {text!r}",
-                         source=source)
-    parts = urlsplit(text)
-    scheme = parts.scheme.lower()
-    known = DRIVE_SCHEMES + TRACKER_SCHEMES
-    if scheme not in known:
-        raise InputError(f"unknown device scheme {scheme!r} in {text}; one of {', '.join(sorted(set(known)))}",
-                         source=source)
-    if allowed is not None and scheme not in allowed:
-        raise InputError(f"{scheme}:// cannot be used here; expected one of {', '.join(allowed)}", source=source)
-    try:
-        port = parts.port
-    except ValueError:
-        raise InputError(f"bad port in {text}", source=source) from None
-    params = tuple(parse_qsl(parts.query, keep_blank_values=True))
-    url = DeviceUrl(text=text, scheme=scheme, host=parts.hostname or "", port=port, path=parts.path,
-                    params=params)
-    if scheme == "canopen":
-        if not url.host:
-            raise InputError(f"{text}: give the python-can interface, e.g. canopen://virtual/cell?node=5",
-                             source=source)
-        if not url.can_channel:
-            raise InputError(f"{text}: give the CAN channel after the interface, e.g. canopen://virtual/cell?node=5",
-                             source=source)
-        if url.param("node") is None:
-            raise InputError(f"{text}: the node id is missing (?node=1..127)", source=source)
-        url.int_param("node", 0, source=source, low=1, high=127)
-        url.int_param("bitrate", 1_000_000, source=source, low=10_000, high=1_000_000)
-    elif scheme in ("modbus+tcp", "tracker+tcp"):
-        if not url.host or url.port is None:
-            raise InputError(f"{text}: give host and port, e.g. {scheme}://127.0.0.1:1502", source=source)
-        if scheme == "modbus+tcp":
-            url.int_param("unit", 1, source=source, low=0, high=247)
-    else:  # serial
-        if not url.path:
-            raise InputError(f"{text}: give the serial device, e.g. {scheme}:///dev/ttyUSB0?baud=115200",
-                             source=source)
-        url.int_param("baud", 115200, source=source, low=300, high=10_000_000)
-        if scheme == "modbus+rtu":
-            url.int_param("unit", 1, source=source, low=1, high=247)
-    return url
-
-
-# -------------------------------------------------------------- registers
-@dataclass(frozen=True)
-class RegisterSpec:
-    """One Modbus value: ``value_SI = raw * scale * unit_factor``."""
-
-    name: str
-    address: int
-    type: str = "uint16"
-    count: int = 1
-    scale: float = 1.0
-    unit: str = "1"
-    table: str = "holding"          # "holding" or "input"
-    access: str = "read"            # "read" or "write"
-    word_order: str = "big"
-    fault_mask: int = 0             # status registers: bits meaning "fault"
-    ready_mask: int = 0             # status registers: bits that must be set for valid data
-
-    @property
-    def n_registers(self) -> int:
-        return REGISTER_TYPES[self.type] * self.count
-
-    @property
-    def si_factor(self) -> float:
-        return self.scale * UNITS[self.unit][1]
-
-    @property
-    def quantity(self) -> str:
-        return UNITS[self.unit][0]
-
-
-def _register(name: str, table: Mapping[str, Any], *, source: str, where: str,
-              default_access: str = "read", default_count: int = 1) -> RegisterSpec:
-    col = f"{where}.{name}"
-    if not isinstance(table, Mapping):
-        raise InputError("expected an inline table {address = ..., type = ...}", source=source, column=col)
-    check_known_keys(table, ("address", "type", "count", "scale", "unit", "table", "access", "word_order",
-                             "fault_mask", "ready_mask"), source=source, where=col)
-    address = table.get("address")
-    if isinstance(address, bool) or not isinstance(address, int) or not 0 <= address <= 65535:
-        raise InputError(f"address must be an integer 0..65535, got {address!r}", source=source, column=col)
-    rtype = table.get("type", "uint16")
-    if rtype not in REGISTER_TYPES:
-        raise InputError(f"type must be one of {', '.join(REGISTER_TYPES)}, got {rtype!r}", source=source, column=col)
-    count = table.get("count", default_count)
-    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-        raise InputError(f"count must be a positive integer, got {count!r}", source=source, column=col)
-    scale = table.get("scale", 1.0)
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale == 0:
-        raise InputError(f"scale must be a finite non-zero number, got {scale!r}", source=source, column=col)
-    unit = table.get("unit", "1")
-    if unit not in UNITS:
-        raise InputError(f"unit must be one of {', '.join(UNITS)}, got {unit!r}", source=source, column=col)
-    kind = table.get("table", "holding")
-    if kind not in ("holding", "input"):
-        raise InputError(f"table must be 'holding' or 'input', got {kind!r}", source=source, column=col)
-    access = table.get("access", default_access)
-    if access not in ("read", "write"):
-        raise InputError(f"access must be 'read' or 'write', got {access!r}", source=source, column=col)
-    if access == "write" and kind != "holding":
-        raise InputError("only holding registers can be written", source=source, column=col)
-    word_order = table.get("word_order", "big")
-    if word_order not in ("big", "little"):
-        raise InputError(f"word_order must be 'big' or 'little', got {word_order!r}", source=source, column=col)
-    masks = {}
-    for key in ("fault_mask", "ready_mask"):
-        m = table.get(key, 0)
-        if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m <= 0xFFFF:
-            raise InputError(f"{key} must be an integer 0..0xFFFF", source=source, column=col)
-        masks[key] = m
-    if address + REGISTER_TYPES[rtype] * count - 1 > 65535:
-        raise InputError("register block runs past address 65535", source=source, column=col)
-    return RegisterSpec(name=name, address=address, type=rtype, count=count, scale=float(scale), unit=unit,
-                        table=kind, access=access, word_order=word_order, **masks)
-
-
-def _check_overlaps(specs: tuple[RegisterSpec, ...], *, source: str, where: str) -> None:
-    taken: dict[tuple[str, int], str] = {}
-    for spec in specs:
-        for a in range(spec.address, spec.address + spec.n_registers):
-            key = (spec.table, a)
-            if key in taken:
-                raise InputError(f"register {a} is used by both {taken[key]} and {spec.name}",
-                                 source=source, column=f"{where}.{spec.name}")
-            taken[key] = spec.name
 
 
 # ---------------------------------------------------------------- devices
@@ -360,26 +116,6 @@ class ControllerConfig:
 
 
 @dataclass(frozen=True)
-class SimConfig:
-    """Parameters of the simulated cell (``elastocal sim serve``)."""
-
-    seed: int = 0
-    hidden: str = "none"
-    start_q: tuple[float, ...] = (0.0, 0.2, -0.4, 0.0, 0.5, 0.0)
-    move_speed_rad_s: float = 0.5
-    run_speed_rad_s: float = 0.05
-    coulomb_nm: tuple[float, ...] = (40.0, 90.0, 70.0, 12.0, 10.0, 6.0)
-    viscous_nm_s_rad: tuple[float, ...] = (300.0, 600.0, 450.0, 60.0, 50.0, 30.0)
-    load_friction: tuple[float, ...] = (0.02, 0.02, 0.02, 0.03, 0.03, 0.03)
-    tracker_noise_m: float = 10e-6
-    current_noise_a: float = 0.02
-    gear_ratios: tuple[float, ...] = (150.0, 160.0, 140.0, 80.0, 80.0, 60.0)
-    can_reply_delay_s: float = 50e-6
-    modbus_reply_delay_s: float = 0.0
-    tracker_reply_delay_s: float = 0.0
-
-
-@dataclass(frozen=True)
 class CellConfig:
     """A whole cell, resolved from ``cell.toml``."""
 
@@ -389,7 +125,8 @@ class CellConfig:
     tracker: TrackerConfig | None = None
     controller: ControllerConfig | None = None
     history: pathlib.Path | None = None
-    sim: SimConfig = field(default_factory=SimConfig)
+    #: the raw ``[sim]`` table (read by :func:`elastocal.sims.config.sim_config`)
+    sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
     plan: pathlib.Path | None = None        # the cell's calibration plan (default for `calibrate --plan`)
     source: str = "<cell.toml>"
     base_dir: pathlib.Path | None = None
@@ -606,44 +343,6 @@ def _controller(t: Mapping, *, source: str) -> ControllerConfig:
                             move_timeout_s=_num(t, "move_timeout_s", 120.0, source=source, where=where))
 
 
-def _sim(t: Mapping, *, source: str) -> SimConfig:
-    where = "sim"
-    if not isinstance(t, Mapping):
-        raise InputError("expected a table", source=source, column=where)
-    d = SimConfig()
-    check_known_keys(t, tuple(SimConfig.__dataclass_fields__), source=source, where=where)
-    hidden = t.get("hidden", d.hidden)
-    if hidden not in HIDDEN_EFFECTS:
-        raise InputError(f"hidden must be one of {', '.join(HIDDEN_EFFECTS)}, got {hidden!r}",
-                         source=source, column="sim.hidden")
-    kw = dict(
-        seed=_int(t, "seed", d.seed, source=source, where=where),
-        hidden=hidden,
-        start_q=_vec(t, "start_q", d.start_q, source=source, where=where),
-        move_speed_rad_s=_num(t, "move_speed_rad_s", d.move_speed_rad_s, source=source, where=where),
-        run_speed_rad_s=_num(t, "run_speed_rad_s", d.run_speed_rad_s, source=source, where=where),
-        coulomb_nm=_vec(t, "coulomb_nm", d.coulomb_nm, source=source, where=where, nonneg=True),
-        viscous_nm_s_rad=_vec(t, "viscous_nm_s_rad", d.viscous_nm_s_rad, source=source, where=where, nonneg=True),
-        load_friction=_vec(t, "load_friction", d.load_friction, source=source, where=where, nonneg=True),
-        tracker_noise_m=_num(t, "tracker_noise_m", d.tracker_noise_m, source=source, where=where, positive=False),
-        current_noise_a=_num(t, "current_noise_a", d.current_noise_a, source=source, where=where, positive=False),
-        gear_ratios=_vec(t, "gear_ratios", d.gear_ratios, source=source, where=where),
-        can_reply_delay_s=_num(t, "can_reply_delay_s", d.can_reply_delay_s, source=source, where=where,
-                               positive=False),
-        modbus_reply_delay_s=_num(t, "modbus_reply_delay_s", d.modbus_reply_delay_s, source=source, where=where,
-                                  positive=False),
-        tracker_reply_delay_s=_num(t, "tracker_reply_delay_s", d.tracker_reply_delay_s, source=source,
-                                   where=where, positive=False),
-    )
-    for key in ("tracker_noise_m", "current_noise_a", "can_reply_delay_s", "modbus_reply_delay_s",
-                "tracker_reply_delay_s"):
-        if kw[key] < 0:
-            raise InputError("must be >= 0", source=source, column=f"sim.{key}")
-    if any(g <= 0 for g in kw["gear_ratios"]):
-        raise InputError("gear ratios must be > 0", source=source, column="sim.gear_ratios")
-    return SimConfig(**kw)
-
-
 def _optional_path(table: Mapping, key: str, message: str, *, source: str,
                    base_dir: pathlib.Path | None) -> pathlib.Path | None:
     """The optional path ``cell.<key>``, relative to the config file's folder."""
@@ -685,7 +384,10 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
     _check_can_nodes(drives, source=source)
     tracker = _tracker(doc["tracker"], source=source) if "tracker" in doc else None
     controller = _controller(doc["controller"], source=source) if "controller" in doc else None
-    sim = _sim(doc["sim"], source=source) if "sim" in doc else SimConfig()
+    sim = doc.get("sim", {})
+    if not isinstance(sim, Mapping):
+        raise InputError("expected a table", source=source, column="sim")
+    sim = MappingProxyType(dict(sim))
     return CellConfig(name=str(name), robot=robot, drives=tuple(sorted(drives, key=lambda d: d.joint)),
                       tracker=tracker, controller=controller, history=history_path, sim=sim, plan=plan_path,
                       source=source, base_dir=base_dir)
@@ -779,9 +481,7 @@ def _to_toml(c: CellConfig) -> str:
         for p in k.paths:
             lines += ["[[controller.path]]", f"id = {p.id}", f"u = {_toml_value(list(p.u))}",
                       f"v = {_toml_value(list(p.v))}", f"speed_rad_s = {p.speed_rad_s!r}"]
-    s = c.sim
-    lines += ["", "[sim]"]
-    for name in SimConfig.__dataclass_fields__:
-        value = getattr(s, name)
-        lines.append(f"{name} = {_toml_value(list(value) if isinstance(value, tuple) else value)}")
+    if c.sim:
+        lines += ["", "[sim]"]
+        lines += [f"{name} = {_toml_value(value)}" for name, value in c.sim.items()]
     return "\n".join(lines) + "\n"

@@ -6,7 +6,7 @@ errors (no reply: :class:`DeviceTimeout`; lost or refused connection:
 :class:`DeviceDisconnected`; exception response:
 :class:`~elastocal.drivers.base.ModbusExceptionError`; garbled reply:
 :class:`ProtocolError`) and converts register values with the register map of
-the cell config (:class:`~elastocal.drivers.config.RegisterSpec`).
+the cell config (:class:`~elastocal.drivers.registers.RegisterSpec`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.pdu import ExceptionResponse
 
 from elastocal.drivers.base import ModbusExceptionError
-from elastocal.drivers.config import DeviceUrl, RegisterSpec
+from elastocal.drivers.registers import RegisterSpec
+from elastocal.drivers.urls import DeviceUrl
 from elastocal.errors import DeviceDisconnected, DeviceTimeout, InputError, ProtocolError
 
 #: the most registers one read request may ask for (Modbus limit)

@@ -41,7 +41,8 @@ from elastocal.drivers.base import (
     STATUS_IN_POSITION,
     STATUS_RUN_DONE,
 )
-from elastocal.drivers.config import ControllerConfig, DriveConfig, RegisterSpec
+from elastocal.drivers.config import ControllerConfig, DriveConfig
+from elastocal.drivers.registers import RegisterSpec
 from elastocal.drivers.modbus import decode, encode
 from elastocal.errors import InputError
 from elastocal.sims.world import SimWorld

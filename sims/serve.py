@@ -26,13 +26,16 @@ from __future__ import annotations
 import pathlib
 from dataclasses import replace
 from importlib import resources
+from types import MappingProxyType
 
 from elastocal.drivers.can_loopback import DEFAULT_GROUP as CAN_LOOPBACK_GROUP, INTERFACE as CAN_LOOPBACK
-from elastocal.drivers.config import CellConfig, DeviceUrl, parse_cell_config
+from elastocal.drivers.config import CellConfig, parse_cell_config
+from elastocal.drivers.urls import DeviceUrl
 from elastocal.errors import InputError
 from elastocal.textfiles import read_text_file
 from elastocal.sims.canbus import BusStats
 from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork
+from elastocal.sims.config import sim_config
 from elastocal.sims.modbus_server import ModbusServerThread, PtyPair, SimCellController, SimModbusDrive
 from elastocal.sims.tracker_server import SimTracker
 from elastocal.sims.world import SimWorld
@@ -58,7 +61,7 @@ def example_cell_config(*, can_channel: str | None = None, **sim_overrides) -> C
         config = replace(config, drives=tuple(replace(d, url=d.url.with_path(can_channel)) if d.url.scheme == "canopen"
                                               else d for d in config.drives))
     if sim_overrides:
-        config = replace(config, sim=replace(config.sim, **sim_overrides))
+        config = replace(config, sim=MappingProxyType({**config.sim, **sim_overrides}))
     return config
 
 
@@ -77,7 +80,8 @@ class SimulatedCell:
         self.source_config = config
         self.robot = robot if robot is not None else config.load_robot()
         markers = config.tracker.markers if config.tracker is not None else None
-        self.world = SimWorld.from_config(self.robot, config.sim, markers)
+        self.sim = sim_config(config)
+        self.world = SimWorld.from_config(self.robot, self.sim, markers)
         self._tpdo2 = tpdo2
         self.canopen_drives: dict[int, SimCanopenDrive] = {}
         self.can_networks: dict[tuple[str, str], SimCanopenNetwork] = {}
@@ -103,7 +107,7 @@ class SimulatedCell:
 
     def _start(self) -> None:
         cfg = self.source_config
-        sim = cfg.sim
+        sim = self.sim
         # CANopen drives, one network per channel
         groups: dict[tuple[str, str, int], list[SimCanopenDrive]] = {}
         for d in cfg.drives:

@@ -127,7 +127,7 @@ class SimWorld:
 
     @classmethod
     def from_config(cls, robot, sim, markers: Sequence[str] | None = None) -> "SimWorld":
-        """A world for :class:`elastocal.drivers.config.SimConfig` ``sim``."""
+        """A world for :class:`elastocal.sims.config.SimConfig` ``sim``."""
         truth = CellTruth(coulomb=np.array(sim.coulomb_nm), viscous=np.array(sim.viscous_nm_s_rad),
                           load_friction=np.array(sim.load_friction), tracker_noise_m=sim.tracker_noise_m,
                           current_noise_a=sim.current_noise_a)

@@ -6,8 +6,10 @@ import dataclasses
 
 import pytest
 
-from elastocal.drivers.config import load_cell_config, parse_cell_config, parse_device_url
+from elastocal.drivers.config import load_cell_config, parse_cell_config
+from elastocal.drivers.urls import parse_device_url
 from elastocal.errors import InputError
+from elastocal.sims.config import sim_config
 from elastocal.sims.serve import example_cell_config, example_cell_path
 
 MINIMAL = """
@@ -52,7 +54,7 @@ def test_packaged_simulated_cell_round_trips():
     assert [d.joint for d in c.drives] == [1, 2, 3, 4, 5, 6]
     assert c.drive(3).url.text == "canopen://virtual/elastocal-sim?node=3"
     assert c.tracker.markers == ("R1", "R2", "R3") and c.controller.pose(2)[0] == 0.5
-    assert c.controller.path(2).u[1] == -0.3 and c.sim.seed == 7
+    assert c.controller.path(2).u[1] == -0.3 and sim_config(c).seed == 7
     again = parse_cell_config(c.to_toml(), source="again.toml")
     for field in ("name", "robot", "drives", "tracker", "controller", "sim"):
         assert getattr(again, field) == getattr(c, field), field
@@ -94,9 +96,6 @@ def test_relative_paths_resolve_next_to_the_file(tmp_path):
      'command = { address = 0, access = "write" }', "controller.registers", "missing the sequence register"),
     ('[controller]\nurl = "modbus+tcp://127.0.0.1:1503"\n[controller.registers]\n'
      'status = { address = 0, access = "write" }', "controller.registers.status", "elastocal only reads it"),
-    ('[sim]\nhidden = "gremlins"', "sim.hidden", "hidden must be one of"),
-    ('[sim]\nstart_q = [0, 0]', "sim.start_q", "expected 6 finite numbers"),
-    ('[sim]\nseeed = 1', "sim.seeed", "unknown key seeed \\(did you mean seed\\?\\)"),
 ])
 def test_config_errors_name_the_file_and_key(extra, column, message):
     with pytest.raises(InputError, match=message) as err:
@@ -104,6 +103,19 @@ def test_config_errors_name_the_file_and_key(extra, column, message):
     assert "cell.toml" in str(err.value)
     if column is not None:
         assert err.value.column == column
+
+
+@pytest.mark.parametrize("extra,column,message", [
+    ('[sim]\nhidden = "gremlins"', "sim.hidden", "hidden must be one of"),
+    ('[sim]\nstart_q = [0, 0]', "sim.start_q", "expected 6 finite numbers"),
+    ('[sim]\nseeed = 1', "sim.seeed", "unknown key seeed \\(did you mean seed\\?\\)"),
+])
+def test_sim_section_errors_name_the_file_and_key(extra, column, message):
+    """The [sim] table belongs to the simulated cell: it is validated when the cell is simulated."""
+    config = parse_cell_config(MINIMAL + extra, source="cell.toml")
+    with pytest.raises(InputError, match=message) as err:
+        sim_config(config)
+    assert "cell.toml" in str(err.value) and err.value.column == column
 
 
 def test_missing_file_and_bad_toml(tmp_path):

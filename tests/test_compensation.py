@@ -52,7 +52,7 @@ def test_yang_path_follows_the_line(robot, path):
 def test_exact_compensation_on_the_simulated_cell(robot):
     """Acceptance: exact leaves < 5 % of the uncompensated tool error (here: the
     numerical zero, calibration = truth); first order is reported beside it."""
-    result = yang_validation(robot, step_m=0.05)
+    result = yang_validation(SimCell(robot, CellTruth()), step_m=0.05)
     s = result.summary()
     assert s["uncompensated"]["max"] > 1e-3          # 1500 N deflects the tool by millimetres
     assert s["ratio_exact"] < 0.05
@@ -71,7 +71,7 @@ def test_compensation_with_an_imperfect_calibration(robot, path):
 
 
 def test_rigid_reference_removes_the_sag_as_well(robot, path):
-    s = yang_validation(robot, step_m=0.05, reference="rigid").summary()
+    s = yang_validation(SimCell(robot, CellTruth()), step_m=0.05, reference="rigid").summary()
     assert s["unloaded_sag"]["max"] > 1e-4
     assert s["exact"]["max"] < 1e-9 and s["first_order"]["max"] < 1e-9  # coincide for joint springs
 

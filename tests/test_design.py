@@ -12,6 +12,8 @@ from elastocal.acquisition.plan import load_plan
 from elastocal.cli import main
 from elastocal.errors import InputError
 from elastocal.identify import design as dz
+from elastocal.sims import first_order_map as fom
+from elastocal.identify import design_candidates as dzc
 from elastocal.identify.robot import LOAD_FRAME, bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.identify.tables import static_table_from_arrays
@@ -54,11 +56,11 @@ def test_planned_experiment_beats_random_poses_over_ten_seeds(robot, workspace):
     pred_plan, pred_rand, act_plan, act_rand = [], [], [], []
     for seed in range(10):
         rng = np.random.default_rng(seed)
-        cand = dz.sample_candidates(robot, 300, rng, workspace, markers)
+        cand = dzc.sample_candidates(robot, 300, rng, workspace, markers)
         design = dz.plan_experiment(robot, cand, TEST, n_poses=12, loads_per_pose=2, workspace=workspace,
                                     markers=markers, prior_stiffness=PRIOR)
         # the plan respects the workspace and |F| <= F_max
-        assert np.all(dz.check_poses(robot, design.q, workspace, markers) == -1)
+        assert np.all(dzc.check_poses(robot, design.q, workspace, markers) == -1)
         assert np.all(design.q >= robot.lower) and np.all(design.q <= robot.upper)
         assert np.allclose(np.linalg.norm(design.forces, axis=1), F_MAX)
         random_q = cand.q[rng.choice(len(cand.q), 12, replace=False)]
@@ -101,7 +103,7 @@ def test_k40_is_klimchiks_trace_and_ignores_units(robot):
 def test_predicted_accuracy_matches_monte_carlo(robot, workspace):
     """evaluate_design's accuracy (tracker and current noise, shared references)
     against 40 simulated calibrations of the same experiment."""
-    cand = dz.sample_candidates(robot, 200, np.random.default_rng(7), workspace, robot.marker_names)
+    cand = dzc.sample_candidates(robot, 200, np.random.default_rng(7), workspace, robot.marker_names)
     design = dz.plan_experiment(robot, cand, TEST, n_poses=8, loads_per_pose=2, workspace=workspace,
                                 markers=robot.marker_names, prior_stiffness=TRUTH.stiffness)
     errors = [actual_error(robot, design.q, design.wrenches, 300 + s) for s in range(40)]
@@ -113,7 +115,7 @@ def test_hung_weights_cannot_serve_a_sideways_process_load(robot):
     """Vertical loads never load joint 1 (Y §3): K40 is infinite when the
     test load needs k1, finite when it is vertical too; k1 is unidentifiable."""
     ws = dz.Workspace(f_max_n=F_MAX, directions="down")
-    cand = dz.sample_candidates(robot, 150, np.random.default_rng(2), ws, robot.marker_names)
+    cand = dzc.sample_candidates(robot, 150, np.random.default_rng(2), ws, robot.marker_names)
     sideways = dz.plan_experiment(robot, cand, TEST, n_poses=6, loads_per_pose=1, workspace=ws,
                                   markers=robot.marker_names)
     assert math.isinf(sideways.quality.k40) and math.isinf(sideways.quality.accuracy_m)
@@ -154,7 +156,7 @@ def _clearance(p, a, b):
 def test_candidates_keep_the_markers_in_sight(robot, workspace):
     import pinocchio as pin
 
-    cand = dz.sample_candidates(robot, 20, np.random.default_rng(3), workspace, robot.marker_names)
+    cand = dzc.sample_candidates(robot, 20, np.random.default_rng(3), workspace, robot.marker_names)
     assert len(cand.q) == 20 and cand.accepted >= 20
     assert sum(n for _, n in cand.rejected) + cand.accepted == cand.sampled
     tracker = np.array(TRACKER)
@@ -172,10 +174,10 @@ def test_candidates_keep_the_markers_in_sight(robot, workspace):
                 assert _clearance((tracker, m), a, b) >= workspace.link_radius_m - 1e-4
     # behind the robot's base column the tracker sees nothing: everything rejected as hidden
     blind = dz.Workspace(f_max_n=F_MAX, base_p_tracker=(0.0, 0.0, 0.3), link_radius_m=0.4)
-    code = dz.check_poses(robot, cand.q, blind, robot.marker_names)
-    assert np.all(code == dz.REJECTIONS.index("markers hidden"))
+    code = dzc.check_poses(robot, cand.q, blind, robot.marker_names)
+    assert np.all(code == dzc.REJECTIONS.index("markers hidden"))
     with pytest.raises(InputError, match="--candidates"):
-        dz.sample_candidates(robot, 5, np.random.default_rng(0), blind, robot.marker_names, max_sampled=200)
+        dzc.sample_candidates(robot, 5, np.random.default_rng(0), blind, robot.marker_names, max_sampled=200)
 
 
 def test_first_order_map_agrees_with_identify_static(robot):
@@ -184,7 +186,7 @@ def test_first_order_map_agrees_with_identify_static(robot):
     readings gives the same stiffness. A singular wrist is never good."""
     w = F_MAX / math.sqrt(3.0) * np.array([1.0, 1.0, -1.0, 0.0, 0.0, 0.0])
     k = np.array(dz.DEFAULT_PRIOR_STIFFNESS)
-    fmap = dz.first_order_map(robot, q_base=TEST.q, wrench=w, stiffness=k, n_grid=4)
+    fmap = fom.first_order_map(robot, q_base=TEST.q, wrench=w, stiffness=k, n_grid=4)
     assert fmap.stiffness_error.shape == (4, 4, 6) and fmap.good.shape == (4, 4)
     a, b = 1, 2
     q = np.array(TEST.q)
@@ -210,18 +212,18 @@ def test_first_order_map_agrees_with_identify_static(robot):
     assert np.allclose(np.abs(k_id - k) / k, fmap.stiffness_error[a, b], rtol=1e-4, atol=1e-7)
     assert fmap.good_fraction > 0.5
     # with the wrist stretched (q5 = 0) joints 4 and 6 turn about one axis: nowhere good
-    stretched = dz.first_order_map(robot, q_base=(0.3, 0.5, -0.3, 0.2, 0.0, 0.1), wrench=w, stiffness=k, n_grid=4)
+    stretched = fom.first_order_map(robot, q_base=(0.3, 0.5, -0.3, 0.2, 0.0, 0.1), wrench=w, stiffness=k, n_grid=4)
     assert stretched.good_fraction == 0.0
 
 
 def test_map_plot_is_png_or_svg(robot, tmp_path):
-    fmap = dz.first_order_map(robot, q_base=TEST.q, wrench=(500.0, 500.0, -500.0, 0, 0, 0), n_grid=3)
-    dz.plot_first_order_map(fmap, tmp_path / "m.png", test_q=TEST.q, poses=np.array([TEST.q]))
-    dz.plot_first_order_map(fmap, tmp_path / "m.svg", test_q=TEST.q)
+    fmap = fom.first_order_map(robot, q_base=TEST.q, wrench=(500.0, 500.0, -500.0, 0, 0, 0), n_grid=3)
+    fom.plot_first_order_map(fmap, tmp_path / "m.png", test_q=TEST.q, poses=np.array([TEST.q]))
+    fom.plot_first_order_map(fmap, tmp_path / "m.svg", test_q=TEST.q)
     assert (tmp_path / "m.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "<svg" in (tmp_path / "m.svg").read_text()
     with pytest.raises(InputError, match=r"\.png or \.svg"):
-        dz.plot_first_order_map(fmap, tmp_path / "m.pdf")
+        fom.plot_first_order_map(fmap, tmp_path / "m.pdf")
 
 
 def test_plan_command_writes_a_plan_the_procedures_read(robot, tmp_path, capsys):

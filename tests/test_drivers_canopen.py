@@ -13,7 +13,9 @@ from elastocal.drivers import open_drive
 from elastocal.drivers.base import SharedLinks
 from elastocal.drivers.canframes import frame_bits, worst_frame_bits
 from elastocal.drivers.canopen_drive import state_name
-from elastocal.drivers.config import DriveConfig, SimConfig, parse_device_url
+from elastocal.drivers.config import DriveConfig
+from elastocal.drivers.urls import parse_device_url
+from elastocal.sims.config import SimConfig
 from elastocal.errors import DeviceFault, DeviceTimeout, InputError
 from elastocal.identify.robot import bundled_robot
 from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork

@@ -14,6 +14,7 @@ from elastocal.errors import DeviceFault, DeviceTimeout, InputError
 from elastocal.sims.modbus_server import ModbusServerThread, SimCellController
 from elastocal.sims.serve import example_cell_config
 from elastocal.sims.world import SimWorld
+from elastocal.sims.config import sim_config
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +29,7 @@ def robot(config):
 
 @pytest.fixture
 def bench(config, robot):
-    world = SimWorld.from_config(robot, config.sim)
+    world = SimWorld.from_config(robot, sim_config(config))
     sim = SimCellController(config.controller, world)
     server = ModbusServerThread([sim.device], tcp=("127.0.0.1", 0)).start()
     cfg = replace(config.controller, url=config.controller.url.with_port(server.port), move_timeout_s=10.0)
@@ -51,7 +52,7 @@ def test_move_to_pose_waits_for_in_position(bench, config):
     target = config.controller.pose(4)
     t0 = time.monotonic()
     st = controller.move_to_pose(4)
-    assert time.monotonic() - t0 >= np.max(np.abs(np.array(target) - config.sim.start_q)) / 4.0 - 0.01
+    assert time.monotonic() - t0 >= np.max(np.abs(np.array(target) - sim_config(config).start_q)) / 4.0 - 0.01
     assert st.in_position and not st.busy and st.ack == 1
     np.testing.assert_allclose(world.q_now(), target, atol=1e-12)
     np.testing.assert_allclose(st.q, target, atol=1e-6)           # float32 registers
@@ -93,7 +94,7 @@ def test_a_slow_move_times_out(bench):
 
 def test_only_declared_registers_are_written(config, robot):
     regs = tuple(r for r in config.controller.registers if r.name not in ("pose", "target"))
-    world = SimWorld.from_config(robot, config.sim)
+    world = SimWorld.from_config(robot, sim_config(config))
     sim = SimCellController(replace(config.controller, registers=regs), world)
     server = ModbusServerThread([sim.device], tcp=("127.0.0.1", 0)).start()
     cfg = replace(config.controller, url=config.controller.url.with_port(server.port), registers=regs)

@@ -10,7 +10,10 @@ import pytest
 
 from elastocal.drivers import open_drive
 from elastocal.drivers.base import ModbusExceptionError
-from elastocal.drivers.config import RegisterSpec, SimConfig, parse_cell_config, parse_device_url
+from elastocal.drivers.config import parse_cell_config
+from elastocal.drivers.registers import RegisterSpec
+from elastocal.drivers.urls import parse_device_url
+from elastocal.sims.config import SimConfig
 from elastocal.drivers.modbus import decode, encode, register_runs
 from elastocal.errors import DeviceFault, DeviceTimeout, InputError, ProtocolError
 from elastocal.identify.robot import bundled_robot

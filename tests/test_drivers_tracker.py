@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from elastocal.drivers import open_tracker
-from elastocal.drivers.config import SimConfig, TrackerConfig, parse_device_url
+from elastocal.drivers.config import TrackerConfig
+from elastocal.drivers.urls import parse_device_url
+from elastocal.sims.config import SimConfig
 from elastocal.drivers.tracker_protocol import Measurement, decode_line, encode_line, parse_measurement
 from elastocal.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, InputError, ProtocolError
 from elastocal.identify.robot import bundled_robot

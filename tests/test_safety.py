@@ -16,6 +16,7 @@ from elastocal.errors import InputError
 from elastocal.sims.modbus_server import ModbusServerThread, SimCellController
 from elastocal.sims.serve import SimulatedCell, example_cell_config, example_cell_path
 from elastocal.sims.world import SimWorld
+from elastocal.sims.config import sim_config
 
 #: Modbus function codes that change a device's data
 WRITE_FUNCTIONS = {5, 6, 15, 16, 22, 23}
@@ -40,7 +41,7 @@ def test_controller_registers_are_read_unless_declared_writable():
     again = parse_cell_config(config.to_toml(), source="again.toml", base_dir=example_cell_path().parent)
     assert again.controller.registers == config.controller.registers
 
-    world = SimWorld.from_config(config.load_robot(), config.sim)
+    world = SimWorld.from_config(config.load_robot(), sim_config(config))
     sim = SimCellController(config.controller, world)
     server = ModbusServerThread([sim.device], tcp=("127.0.0.1", 0)).start()
     controller = open_controller(replace(config.controller, url=config.controller.url.with_port(server.port)))
@@ -62,7 +63,7 @@ def test_a_full_procedure_writes_only_the_registers_declared_writable(tmp_path):
     text = _controller_only_reads_undeclared(example_cell_path().read_text(encoding="utf-8"))
     config = parse_cell_config(text.replace("elastocal-sim", "safety-writes"), source="cell.toml",
                                base_dir=example_cell_path().parent)
-    config = replace(config, sim=replace(config.sim, move_speed_rad_s=2.0))
+    config = replace(config, sim={**config.sim, "move_speed_rad_s": 2.0})
     u, v = (0.1, 0.3, -0.4, 0.0, 0.6, 0.0), (0.25, 0.4, -0.35, 0.05, 0.65, 0.05)
     config = replace(config, controller=replace(config.controller, paths=(PathSpec(1, u, v, 0.1),)))
     controller = config.controller

@@ -152,7 +152,9 @@ def test_an_emcy_goes_on_the_bus_when_it_is_sent(pair):
 def test_sync_stats_account_for_every_cycle():
     from elastocal.drivers import open_drive
     from elastocal.drivers.base import SharedLinks
-    from elastocal.drivers.config import DriveConfig, SimConfig, parse_device_url
+    from elastocal.drivers.config import DriveConfig
+    from elastocal.drivers.urls import parse_device_url
+    from elastocal.sims.config import SimConfig
     from elastocal.identify.robot import bundled_robot
     from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork
     from elastocal.sims.world import SimWorld

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from elastocal.drivers.config import SimConfig
+from elastocal.sims.config import SimConfig
 from elastocal.errors import InputError
 from elastocal.identify.robot import bundled_robot
 from elastocal.sims.world import SimWorld

@@ -161,6 +161,8 @@ def _load_specs(forces: np.ndarray, gravity: np.ndarray):
 def run(args: argparse.Namespace) -> int:
     from elastocal.acquisition.plan import CheckSpec, parse_plan, plan_toml
     from elastocal.identify import design as dz
+    from elastocal.sims import first_order_map as fom
+    from elastocal.identify import design_candidates as dzc
     from elastocal.identify.robot import load_robot
 
     from elastocal.commands._outputs import Outputs
@@ -221,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
     prior, prior_source = _prior(args)
     friction = _friction(args, robot)
     rng = np.random.default_rng(args.seed)
-    candidates = dz.sample_candidates(robot, args.candidates, rng, workspace, markers)
+    candidates = dzc.sample_candidates(robot, args.candidates, rng, workspace, markers)
     t_plan = time.monotonic()
     design = dz.plan_experiment(robot, candidates, test, n_poses=args.poses, loads_per_pose=args.loads_per_pose,
                                 workspace=workspace, markers=markers, prior_stiffness=prior, noise=noise)
@@ -251,11 +253,11 @@ def run(args: argparse.Namespace) -> int:
     if args.map:
         map_load = (_wrench(args.map_load, "--map-load") if args.map_load
                     else tuple(f_max / math.sqrt(3.0) * np.array([1.0, 1.0, -1.0])) + (0.0, 0.0, 0.0))
-        fmap = dz.first_order_map(robot, q_base=test.q, wrench=map_load, stiffness=prior, markers=markers,
+        fmap = fom.first_order_map(robot, q_base=test.q, wrench=map_load, stiffness=prior, markers=markers,
                                   torque=args.torque, n_grid=args.map_grid)
     with outputs:
         if fmap is not None:
-            dz.plot_first_order_map(fmap, outputs.temp(args.map), test_q=test.q, poses=design.q)
+            fom.plot_first_order_map(fmap, outputs.temp(args.map), test_q=test.q, poses=design.q)
         outputs.temp(out).write_text(text, encoding="utf-8")
     q = design.quality
     names = [f"k{j}" for j in range(1, 7)]

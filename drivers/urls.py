@@ -1,0 +1,158 @@
+"""Device URLs: parsed and checked once, here; backends read the parsed :class:`DeviceUrl`.
+
+::
+
+    canopen://virtual/cell?node=5            CiA 402 drive on a python-can bus
+    modbus+tcp://127.0.0.1:1502?unit=1       Modbus TCP drive or cell controller
+    modbus+rtu:///dev/pts/3?baud=115200&unit=1
+    tracker+tcp://127.0.0.1:7000             laser tracker, line protocol over TCP
+    tracker+serial:///dev/ttyUSB0?baud=115200
+
+The schemes are those of the backend tables in :mod:`elastocal.drivers` (listed once, there).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from urllib.parse import parse_qsl, urlsplit
+
+from elastocal.drivers import CONTROLLER_BACKENDS, DRIVE_BACKENDS, TRACKER_BACKENDS
+from elastocal.errors import InputError
+
+#: URL schemes per device kind (the keys of the lazy backend tables)
+DRIVE_SCHEMES = tuple(DRIVE_BACKENDS)
+TRACKER_SCHEMES = tuple(TRACKER_BACKENDS)
+CONTROLLER_SCHEMES = tuple(CONTROLLER_BACKENDS)
+
+
+# ------------------------------------------------------------------- URLs
+@dataclass(frozen=True)
+class DeviceUrl:
+    """A parsed device URL. ``host`` is the CAN interface for ``canopen``;
+    ``path`` the CAN channel, serial device or empty; ``params`` the query."""
+
+    text: str
+    scheme: str
+    host: str
+    port: int | None
+    path: str
+    params: tuple[tuple[str, str], ...] = ()
+
+    def param(self, key: str, default: str | None = None) -> str | None:
+        for k, v in self.params:
+            if k == key:
+                return v
+        return default
+
+    def int_param(self, key: str, default: int, *, source: str = "url", low: int = 0,
+                  high: int = 2**31) -> int:
+        raw = self.param(key)
+        if raw is None:
+            return default
+        try:
+            value = int(raw, 0)
+        except ValueError:
+            raise InputError(f"{key}={raw!r} is not an integer in {self.text}", source=source) from None
+        if not low <= value <= high:
+            raise InputError(f"{key}={value} is outside {low}..{high} in {self.text}", source=source)
+        return value
+
+    def float_param(self, key: str, default: float, *, source: str = "url") -> float:
+        raw = self.param(key)
+        if raw is None:
+            return default
+        try:
+            value = float(raw)
+        except ValueError:
+            raise InputError(f"{key}={raw!r} is not a number in {self.text}", source=source) from None
+        if not math.isfinite(value) or value <= 0:
+            raise InputError(f"{key}={raw} must be a positive number in {self.text}", source=source)
+        return value
+
+    # --------------------------------------------------------- per scheme
+    @property
+    def can_interface(self) -> str:
+        return self.host
+
+    @property
+    def can_channel(self) -> str:
+        return self.path.lstrip("/")
+
+    def with_port(self, port: int) -> "DeviceUrl":
+        """The same URL with another TCP port (used for ephemeral ports)."""
+        query = "&".join(f"{k}={v}" for k, v in self.params)
+        text = f"{self.scheme}://{self.host}:{port}{self.path}" + (f"?{query}" if query else "")
+        return replace(self, text=text, port=port)
+
+    def with_path(self, path: str) -> "DeviceUrl":
+        """The same URL with another path (serial device or CAN channel)."""
+        query = "&".join(f"{k}={v}" for k, v in self.params)
+        netloc = self.host + (f":{self.port}" if self.port is not None else "")
+        if not path.startswith("/"):
+            path = "/" + path
+        text = f"{self.scheme}://{netloc}{path}" + (f"?{query}" if query else "")
+        return replace(self, text=text, path=path)
+
+    def with_param(self, key: str, value) -> "DeviceUrl":
+        """The same URL with the query parameter ``key`` set to ``value`` (added or replaced)."""
+        params = tuple((k, v) for k, v in self.params if k != key) + ((key, str(value)),)
+        query = "&".join(f"{k}={v}" for k, v in params)
+        netloc = self.host + (f":{self.port}" if self.port is not None else "")
+        return replace(self, text=f"{self.scheme}://{netloc}{self.path}?{query}", params=params)
+
+    def with_host(self, host: str) -> "DeviceUrl":
+        query = "&".join(f"{k}={v}" for k, v in self.params)
+        netloc = host + (f":{self.port}" if self.port is not None else "")
+        text = f"{self.scheme}://{netloc}{self.path}" + (f"?{query}" if query else "")
+        return replace(self, text=text, host=host)
+
+    def __str__(self) -> str:
+        return self.text
+
+
+def parse_device_url(text: str, *, allowed: tuple[str, ...] | None = None,
+                     source: str = "url") -> DeviceUrl:
+    """Parse and check a device URL (see the module docstring)."""
+    if not isinstance(text, str) or "://" not in text:
+        raise InputError(f"expected a device URL like modbus+tcp://127.0.0.1:1502?unit=1, got {text!r}",
+                         source=source)
+    parts = urlsplit(text)
+    scheme = parts.scheme.lower()
+    known = DRIVE_SCHEMES + TRACKER_SCHEMES
+    if scheme not in known:
+        raise InputError(f"unknown device scheme {scheme!r} in {text}; one of {', '.join(sorted(set(known)))}",
+                         source=source)
+    if allowed is not None and scheme not in allowed:
+        raise InputError(f"{scheme}:// cannot be used here; expected one of {', '.join(allowed)}", source=source)
+    try:
+        port = parts.port
+    except ValueError:
+        raise InputError(f"bad port in {text}", source=source) from None
+    params = tuple(parse_qsl(parts.query, keep_blank_values=True))
+    url = DeviceUrl(text=text, scheme=scheme, host=parts.hostname or "", port=port, path=parts.path,
+                    params=params)
+    if scheme == "canopen":
+        if not url.host:
+            raise InputError(f"{text}: give the python-can interface, e.g. canopen://virtual/cell?node=5",
+                             source=source)
+        if not url.can_channel:
+            raise InputError(f"{text}: give the CAN channel after the interface, e.g. canopen://virtual/cell?node=5",
+                             source=source)
+        if url.param("node") is None:
+            raise InputError(f"{text}: the node id is missing (?node=1..127)", source=source)
+        url.int_param("node", 0, source=source, low=1, high=127)
+        url.int_param("bitrate", 1_000_000, source=source, low=10_000, high=1_000_000)
+    elif scheme in ("modbus+tcp", "tracker+tcp"):
+        if not url.host or url.port is None:
+            raise InputError(f"{text}: give host and port, e.g. {scheme}://127.0.0.1:1502", source=source)
+        if scheme == "modbus+tcp":
+            url.int_param("unit", 1, source=source, low=0, high=247)
+    else:  # serial
+        if not url.path:
+            raise InputError(f"{text}: give the serial device, e.g. {scheme}:///dev/ttyUSB0?baud=115200",
+                             source=source)
+        url.int_param("baud", 115200, source=source, low=300, high=10_000_000)
+        if scheme == "modbus+rtu":
+            url.int_param("unit", 1, source=source, low=1, high=247)
+    return url

@@ -1,0 +1,166 @@
+"""The layers of docs/architecture.md, checked on the imports of every module.
+
+Nothing imports upward; within the middle layer identification and the drivers
+never import the simulation (nor each other, except the bottom layer's modules
+that happen to live in their folders). The check reads the source with ``ast``
+(imports inside functions count as well), so it needs nothing installed, and it
+is tested on a copy of the tree with a deliberate upward import.
+"""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+import shutil
+import sys
+
+import pytest
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+#: the bottom layer, wherever its folder: the robot model, the file formats, errors and units
+BOTTOM = (
+    "elastocal",                      # the package itself: __version__ only
+    "elastocal.errors",
+    "elastocal.textfiles",
+    "elastocal.identify.robot",       # robot.toml, the immutable robot model (Pinocchio)
+    "elastocal.identify.urdf",
+    "elastocal.identify.tables",      # static.csv, runs.csv
+    "elastocal.identify.calibration",  # calibration JSON
+    "elastocal.acquisition.logformat",  # the MCAP log schema
+)
+#: layer of each subpackage, bottom (0) to top (3), for every module not in BOTTOM
+LAYER = {
+    "elastocal.drivers": 1, "elastocal.identify": 1, "elastocal.sims": 1,
+    "elastocal.acquisition": 2, "elastocal.compensation": 2, "elastocal.fleet": 2,
+    "elastocal.cli": 3, "elastocal.commands": 3, "elastocal.__main__": 3,
+}
+#: imports forbidden although the layers allow them: (importer, imported) subpackages
+FORBIDDEN = {
+    ("elastocal.identify", "elastocal.sims"), ("elastocal.drivers", "elastocal.sims"),
+    ("elastocal.identify", "elastocal.drivers"), ("elastocal.drivers", "elastocal.identify"),
+    ("elastocal.compensation", "elastocal.sims"), ("elastocal.compensation", "elastocal.acquisition"),
+    ("elastocal.acquisition", "elastocal.compensation"),
+}
+
+
+def modules(root: pathlib.Path) -> dict[str, pathlib.Path]:
+    """Module name -> file, from the package folders of pyproject.toml."""
+    config = tomllib.loads((root / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]
+    folders = {pkg: root / pkg.replace(".", "/") for pkg in config["packages"]}
+    folders.update({pkg: root / folder for pkg, folder in config.get("package-dir", {}).items()})
+    out = {}
+    for pkg, folder in folders.items():
+        for path in sorted(folder.glob("*.py")):
+            name = pkg if path.stem == "__init__" else f"{pkg}.{path.stem}"
+            out[name] = path
+    return out
+
+
+def imports(name: str, path: pathlib.Path, known: dict[str, pathlib.Path]) -> set[tuple[int, str]]:
+    """(line, imported elastocal module) of every import statement in the file.
+    ``from elastocal.identify import design`` imports the module ``elastocal.identify.design``;
+    ``from elastocal.identify.design import plan_experiment`` the module ``elastocal.identify.design``."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    package = name if path.stem == "__init__" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found |= {(node.lineno, a.name) for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            for a in node.names:
+                sub = f"{target}.{a.name}"
+                found.add((node.lineno, sub if sub in known else target))
+    return {(line, t) for line, t in found if t == "elastocal" or t.startswith("elastocal.")}
+
+
+def placement(name: str, known: dict[str, pathlib.Path]) -> tuple[int, str] | None:
+    """(layer, subpackage) of a module, or None for a name that is no module (an imported object)."""
+    if name not in known:
+        return None
+    if name in BOTTOM:
+        return 0, "bottom"
+    for prefix, layer in sorted(LAYER.items(), key=lambda kv: -len(kv[0])):
+        if name == prefix or name.startswith(prefix + "."):
+            return layer, prefix
+    raise LookupError(name)
+
+
+def violations(root: pathlib.Path) -> list[str]:
+    known = modules(root)
+    problems = []
+    for name, path in known.items():
+        try:
+            here = placement(name, known)
+        except LookupError:
+            problems.append(f"{path.relative_to(root)}: module {name} has no layer; add it to tests/test_layers.py")
+            continue
+        for line, target in sorted(imports(name, path, known)):
+            there = placement(target, known)
+            if there is None or there[1] == here[1]:
+                continue
+            where = f"{path.relative_to(root)}:{line}: {name} imports {target}"
+            if there[0] > here[0]:
+                problems.append(f"{where} (upward: layer {here[0]} imports layer {there[0]})")
+            elif (here[1], there[1]) in FORBIDDEN:
+                problems.append(f"{where} ({here[1]} never imports {there[1]})")
+    return problems
+
+
+def test_nothing_imports_upward():
+    problems = violations(ROOT)
+    assert not problems, "\n".join(problems)
+
+
+def test_every_module_has_a_layer():
+    known = modules(ROOT)
+    assert len(known) > 80 and "elastocal.identify.static" in known and "elastocal.commands.plan" in known
+    assert all(b in known for b in BOTTOM), [b for b in BOTTOM if b not in known]
+
+
+@pytest.fixture
+def tree(tmp_path) -> pathlib.Path:
+    """A copy of the sources (pyproject.toml and the package folders)."""
+    shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
+    for path in modules(ROOT).values():
+        target = tmp_path / path.relative_to(ROOT)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, target)
+    assert not violations(tmp_path)
+    return tmp_path
+
+
+@pytest.mark.parametrize("file,line,message", [
+    ("identify/design.py", "from elastocal.sims.cell import SimCell", "never imports"),
+    ("drivers/config.py", "    from elastocal.identify.static import identify_static", "never imports"),
+    ("identify/robot.py", "from elastocal.identify import static", "upward: layer 0 imports layer 1"),
+    ("compensation/model.py", "from elastocal.commands import plan", "upward: layer 2 imports layer 3"),
+    ("sims/world.py", "from elastocal.acquisition.procedures import run_calibration", "upward"),
+    ("compensation/model.py", "from ..sims import cell", "never imports"),
+])
+def test_a_deliberate_bad_import_fails_the_check(tree, file, line, message):
+    path = tree / file
+    text = path.read_text(encoding="utf-8")
+    if line.startswith(" "):   # an import inside a function counts too
+        text += f"\n\ndef _sneaky():\n{line}\n"
+    else:
+        text += f"\n{line}\n"
+    path.write_text(text, encoding="utf-8")
+    problems = violations(tree)
+    assert len(problems) == 1 and problems[0].startswith(file) and message in problems[0], problems
+
+
+def test_a_module_without_a_layer_is_named(tree):
+    (tree / "elastocal" / "newthing.py").write_text('"""x"""\n', encoding="utf-8")
+    assert violations(tree) == ["elastocal/newthing.py: module elastocal.newthing has no layer; "
+                                "add it to tests/test_layers.py"]
