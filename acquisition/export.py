@@ -314,6 +314,19 @@ def _document(payload: dict, source: str) -> Document:
     return doc
 
 
+def _check_messages(topic: str, times: list[int], values: list, source: str) -> None:
+    """Documents, sessions and events follow their schema (logformat.SCHEMAS): one line naming
+    the topic, the log time and the field, instead of a KeyError further on."""
+    for t, v in zip(times, values):
+        why = lf.message_error(topic, v)
+        if why is not None:
+            raise InputError(f"the message on {topic} at log time {t} ns is not a valid "
+                             f"{lf.TOPIC_SCHEMAS[topic]}: {why}", source=source)
+        if topic == lf.TOPIC_EVENT and "window_ns" in v and v["window_ns"][0] > v["window_ns"][1]:
+            raise InputError(f"the {v['kind']} event at log time {t} ns has a window that ends before it starts",
+                             source=source)
+
+
 def read_log(path: str | pathlib.Path) -> LogContents:
     """Gather a log's documents, events and samples (tolerates a truncated file)."""
     reader = LogReader(path)
@@ -333,6 +346,8 @@ def read_log(path: str | pathlib.Path) -> LogContents:
         resumes = 0
         for topic, (times, values) in groups.items():
             n_messages += len(times)
+            if topic in lf.CHECKED_TOPICS:
+                _check_messages(topic, times, values, source)
             j = drive_index.get(topic)
             if j is not None:
                 try:
@@ -344,6 +359,8 @@ def read_log(path: str | pathlib.Path) -> LogContents:
                 try:
                     markers = [v["marker"] for v in values]
                     xyz = np.array(list(map(get_xyz, values)), dtype=float)
+                    if not all(isinstance(m, str) for m in markers):
+                        raise TypeError("marker")
                 except (KeyError, TypeError, ValueError):
                     raise InputError(f"a message on {topic} is not a tracker sample", source=source) from None
                 t = _keys(times, offset, source)
@@ -471,13 +488,20 @@ def static_table_from_log(contents: LogContents, robot: Robot | None = None) -> 
         marker.append(m)
     try:
         return static_table_from_arrays(pose=pose, load=load, t=t, q=q, wrench=wrench, currents=currents,
-                                        marker=marker, xyz=xyz, source=contents.path)
+                                        marker=marker, xyz=xyz, source=contents.path, robot=robot)
     except InputError as exc:
-        raise InputError(f"the log's static readings do not make a deflection table: {exc.detail}",
+        raise InputError(f"the log's static readings do not make a deflection table: {_exported_at(exc, 'static')}",
                          source=contents.path) from None
 
 
-def run_table_from_log(contents: LogContents) -> RunTable | None:
+def _exported_at(exc: InputError, table: str) -> str:
+    """An error of a table built from a log, with where it is in the exported CSV."""
+    where = [f"line {exc.row}"] if exc.row is not None else []
+    where += [f"column {exc.column}"] if exc.column else []
+    return f"{exc.detail} ({', '.join(where)} of the exported {table}.csv)" if where else exc.detail
+
+
+def run_table_from_log(contents: LogContents, robot: Robot | None = None) -> RunTable | None:
     """The run table of the log's completed runs (friction runs, sweeps), or None.
 
     One row per sample of drive 1 between ``run_start`` and ``run_end``; the
@@ -533,11 +557,15 @@ def run_table_from_log(contents: LogContents) -> RunTable | None:
         cols["w"].append(np.tile(_wrench(start.get("wrench")), (n, 1)))
         cols["marker"] += list(marker)
         cols["xyz"].append(xyz)
-    return run_table_from_arrays(run=cols["run"], direction=cols["direction"], load=cols["load"],
-                                 t=np.concatenate(cols["t"]), q=np.concatenate(cols["q"]),
-                                 dq=np.concatenate(cols["dq"]), currents=np.concatenate(cols["i"]),
-                                 wrench=np.concatenate(cols["w"]), marker=cols["marker"],
-                                 xyz=np.concatenate(cols["xyz"]), source=contents.path)
+    try:
+        return run_table_from_arrays(run=cols["run"], direction=cols["direction"], load=cols["load"],
+                                     t=np.concatenate(cols["t"]), q=np.concatenate(cols["q"]),
+                                     dq=np.concatenate(cols["dq"]), currents=np.concatenate(cols["i"]),
+                                     wrench=np.concatenate(cols["w"]), marker=cols["marker"],
+                                     xyz=np.concatenate(cols["xyz"]), source=contents.path, robot=robot)
+    except InputError as exc:
+        raise InputError(f"the log's runs do not make a run table: {_exported_at(exc, 'runs')}",
+                         source=contents.path) from None
 
 
 def _nearest(t_sorted: np.ndarray, t_query: np.ndarray) -> np.ndarray:
@@ -562,7 +590,7 @@ def load_log(path: str | pathlib.Path) -> tuple[Robot, StaticTable | None, RunTa
 def tables_from_log(contents: LogContents) -> tuple[Robot, StaticTable | None, RunTable | None]:
     """Robot, static table and run table of a log already read."""
     robot = robot_from_log(contents)
-    return robot, static_table_from_log(contents, robot), run_table_from_log(contents)
+    return robot, static_table_from_log(contents, robot), run_table_from_log(contents, robot)
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ host); ``publish_time`` is when the recorder wrote the message, same clock.
 
 from __future__ import annotations
 
+import functools
 import json
 
 #: value of the ``format`` field of the ``/elastocal/session`` message and of the log metadata
@@ -109,7 +110,7 @@ SCHEMAS: dict[str, dict] = {
             "pose": {"type": "string"},
             "load": {"type": "string", "description": "load state id; '0' is unloaded"},
             "q": {**_VEC6, "description": "commanded joint coordinates [rad]"},
-            "wrench": {"type": ["array", "null"], "items": {"type": "number"},
+            "wrench": {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 6, "maxItems": 6,
                        "description": "nominal external wrench on the load point, base axes [N, N*m]"},
             "mass_kg": {"type": ["number", "null"]},
             "marker": {"type": ["string", "null"]},
@@ -134,6 +135,13 @@ SCHEMAS: dict[str, dict] = {
             "completed_steps": {"type": "array", "items": {"type": "string"}},
         },
         "required": ["kind"],
+        # what each kind must carry for the log to be turned into tables (docs/log-format.md)
+        "allOf": [{"if": {"properties": {"kind": {"const": kind}}, "required": ["kind"]},
+                   "then": {"required": required}}
+                  for kind, required in (("reading", ["step_id", "pose", "load", "marker", "q", "window_ns"]),
+                                         ("run_start", ["step_id", "run", "direction"]),
+                                         ("run_end", ["step_id", "run"]),
+                                         ("step_start", ["step_id"]), ("step_done", ["step_id"]))],
     },
 }
 
@@ -152,3 +160,27 @@ TOPIC_SCHEMAS: dict[str, str] = {
 def schema_bytes(name: str) -> bytes:
     """The JSON Schema ``name`` as UTF-8 bytes (key order fixed)."""
     return json.dumps(SCHEMAS[name], separators=(",", ":")).encode()
+
+
+#: topics whose messages are checked against their schema when a log is read (the few
+#: documents and events; the many samples are checked by the reader as arrays)
+CHECKED_TOPICS = (TOPIC_SESSION, TOPIC_ROBOT, TOPIC_CELL, TOPIC_PLAN, TOPIC_EVENT)
+
+
+@functools.lru_cache(maxsize=None)
+def _validator(name: str):
+    import jsonschema
+
+    return jsonschema.Draft202012Validator(SCHEMAS[name])
+
+
+def message_error(topic: str, payload: object) -> str | None:
+    """Why ``payload`` does not follow its topic's schema (one line), or None when it does."""
+    import jsonschema
+
+    error = jsonschema.exceptions.best_match(_validator(TOPIC_SCHEMAS[topic]).iter_errors(payload))
+    if error is None:
+        return None
+    where = ".".join(str(p) for p in error.absolute_path)
+    text = error.message if len(error.message) <= 200 else error.message[:200] + "..."
+    return f"{where}: {text}" if where else text

@@ -24,6 +24,7 @@ from elastocal.compensation.ik import PlannedPath
 from elastocal.compensation.trajectory import CompensatedPath
 from elastocal.errors import InputError
 from elastocal.identify.robot import Robot
+from elastocal.identify.tables import check_header, csv_records
 from elastocal.textfiles import read_text_file
 
 Q_COLS = tuple(f"q{j}" for j in range(1, 7))
@@ -45,11 +46,12 @@ def _number(value: str, source: str, row: int, col: str) -> float:
 
 def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.csv>") -> PlannedPath:
     """Read a path CSV; errors name file, line and column."""
-    reader = csv.reader(io.StringIO(text))
+    reader = csv_records(text, source)
     try:
-        header = [h.strip() for h in next(reader)]
+        header = [h.strip() for h in next(reader)[1]]
     except StopIteration:
         raise InputError("the file is empty", source=source) from None
+    check_header(header, source)
     missing = [c for c in ("t",) + Q_COLS if c not in header]
     if missing:
         raise InputError(f"missing column(s) {', '.join(missing)}", source=source, row=1)
@@ -62,7 +64,7 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
         raise InputError(f"the wrench needs all of {','.join(W_COLS)}", source=source, row=1)
     idx = {c: i for i, c in enumerate(header)}
     t, q, w = [], [], []
-    for lineno, row in enumerate(reader, start=2):
+    for lineno, row in reader:
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) != len(header):

@@ -152,17 +152,63 @@ class CellConfig:
         return path
 
     def load_robot(self):
-        """The :class:`~elastocal.identify.robot.Robot` named by ``[cell] robot``."""
+        """The :class:`~elastocal.identify.robot.Robot` named by ``[cell] robot``, with the cell's
+        tracker markers, taught poses and paths checked against it (names and joint limits)."""
         from elastocal.identify.robot import load_robot
 
-        return load_robot(self.robot_path())
+        robot = load_robot(self.robot_path())
+        _check_against_robot(self, robot)
+        return robot
 
     def to_toml(self) -> str:
         """The configuration as cell.toml text (round-trips through :func:`parse_cell_config`)."""
         return _to_toml(self)
 
 
+def _check_against_robot(config: CellConfig, robot) -> None:
+    """The tracker follows markers the robot has; taught poses and path ends lie within its joint limits."""
+    src = config.source
+    if config.tracker is not None:
+        for m in config.tracker.markers:
+            if m not in robot.marker_names:
+                raise InputError(f"unknown marker {m!r}; the robot {robot.name} has {', '.join(robot.marker_names)}",
+                                 source=src, column="tracker.markers")
+    if config.controller is None:
+        return
+    taught = [(f"controller.poses.{n}", q) for n, q in config.controller.poses]
+    for i, p in enumerate(config.controller.paths, start=1):
+        taught += [(f"controller.path[{i}].u", p.u), (f"controller.path[{i}].v", p.v)]
+    for key, q in taught:
+        for j, v in enumerate(q):
+            lo, hi = robot.joints[j].lower, robot.joints[j].upper
+            if not lo - 1e-9 <= v <= hi + 1e-9:
+                raise InputError(f"q{j + 1} = {v:g} rad is outside the joint limits [{lo:.4g}, {hi:.4g}] of "
+                                 f"{robot.name}", source=src, column=key)
+
+
 # ---------------------------------------------------------------- parsing
+#: a sampling rate beyond this is not one a drive or tracker delivers [Hz]
+MAX_RATE_HZ = 10_000.0
+
+
+def _rate(table: Mapping, default: float, *, source: str, where: str) -> float:
+    rate = _num(table, "rate_hz", default, source=source, where=where)
+    if rate > MAX_RATE_HZ:
+        raise InputError(f"{rate:g} Hz is not a plausible sampling rate (at most {MAX_RATE_HZ:g} Hz)",
+                         source=source, column=f"{where}.rate_hz")
+    return rate
+
+
+def _joint_angles(table: Mapping, key: str, *, source: str, where: str) -> tuple[float, ...]:
+    """Six joint coordinates [rad]; more than a turn is refused as degrees."""
+    q = _vec(table, key, None, source=source, where=where)
+    for j, v in enumerate(q):
+        if abs(v) > 2 * math.pi + 1e-9:
+            raise InputError(f"q{j + 1} = {v:g} is more than a full turn; degrees? joint angles are radians",
+                             source=source, column=f"{where}.{key}" if where else key)
+    return q
+
+
 def _num(table: Mapping, key: str, default: float, *, source: str, where: str, positive: bool = True) -> float:
     if key not in table:
         return default
@@ -246,7 +292,7 @@ def _drive(t: Mapping, i: int, *, source: str) -> DriveConfig:
         raise InputError("registers are only for modbus drives", source=source, column=f"{where}.registers")
     default_rate = 1000.0 if url.scheme == "canopen" else 100.0
     return DriveConfig(joint=joint, url=url, registers=regs,
-                       rate_hz=_num(t, "rate_hz", default_rate, source=source, where=where),
+                       rate_hz=_rate(t, default_rate, source=source, where=where),
                        timeout_s=_num(t, "timeout_s", 0.5, source=source, where=where),
                        retries=_int(t, "retries", 2, source=source, where=where),
                        max_current_a=_num(t, "max_current_a", 200.0, source=source, where=where))
@@ -276,7 +322,7 @@ def _tracker(t: Mapping, *, source: str) -> TrackerConfig:
     if len(set(markers)) != len(markers):
         raise InputError("marker names repeat", source=source, column="tracker.markers")
     return TrackerConfig(url=url, markers=tuple(markers),
-                         rate_hz=_num(t, "rate_hz", 100.0, source=source, where=where),
+                         rate_hz=_rate(t, 100.0, source=source, where=where),
                          timeout_s=_num(t, "timeout_s", 1.0, source=source, where=where),
                          retries=_int(t, "retries", 2, source=source, where=where),
                          base_p_tracker=base_p_tracker)
@@ -324,7 +370,7 @@ def _controller(t: Mapping, *, source: str) -> ControllerConfig:
             number = int(key)
         except ValueError:
             raise InputError(f"pose keys are numbers, got {key!r}", source=source, column="controller.poses") from None
-        poses.append((number, _vec({"q": q}, "q", None, source=source, where=f"controller.poses.{key}")))
+        poses.append((number, _joint_angles({key: q}, key, source=source, where="controller.poses")))
     paths = []
     for i, p in enumerate(t.get("path") or [], start=1):
         pw = f"controller.path[{i}]"
@@ -332,8 +378,8 @@ def _controller(t: Mapping, *, source: str) -> ControllerConfig:
             raise InputError("expected a table", source=source, column=pw)
         check_known_keys(p, ("id", "u", "v", "speed_rad_s"), source=source, where=pw)
         pid = _int(p, "id", i, source=source, where=pw, low=1)
-        paths.append(PathSpec(id=pid, u=_vec(p, "u", None, source=source, where=pw),
-                              v=_vec(p, "v", None, source=source, where=pw),
+        paths.append(PathSpec(id=pid, u=_joint_angles(p, "u", source=source, where=pw),
+                              v=_joint_angles(p, "v", source=source, where=pw),
                               speed_rad_s=_num(p, "speed_rad_s", 0.05, source=source, where=pw)))
     if len({p.id for p in paths}) != len(paths):
         raise InputError("path ids repeat", source=source, column="controller.path")

@@ -68,6 +68,81 @@ def write_calibration(path: str | pathlib.Path, cal: Calibration) -> None:
     pathlib.Path(path).write_text(json.dumps(cal.to_json(), indent=2) + "\n", encoding="utf-8")
 
 
+#: a joint stiffness whose size is outside this range is not one of a robot joint [N·m/rad]
+#: (its sign is judged where it is used: compensation refuses a negative one)
+STIFFNESS_RANGE = (1.0, 1e12)
+#: no calibrated value is larger than this, in its SI unit
+MAX_VALUE = 1e30
+
+
+def parameter_unit(name: str) -> str | None:
+    """The SI unit of a calibration parameter (formats.md §4, cli.md's effect table), None if unknown."""
+    from elastocal.identify.effects import ALL_EFFECTS, get_effect
+    from elastocal.identify.robot import HYDRO_UNITS, SPRING_UNITS
+
+    if name in tuple(f"k{j}" for j in range(1, 7)):
+        return "N*m/rad"
+    if name in HYDRO_UNITS or name in SPRING_UNITS:
+        return {**HYDRO_UNITS, **SPRING_UNITS}[name]
+    for effect in ALL_EFFECTS:
+        e = get_effect(effect)
+        if name in e.parameters:
+            return e.units[e.parameters.index(name)]
+    return None
+
+
+def _number_or_none(p: dict, key: str) -> float | None:
+    v = p.get(key)
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(key)
+    return float(v)
+
+
+def _parameter(name: str, p: object, src: str) -> dict:
+    """One parameter, checked and in its SI unit: a finite value, a std >= 0 (or none), a known unit
+    (a value given in another unit of the same kind, N*m/deg for N*m/rad, is converted)."""
+    from elastocal.units import UnitError, conversion, parse_unit
+
+    where = f"parameters.{name}"
+    if not isinstance(p, dict):
+        raise InputError(f"expected an object with value, std and unit, got {p!r}", source=src, column=where)
+    try:
+        value = _number_or_none(p, "value")
+        std = _number_or_none(p, "std")
+    except ValueError as exc:
+        raise InputError(f"{exc.args[0]} must be a finite number, got {p.get(exc.args[0])!r}", source=src,
+                         column=f"{where}.{exc.args[0]}") from None
+    if value is None:
+        raise InputError(f"parameter {name} has no finite value", source=src, column=where)
+    if std is not None and std < 0:
+        raise InputError(f"a standard deviation is >= 0, got {std!r}", source=src, column=f"{where}.std")
+    unit = p.get("unit")
+    target = parameter_unit(name)
+    out = dict(p)
+    if unit is not None:
+        if not isinstance(unit, str):
+            raise InputError(f"expected a unit text, got {unit!r}", source=src, column=f"{where}.unit")
+        try:
+            factor = conversion(unit, target) if target is not None else (parse_unit(unit), 1.0)[1]
+        except UnitError as exc:
+            hint = f"; {name} is in {target}" if target is not None else ""
+            raise InputError(f"{exc}{hint}", source=src, column=f"{where}.unit") from None
+        if factor != 1.0:
+            value *= factor
+            std = None if std is None else std * factor
+            out.update(value=value, unit=target)
+            if std is not None:
+                out["std"] = std
+    if target == "N*m/rad" and not STIFFNESS_RANGE[0] <= abs(value) <= STIFFNESS_RANGE[1]:
+        raise InputError(f"{value:g} N*m/rad is not a plausible joint stiffness (|k| between "
+                         f"{STIFFNESS_RANGE[0]:g} and {STIFFNESS_RANGE[1]:g})", source=src, column=f"{where}.value")
+    if not abs(value) <= MAX_VALUE:
+        raise InputError(f"{value:g} is not a plausible value", source=src, column=f"{where}.value")
+    return out
+
+
 def read_calibration(path: str | pathlib.Path) -> Calibration:
     path = pathlib.Path(path)
     text = read_text_file(path)
@@ -83,16 +158,24 @@ def read_calibration(path: str | pathlib.Path) -> Calibration:
     if not isinstance(robot, str) or not robot.strip():
         what = "missing" if robot is None else f"expected the robot's name, got {robot!r}"
         raise InputError(f"{what}: the calibration must name its robot (formats.md §4)", source=src, column="robot")
-    params = doc.get("parameters")
-    if not isinstance(params, dict):
-        raise InputError("missing parameters", source=src, column="parameters")
-    for name, p in params.items():
-        v = p.get("value") if isinstance(p, dict) else None
-        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
-            raise InputError(f"parameter {name} has no finite value", source=src, column=f"parameters.{name}")
     model = doc.get("model", ["joint_stiffness"])
     if not isinstance(model, list) or not model or not all(isinstance(m, str) and m for m in model):
         raise InputError(f"expected a list of effect names, got {model!r}", source=src, column="model")
+    from elastocal.identify.effects import ALL_EFFECTS
+
+    for name in model:
+        if name not in ALL_EFFECTS:
+            raise InputError(f"unknown effect {name!r} in the calibration; known: {', '.join(ALL_EFFECTS)}",
+                             source=src, column="model")
+    params = doc.get("parameters")
+    if not isinstance(params, dict):
+        raise InputError("missing parameters", source=src, column="parameters")
+    params = {name: _parameter(name, p, src) for name, p in params.items()}
+    if "joint_stiffness" in model:
+        for j in range(1, 7):
+            if f"k{j}" not in params:
+                raise InputError(f"missing k{j}: a joint_stiffness calibration holds k1..k6", source=src,
+                                 column=f"parameters.k{j}")
     torque = doc.get("torque", "current")
     if torque not in TORQUES:
         raise InputError(f"expected one of {', '.join(TORQUES)}, got {torque!r}", source=src, column="torque")
@@ -102,6 +185,14 @@ def read_calibration(path: str | pathlib.Path) -> Calibration:
     residual = doc.get("residual", {})
     if not isinstance(residual, dict):
         raise InputError(f"expected an object, got {residual!r}", source=src, column="residual")
+    for key in ("rms", "max", "noise_floor", "n"):
+        v = residual.get(key)
+        if v is None:
+            continue
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+        if not ok or (key == "n" and v != int(v)):
+            what = "a count" if key == "n" else "a finite number >= 0 [m]"
+            raise InputError(f"expected {what}, got {v!r}", source=src, column=f"residual.{key}")
     data = doc.get("data", [])
     if not isinstance(data, list) or not all(isinstance(d, dict) for d in data):
         raise InputError("expected a list of objects with path and sha256", source=src, column="data")

@@ -50,6 +50,24 @@ LINK_SPHERE_RADIUS_M = 0.05
 LINK_JOINT_ORDER = ("q1", "q2", "cl2x", "cl2y", "q3", "cl3x", "cl3y", "q4", "q5", "q6")
 ACTUATED_IN_LINK_MODEL = np.array([0, 1, 4, 7, 8, 9])
 SPRINGS_IN_LINK_MODEL = np.array([2, 3, 5, 6])
+#: plausibility limits of robot.toml values: beyond them a value is taken as the wrong unit
+#: (millimetres for metres, degrees for radians, grams for kilograms)
+MAX_LENGTH_M = 10.0
+MAX_ANGLE_RAD = 2 * math.pi + 1e-9
+MAX_LINK_MASS_KG = 1e4
+MAX_GRAVITY_M_S2 = 20.0
+
+
+def _plausible_length(value: float, *, source: str, column: str) -> None:
+    if abs(value) > MAX_LENGTH_M:
+        raise InputError(f"{value:g} m is longer than {MAX_LENGTH_M:g} m; millimetres? lengths are metres",
+                         source=source, column=column)
+
+
+def _plausible_angle(value: float, *, source: str, column: str) -> None:
+    if abs(value) > MAX_ANGLE_RAD:
+        raise InputError(f"{value:g} rad is more than a full turn; degrees? angles are radians",
+                         source=source, column=column)
 
 
 def _vec3(value, *, source: str, column: str) -> tuple[float, float, float]:
@@ -468,6 +486,9 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
     if not isinstance(name, str) or not name:
         raise InputError(f"expected the robot's name as text, got {name!r}", source=source, column="name")
     gravity = _vec3(doc.get("gravity", [0.0, 0.0, -9.81]), source=source, column="gravity")
+    if math.hypot(*gravity) > MAX_GRAVITY_M_S2:
+        raise InputError(f"|gravity| = {math.hypot(*gravity):g} m/s^2; mm/s^2? gravity is m/s^2 (9.81)",
+                         source=source, column="gravity")
     tables = doc.get("joint")
     if not isinstance(tables, list) or len(tables) != N_JOINTS:
         raise InputError(f"expected {N_JOINTS} [[joint]] tables", source=source, column="joint")
@@ -501,6 +522,7 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
     for i, t in enumerate(tables, start=1):
         where = f"joint[{i}]"
         offset = _number(t, "offset", source=source, where=where, default=0.0)
+        _plausible_angle(offset, source=source, column=f"{where}.offset")
         if chain is None or "lower" in t or "upper" in t:
             lower = _number(t, "lower", source=source, where=where)
             upper = _number(t, "upper", source=source, where=where)
@@ -519,15 +541,26 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
         mass = _number(t, "mass", source=source, where=where, default=urdf_mass)
         if mass < 0:
             raise InputError("mass must be >= 0", source=source, column=f"{where}.mass")
+        if mass > MAX_LINK_MASS_KG:
+            raise InputError(f"{mass:g} kg is not a plausible link mass; grams? masses are kg", source=source,
+                             column=f"{where}.mass")
         urdf_com = [0.0, 0.0, 0.0] if chain is None else [float(x) for x in chain.coms[i - 1]]
         if chain is None:
             geometry = {key: _number(t, key, source=source, where=where) for key in ("a", "alpha", "d")}
+            _plausible_length(geometry["a"], source=source, column=f"{where}.a")
+            _plausible_length(geometry["d"], source=source, column=f"{where}.d")
+            _plausible_angle(geometry["alpha"], source=source, column=f"{where}.alpha")
         else:
             geometry = {key: math.nan for key in ("a", "alpha", "d")}
+        com = _vec3(t.get("com", urdf_com), source=source, column=f"{where}.com")
+        for axis, x in zip("xyz", com):
+            if abs(x) > MAX_LENGTH_M:
+                raise InputError(f"the centre of mass is {x:g} m from the joint frame along {axis}; millimetres? "
+                                 "positions are metres", source=source, column=f"{where}.com")
         try:
             joints.append(JointSpec(
                 **geometry, offset=offset, lower=lower, upper=upper, torque_constant=xi, mass=mass,
-                com=_vec3(t.get("com", urdf_com), source=source, column=f"{where}.com"),
+                com=com,
                 name=str(t.get("name", f"joint{i}")),
             ))
         except InputError as exc:
@@ -535,6 +568,9 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
     if "load_point" not in tool:
         raise InputError("missing required key", source=source, column="tool.load_point")
     load = _vec3(tool["load_point"], source=source, column="tool.load_point")
+    if max(abs(x) for x in load) > MAX_LENGTH_M:
+        raise InputError(f"the load point {load} is over {MAX_LENGTH_M:g} m from the flange; millimetres? "
+                         "positions are metres", source=source, column="tool.load_point")
     markers = tool.get("markers", {})
     if not isinstance(markers, dict) or not markers:
         raise InputError("at least one marker is needed", source=source, column="tool.markers")
@@ -554,7 +590,14 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
         check_known_keys(c, COMPENSATOR_KEYS[kind], source=source, where="compensator", what=f" for a {kind} compensator")
         geometry = tuple((k, _number(c, k, source=source, where="compensator")) for k in keys)
         params = HYDRO_PARAMS if kind == "hydropneumatic" else SPRING_PARAMS
+        for k, v in geometry:
+            if k == "alpha":
+                _plausible_angle(v, source=source, column=f"compensator.{k}")
+            else:
+                _plausible_length(v, source=source, column=f"compensator.{k}")
         nominal = tuple((k, _number(c, k, source=source, where="compensator")) for k in params if k in c)
+        for k, v in nominal:
+            _plausible_compensator_parameter(k, v, source=source, column=f"compensator.{k}")
         joint_no = c.get("joint", 2)
         if joint_no != 2:
             raise InputError(f"compensator joint must be 2, got {joint_no!r}", source=source,
@@ -563,6 +606,17 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
     return Robot(name=str(name), joints=tuple(joints), gravity=gravity,
                  tool=ToolSpec(flange_p_load=load, flange_p_markers=marker_items),
                  compensator=comp, source=source, urdf=urdf)
+
+
+def _plausible_compensator_parameter(name: str, value: float, *, source: str, column: str) -> None:
+    """A compensator's C [N·m] and K_c [N/m] are positive (it pushes against gravity);
+    its lengths l_c, s0 [m] are positive and below :data:`MAX_LENGTH_M`."""
+    if value <= 0:
+        unit = {"C": "N*m", "K_c": "N/m"}.get(name, "m")
+        raise InputError(f"{name} = {value:g} {unit}: a compensator's {name} is positive (it balances gravity)",
+                         source=source, column=column)
+    if name in ("l_c", "s0"):
+        _plausible_length(value, source=source, column=column)
 
 
 def _urdf_source(doc: Mapping, tool: Mapping, *, source: str, base_dir: pathlib.Path | None) -> UrdfSource | None:

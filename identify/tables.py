@@ -13,7 +13,7 @@ import io
 import math
 import pathlib
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -112,17 +112,52 @@ class RunTable:
 
 
 # ------------------------------------------------------------------ reading
+def csv_records(text: str, source: str) -> Iterator[tuple[int, list[str]]]:
+    """(line, fields) of each CSV record of ``text``, header first (line 1).
+
+    The csv module's own errors (a field over its size limit of 131,072
+    characters, a NUL byte, a quote left open at the end) become one
+    :class:`InputError` naming the file and the line."""
+    reader = csv.reader(io.StringIO(text))
+    lineno = 1
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            line = max(reader.line_num, lineno)
+            reason = str(exc)
+            if "field larger than field limit" in reason:
+                reason = (f"a field longer than {csv.field_size_limit():,} characters; not a table of numbers "
+                          "(an unclosed quote?)")
+            raise InputError(f"not a readable CSV record: {reason}", source=source, row=line) from None
+        yield lineno, row
+        lineno = reader.line_num + 1
+
+
+def check_header(header: list[str], source: str) -> None:
+    """Refuse a header that names one column twice (the last one would silently win)."""
+    seen: set[str] = set()
+    for name in header:
+        if name in seen:
+            raise InputError(f"column {name} appears twice in the header; each column once",
+                             source=source, row=1, column=name)
+        seen.add(name)
+
+
 class _Rows:
     """CSV rows with the helpers that name file, line and column in errors."""
 
     def __init__(self, text: str, source: str, required: Iterable[str], known: Iterable[str]) -> None:
         self.source = source
-        reader = csv.reader(io.StringIO(text))
+        reader = csv_records(text, source)
         try:
-            header = next(reader)
+            _, header = next(reader)
         except StopIteration:
             raise InputError("the file is empty", source=source) from None
         self.header = [h.strip() for h in header]
+        check_header(self.header, source)
         missing = [c for c in required if c not in self.header]
         if missing:
             raise InputError(f"missing column(s) {', '.join(missing)}", source=source, row=1)
@@ -131,7 +166,7 @@ class _Rows:
             raise InputError(f"unknown column(s) {', '.join(unknown)}", source=source, row=1)
         self.index = {c: i for i, c in enumerate(self.header)}
         self.rows: list[tuple[int, list[str]]] = []
-        for lineno, row in enumerate(reader, start=2):
+        for lineno, row in reader:
             if not row or all(not cell.strip() for cell in row):
                 continue
             if len(row) != len(self.header):
@@ -185,7 +220,7 @@ def _read_text(path: str | pathlib.Path) -> tuple[str, str]:
     return read_text_file(path), str(path)
 
 
-def _check_joint_units(rows: _Rows, lineno: int, q: list[float], robot: Robot | None) -> None:
+def _check_joint_units(source: str, lineno: int, q: list[float], robot: Robot | None) -> None:
     for j, value in enumerate(q):
         col = Q_COLS[j]
         if robot is not None:
@@ -196,38 +231,38 @@ def _check_joint_units(rows: _Rows, lineno: int, q: list[float], robot: Robot | 
                 if lo <= math.radians(value) <= hi and abs(value) > 2 * math.pi:
                     hint = "; degrees? angles in files are radians"
                 raise InputError(f"{value} rad is outside the joint limits [{lo:.4g}, {hi:.4g}]{hint}",
-                                 source=rows.source, row=lineno, column=col)
+                                 source=source, row=lineno, column=col)
         elif abs(value) > 2 * math.pi:
             raise InputError(f"{value} is larger than 2*pi; degrees? angles in files are radians",
-                             source=rows.source, row=lineno, column=col)
+                             source=source, row=lineno, column=col)
 
 
-def _check_position_units(rows: _Rows, lineno: int, xyz: list[float]) -> None:
+def _check_position_units(source: str, lineno: int, xyz: list[float]) -> None:
     for col, value in zip(XYZ_COLS, xyz):
         if abs(value) > MAX_POSITION_M:
             raise InputError(f"{value} m is more than {MAX_POSITION_M:g} m from the base; millimetres? "
-                             "positions are metres", source=rows.source, row=lineno, column=col)
+                             "positions are metres", source=source, row=lineno, column=col)
 
 
-def _check_time(rows: _Rows, lineno: int, t: float) -> None:
+def _check_time(source: str, lineno: int, t: float) -> None:
     if abs(t) > MAX_TIME_S:
         raise InputError(f"{t:g} s is not a plausible time (more than {MAX_TIME_S:g} s from its origin); "
-                         "milliseconds or nanoseconds? times are seconds", source=rows.source, row=lineno, column="t")
+                         "milliseconds or nanoseconds? times are seconds", source=source, row=lineno, column="t")
 
 
-def _check_wrench(rows: _Rows, lineno: int, wrench: list[float]) -> None:
+def _check_wrench(source: str, lineno: int, wrench: list[float]) -> None:
     for col, value in zip(W_COLS, wrench):
         if abs(value) > MAX_WRENCH:
             unit = "N" if col.startswith("f") else "N*m"
             raise InputError(f"{value:g} {unit} is not a plausible load; forces are N, moments N*m",
-                             source=rows.source, row=lineno, column=col)
+                             source=source, row=lineno, column=col)
 
 
-def _check_currents(rows: _Rows, lineno: int, currents: list[float]) -> None:
+def _check_currents(source: str, lineno: int, currents: list[float]) -> None:
     for col, value in zip(I_COLS, currents):
         if abs(value) > MAX_CURRENT_A:
             raise InputError(f"{value} A is not a plausible motor current; currents are amperes",
-                             source=rows.source, row=lineno, column=col)
+                             source=source, row=lineno, column=col)
 
 
 def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "<static.csv>") -> StaticTable:
@@ -238,16 +273,16 @@ def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "
         pose.append(rows.text(lineno, row, "pose"))
         load.append(rows.text(lineno, row, "load"))
         tv = rows.number(lineno, row, "t", required=False)
-        _check_time(rows, lineno, tv)
+        _check_time(rows.source, lineno, tv)
         t.append(tv)
         qv = [rows.number(lineno, row, c) for c in Q_COLS]
-        _check_joint_units(rows, lineno, qv, robot)
+        _check_joint_units(rows.source, lineno, qv, robot)
         q.append(qv)
         wv = rows.group(lineno, row, W_COLS, "the wrench")
-        _check_wrench(rows, lineno, wv)
+        _check_wrench(rows.source, lineno, wv)
         w.append(wv)
         iv = rows.group(lineno, row, I_COLS, "the current vector")
-        _check_currents(rows, lineno, [v for v in iv if not math.isnan(v)])
+        _check_currents(rows.source, lineno, [v for v in iv if not math.isnan(v)])
         cur.append(iv)
         m = rows.text(lineno, row, "marker")
         if markers is not None and m not in markers:
@@ -255,7 +290,7 @@ def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "
                              source=source, row=lineno, column="marker")
         marker.append(m)
         pv = [rows.number(lineno, row, c) for c in XYZ_COLS]
-        _check_position_units(rows, lineno, pv)
+        _check_position_units(rows.source, lineno, pv)
         xyz.append(pv)
         line.append(lineno)
     table = StaticTable(source, np.array(pose, dtype=str), np.array(load, dtype=str), np.array(t, dtype=float),
@@ -325,10 +360,10 @@ def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<ru
         direction.append(d)
         load.append(rows.text(lineno, row, "load"))
         tv = rows.number(lineno, row, "t")
-        _check_time(rows, lineno, tv)
+        _check_time(rows.source, lineno, tv)
         t.append(tv)
         qv = [rows.number(lineno, row, c) for c in Q_COLS]
-        _check_joint_units(rows, lineno, qv, robot)
+        _check_joint_units(rows.source, lineno, qv, robot)
         q.append(qv)
         dqv = rows.group(lineno, row, DQ_COLS, "the joint speed vector")
         for col, v in zip(DQ_COLS, dqv):
@@ -337,10 +372,10 @@ def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<ru
                                  "speeds are rad/s", source=source, row=lineno, column=col)
         dq.append(dqv)
         iv = rows.group(lineno, row, I_COLS, "the current vector")
-        _check_currents(rows, lineno, [v for v in iv if not math.isnan(v)])
+        _check_currents(rows.source, lineno, [v for v in iv if not math.isnan(v)])
         cur.append(iv)
         wv = rows.group(lineno, row, W_COLS, "the wrench")
-        _check_wrench(rows, lineno, wv)
+        _check_wrench(rows.source, lineno, wv)
         w.append(wv)
         m = rows.text(lineno, row, "marker", required=False)
         pv = rows.group(lineno, row, XYZ_COLS, "the marker position")
@@ -352,7 +387,7 @@ def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<ru
         if not m and not math.isnan(pv[0]):
             raise InputError("a position without a marker name", source=source, row=lineno, column="marker")
         if m:
-            _check_position_units(rows, lineno, pv)
+            _check_position_units(rows.source, lineno, pv)
         marker.append(m)
         xyz.append(pv)
         line.append(lineno)
@@ -454,9 +489,72 @@ def write_run_table(path: str | pathlib.Path, table: RunTable) -> None:
     pathlib.Path(path).write_text(format_run_table(table), encoding="utf-8")
 
 
+def _suspect_rows(table: StaticTable | RunTable, robot: Robot | None) -> np.ndarray:
+    """Rows that may fail the per-row checks of the readers (a cheap screen of the whole table)."""
+    bad = np.zeros(len(table), dtype=bool)
+    q = table.q
+    bad |= ~np.all(np.isfinite(q), axis=1)
+    if robot is not None:
+        bad |= np.any((q < robot.lower - 1e-3) | (q > robot.upper + 1e-3), axis=1)
+    else:
+        bad |= np.any(np.abs(q) > 2 * math.pi, axis=1)
+    with np.errstate(invalid="ignore"):
+        bad |= np.abs(table.t) > MAX_TIME_S
+        bad |= np.any(np.abs(table.xyz) > MAX_POSITION_M, axis=1)
+        bad |= np.any(np.abs(table.wrench) > MAX_WRENCH, axis=1)
+        bad |= np.any(np.abs(table.currents) > MAX_CURRENT_A, axis=1)
+        if isinstance(table, RunTable):
+            bad |= np.any(np.abs(table.dq) > MAX_SPEED_RAD_S, axis=1)
+    for arr in (table.t, table.xyz, table.wrench, table.currents) + ((table.dq,) if isinstance(table, RunTable) else ()):
+        bad |= np.isinf(arr).reshape(len(table), -1).any(axis=1)
+    if robot is not None:
+        known = np.array(robot.marker_names, dtype=str)
+        named = table.marker != ""
+        bad |= named & ~np.isin(table.marker, known)
+    if isinstance(table, StaticTable):
+        bad |= ~np.all(np.isfinite(table.xyz), axis=1)
+    return np.flatnonzero(bad)
+
+
+def check_table_values(table: StaticTable | RunTable, robot: Robot | None = None) -> None:
+    """The readers' value checks (units, limits, markers, finite numbers) on a table made from
+    arrays (a log, a simulation), so that data from a log pass the checks a CSV table passes;
+    an error names the table's line (the line of the exported CSV) and column."""
+    src = table.source
+    markers = set(robot.marker_names) if robot is not None else None
+    static = isinstance(table, StaticTable)
+    for n in _suspect_rows(table, robot):
+        lineno = int(table.line[n])
+        groups = [(Q_COLS, table.q[n]), (("t",), [table.t[n]]), (W_COLS, table.wrench[n]),
+                  (I_COLS, table.currents[n]), (XYZ_COLS, table.xyz[n])]
+        if not static:
+            groups.append((DQ_COLS, table.dq[n]))
+        for cols, values in groups:
+            for col, v in zip(cols, values):
+                required = col in Q_COLS or (static and col in XYZ_COLS)
+                if math.isinf(v) or (required and math.isnan(v)):
+                    raise InputError(f"not a finite number: {v!r}", source=src, row=lineno, column=col)
+        _check_time(src, lineno, float(table.t[n]))
+        _check_joint_units(src, lineno, [float(v) for v in table.q[n]], robot)
+        _check_wrench(src, lineno, [float(v) for v in table.wrench[n] if not math.isnan(v)])
+        _check_currents(src, lineno, [float(v) for v in table.currents[n] if not math.isnan(v)])
+        if not static:
+            for col, v in zip(DQ_COLS, table.dq[n]):
+                if abs(v) > MAX_SPEED_RAD_S:
+                    raise InputError(f"{v} rad/s is too fast for a calibration run; degrees per second? "
+                                     "speeds are rad/s", source=src, row=lineno, column=col)
+        m = str(table.marker[n])
+        if m and markers is not None and m not in markers:
+            raise InputError(f"unknown marker {m!r}; the robot has {', '.join(sorted(markers))}",
+                             source=src, row=lineno, column="marker")
+        if m:
+            _check_position_units(src, lineno, [float(v) for v in table.xyz[n]])
+
+
 def static_table_from_arrays(*, pose, load, q, marker, xyz, t=None, wrench=None, currents=None,
-                             source: str = "<memory>") -> StaticTable:
-    """Build a (validated) StaticTable from arrays, e.g. from a simulation or a log."""
+                             source: str = "<memory>", robot: Robot | None = None) -> StaticTable:
+    """Build a validated StaticTable from arrays, e.g. from a simulation or a log: the values
+    pass the checks of :func:`parse_static_table` (joint limits of ``robot`` when given)."""
     n = len(pose)
     nan6 = np.full((n, 6), np.nan)
     table = StaticTable(source, np.asarray(pose, dtype=str), np.asarray(load, dtype=str),
@@ -466,16 +564,19 @@ def static_table_from_arrays(*, pose, load, q, marker, xyz, t=None, wrench=None,
                         nan6.copy() if currents is None else np.asarray(currents, dtype=float).reshape(n, 6),
                         np.asarray(marker, dtype=str), np.asarray(xyz, dtype=float).reshape(n, 3),
                         np.arange(2, n + 2))
+    check_table_values(table, robot)
     _check_static_structure(table)
     return table
 
 
 def run_table_from_arrays(*, run, direction, load, t, q, dq=None, currents=None, wrench=None, marker=None,
-                          xyz=None, source: str = "<memory>") -> RunTable:
-    """Build a RunTable from arrays (missing columns become NaN / empty)."""
+                          xyz=None, source: str = "<memory>", robot: Robot | None = None) -> RunTable:
+    """Build a RunTable from arrays (missing columns become NaN / empty); the values pass the
+    checks of :func:`parse_run_table` (joint limits of ``robot`` when given), the speeds
+    agree with the motion."""
     n = len(run)
     nan6 = np.full((n, 6), np.nan)
-    return RunTable(source, np.asarray(run, dtype=str), np.asarray(direction, dtype=str),
+    table = RunTable(source, np.asarray(run, dtype=str), np.asarray(direction, dtype=str),
                     np.asarray(load, dtype=str), np.asarray(t, dtype=float), np.asarray(q, dtype=float).reshape(n, 6),
                     nan6 if dq is None else np.asarray(dq, dtype=float).reshape(n, 6),
                     nan6.copy() if currents is None else np.asarray(currents, dtype=float).reshape(n, 6),
@@ -483,3 +584,6 @@ def run_table_from_arrays(*, run, direction, load, t, q, dq=None, currents=None,
                     np.full(n, "", dtype=str) if marker is None else np.asarray(marker, dtype=str),
                     np.full((n, 3), np.nan) if xyz is None else np.asarray(xyz, dtype=float).reshape(n, 3),
                     np.arange(2, n + 2))
+    check_table_values(table, robot)
+    _check_speeds_against_motion(table)
+    return table
