@@ -262,10 +262,11 @@ class Session:
         self._done += 1
 
     # ------------------------------------------------------------ operator
-    def confirm(self, text: str) -> None:
+    def confirm(self, text: str, load_id: str | None = None) -> None:
+        """Ask the operator (``load_id``: the prompt changes that load, whose name answers it too)."""
         self.event("prompt", text=text)
         try:
-            answer = self.ui.confirm(text)
+            answer = self.ui.confirm(text) if load_id is None else self.ui.confirm_load(text, load_id)
         except Aborted:
             self.event("answer", text=text, answer="abort", automatic=self.ui.automatic)
             raise
@@ -281,14 +282,16 @@ class Session:
         if self.load_state == load_id:
             return
         spec = self.plan.load(load_id)
+        named = load_id           # the load the prompt is about: its name answers it
         if spec is None:
             text = ("remove every load from the load point" if self.load_state is None
                     else f"remove load {self.load_state} from the load point")
+            named = None if self.load_state is None else self.load_state
         else:
             text = spec.instruction()
             if self.load_state not in (None, UNLOADED):
                 text = f"remove load {self.load_state}, then {text}"
-        self.confirm(text + "; step out of the cell")
+        self.confirm(text + "; step out of the cell", load_id=named)
         wrench = self.wrench(load_id)
         if self.world is not None:
             self.world.hang(None if load_id == UNLOADED else wrench)

@@ -2,15 +2,19 @@
 
 The procedure engine talks to an :class:`OperatorUI`; :class:`TerminalUI`
 shows a progress bar (steps done, time left) on a terminal and asks the
-operator to confirm every step that needs a person; typing ``a`` (or Ctrl-C,
-or closing the input) at any prompt aborts. :class:`AutoUI` answers every
+operator to confirm every step that needs a person — with a deliberate
+``yes`` (or the load's name) typed after the prompt appeared; typing ``a``
+(or Ctrl-C, or closing the input) at any prompt aborts. :class:`AutoUI` answers every
 prompt itself (``--yes``, simulated cells and the demo) and can stay silent.
 """
 
 from __future__ import annotations
 
 import abc
+import contextlib
+import os
 import sys
+import threading
 from typing import Callable, TextIO
 
 from elastocal.errors import ElastocalError
@@ -55,72 +59,164 @@ class OperatorUI(abc.ABC):
         """Ask the operator to do something and confirm; returns the answer
         (``"yes"``) or raises :class:`Aborted`."""
 
+    def confirm_load(self, text: str, load_id: str) -> str:
+        """Ask the operator to change the load (hang or remove ``load_id``); a
+        terminal accepts the load's name as the answer too. By default the
+        same as :meth:`confirm`."""
+        return self.confirm(text)
+
     def close(self) -> None:
         """End the progress display."""
 
 
 ABORT_WORDS = ("a", "abort", "q", "quit")
-YES_WORDS = ("", "y", "yes", "ok")
+#: the deliberate answer to a prompt (a bare Enter, or a key pressed while the robot moved, is not one)
+YES_WORDS = ("yes",)
+
+
+def flush_typed_ahead(fd: int) -> None:
+    """Discard what was typed on the terminal ``fd`` and not read yet (a key
+    pressed while the robot moved must not answer the next prompt)."""
+    import termios
+
+    with contextlib.suppress(termios.error, OSError):   # not a terminal (a pipe, a file): nothing typed ahead
+        termios.tcflush(fd, termios.TCIFLUSH)
 
 
 class TerminalUI(OperatorUI):
-    """Progress bar and prompts on a terminal (``stream``, default stderr)."""
+    """Progress bar and prompts on a terminal (``stream``, default stderr;
+    answers from ``read_line``, default the standard input).
 
-    def __init__(self, stream: TextIO | None = None, read_line: Callable[[], str] | None = None) -> None:
+    Safety on the shop floor:
+
+    * before every prompt, input typed ahead is discarded (``termios.tcflush``
+      on a terminal; ``flush_input`` replaces it): only a key pressed after
+      the prompt was shown answers it;
+    * the answer must be deliberate: ``yes`` (or, for a load change, the
+      load's name), then Enter; a bare Enter asks again;
+    * a prompt that waits stays the last thing on the screen: output while it
+      waits (progress, messages, from any thread) goes above it and the prompt
+      is drawn again.
+    """
+
+    def __init__(self, stream: TextIO | None = None, read_line: Callable[[], str] | None = None,
+                 flush_input: Callable[[], None] | None = None) -> None:
         self.stream = stream if stream is not None else sys.stderr
         self._read_line = read_line if read_line is not None else self._stdin_line
+        if flush_input is None:
+            flush_input = (lambda: None) if read_line is not None else self._flush_stdin
+        self._flush_input = flush_input
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self._bar_shown = False
         self._last_plain = None
+        self._lock = threading.RLock()
+        self._waiting: str | None = None       # the prompt on the screen while it waits for its answer
 
     @staticmethod
-    def _stdin_line() -> str:
-        line = sys.stdin.readline()
-        if line == "":
-            raise EOFError
-        return line
+    def _stdin_fd() -> int | None:
+        try:
+            fd = sys.stdin.fileno()
+        except (AttributeError, OSError, ValueError):
+            return None
+        return fd if os.isatty(fd) else None
+
+    @classmethod
+    def _flush_stdin(cls) -> None:
+        fd = cls._stdin_fd()
+        if fd is not None:
+            flush_typed_ahead(fd)
+
+    @classmethod
+    def _stdin_line(cls) -> str:
+        fd = cls._stdin_fd()
+        if fd is None:
+            line = sys.stdin.readline()
+            if line == "":
+                raise EOFError
+            return line
+        # on a terminal, straight from the descriptor: nothing typed ahead waits in a Python buffer
+        data = b""
+        while not data.endswith(b"\n"):
+            chunk = os.read(fd, 1024)
+            if not chunk:
+                raise EOFError
+            data += chunk
+        return data.decode("utf-8", errors="replace")
 
     def _clear_bar(self) -> None:
         if self._bar_shown:
             self.stream.write("\r\x1b[2K")
             self._bar_shown = False
 
-    def message(self, text: str) -> None:
-        self._clear_bar()
-        self.stream.write(text + "\n")
+    def _above_prompt(self, line: str) -> None:
+        """``line`` above the waiting prompt, then the prompt again."""
+        self.stream.write(("\r\x1b[2K" if self._tty else "\n") + line + "\n" + self._waiting)
         self.stream.flush()
+
+    def message(self, text: str) -> None:
+        with self._lock:
+            if self._waiting is not None:
+                self._above_prompt(text)
+                return
+            self._clear_bar()
+            self.stream.write(text + "\n")
+            self.stream.flush()
 
     def progress(self, done: int, total: int, label: str, elapsed_s: float, left_s: float | None) -> None:
         line = progress_line(done, total, label, elapsed_s, left_s)
-        if self._tty:
-            self.stream.write("\r\x1b[2K" + line)
-            self._bar_shown = True
-        elif (done, label) != self._last_plain:  # a log file: one line per change of step
-            self.stream.write(line + "\n")
-            self._last_plain = (done, label)
-        self.stream.flush()
+        with self._lock:
+            if self._waiting is not None:       # never over a prompt that waits
+                if self._tty or (done, label) != self._last_plain:
+                    self._last_plain = (done, label)
+                    self._above_prompt(line)
+                return
+            if self._tty:
+                self.stream.write("\r\x1b[2K" + line)
+                self._bar_shown = True
+            elif (done, label) != self._last_plain:  # a log file: one line per change of step
+                self.stream.write(line + "\n")
+                self._last_plain = (done, label)
+            self.stream.flush()
 
     def confirm(self, text: str) -> str:
-        self._clear_bar()
+        return self._ask(text, ())
+
+    def confirm_load(self, text: str, load_id: str) -> str:
+        return self._ask(text, (load_id,))
+
+    def _ask(self, text: str, names: tuple[str, ...]) -> str:
+        accepted = YES_WORDS + tuple(n.lower() for n in names)
+        say = " or ".join(f"'{w}'" for w in (*YES_WORDS, *names))
+        prompt = f">>> {text}; type {say} and Enter (a + Enter aborts): "
         while True:
-            self.stream.write(f">>> {text}; press Enter (a + Enter aborts): ")
-            self.stream.flush()
+            with self._lock:
+                self._clear_bar()
+                self._flush_input()             # keys pressed before the prompt was shown do not answer it
+                self._waiting = prompt
+                self.stream.write(prompt)
+                self.stream.flush()
             try:
-                answer = self._read_line().strip().lower()
+                try:
+                    answer = self._read_line().strip().lower()
+                finally:
+                    with self._lock:
+                        self._waiting = None
             except (EOFError, KeyboardInterrupt):
                 self.stream.write("\n")
                 raise Aborted(f"aborted by the operator at: {text}") from None
-            if answer in YES_WORDS:
+            if answer in accepted:
                 return "yes"
             if answer in ABORT_WORDS:
                 raise Aborted(f"aborted by the operator at: {text}")
-            self.stream.write("    answer Enter to go on or 'a' to abort\n")
+            with self._lock:
+                self.stream.write(f"    answer {say} to go on, or 'a' to abort\n")
 
     def close(self) -> None:
-        if self._bar_shown:
-            self.stream.write("\n")
-            self.stream.flush()
-            self._bar_shown = False
+        with self._lock:
+            if self._bar_shown:
+                self.stream.write("\n")
+                self.stream.flush()
+                self._bar_shown = False
 
 
 class AutoUI(TerminalUI):
@@ -141,6 +237,9 @@ class AutoUI(TerminalUI):
     def progress(self, done: int, total: int, label: str, elapsed_s: float, left_s: float | None) -> None:
         if not self.quiet:
             super().progress(done, total, label, elapsed_s, left_s)
+
+    def confirm_load(self, text: str, load_id: str) -> str:
+        return self.confirm(text)
 
     def confirm(self, text: str) -> str:
         self.prompts.append(text)

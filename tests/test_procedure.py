@@ -224,16 +224,17 @@ def test_check_procedure_is_short(robot, poses, tmp_path):
 
 
 def test_terminal_ui_prompts_progress_and_abort():
-    answers = iter(["", "what?\n", "yes\n", "a\n"])
+    answers = iter(["L2\n", "yes\n", "\n", "what?\n", "yes\n", "a\n"])
     out = io.StringIO()
     ui = TerminalUI(out, read_line=lambda: next(answers))
-    assert ui.confirm("hang load L2, 66 kg, on the load point") == "yes"
-    assert ui.confirm("remove load L2") == "yes"   # an unknown answer is asked again
+    assert ui.confirm_load("hang load L2, 66 kg, on the load point", "L2") == "yes"   # the load's name
+    assert ui.confirm("clear the cell") == "yes"
+    assert ui.confirm("remove load L2") == "yes"   # a bare Enter or an unknown answer is asked again
     with pytest.raises(Aborted, match="remove every load"):
         ui.confirm("remove every load")
     text = out.getvalue()
-    assert ">>> hang load L2, 66 kg, on the load point; press Enter (a + Enter aborts): " in text
-    assert "answer Enter to go on or 'a' to abort" in text
+    assert ">>> hang load L2, 66 kg, on the load point; type 'yes' or 'L2' and Enter (a + Enter aborts): " in text
+    assert text.count("answer 'yes' to go on, or 'a' to abort") == 2
 
     def eof():
         raise EOFError

@@ -228,3 +228,108 @@ def test_sim_serve_listens_on_loopback_only_on_ports_of_its_own(tmp_path):
                 p.wait(30)
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+# ------------------------------------------------------------------ item 1: prompts in a real terminal
+PROMPT_CHILD = r"""
+import sys, threading, time
+from elastocal.acquisition.ui import TerminalUI
+ui = TerminalUI(sys.stderr)
+print("MOVING", file=sys.stderr, flush=True)
+time.sleep(1.5)                       # the robot moves; the operator types ahead
+def tick():                           # output while the prompt waits (a progress update)
+    time.sleep(1.0)
+    ui.progress(2, 12, "static pose P3", 70.0, 300.0)
+threading.Thread(target=tick, daemon=True).start()
+text = "hang load L1, 20 kg, on the load point; step out of the cell"
+if sys.argv[1] == "load":
+    ui.confirm_load(text, "L1")
+else:
+    ui.confirm(text)
+print("ANSWERED", file=sys.stderr, flush=True)
+"""
+
+
+class Terminal:
+    """A child process on a pseudo-terminal: what it shows, what we type."""
+
+    def __init__(self, args):
+        import os
+        import subprocess
+
+        self.master, slave = os.openpty()
+        self.proc = subprocess.Popen(args, stdin=slave, stdout=slave, stderr=slave, close_fds=True,
+                                     start_new_session=True)
+        os.close(slave)
+        self.screen = ""
+
+    def read(self, seconds: float) -> None:
+        import os
+        import select
+        import time
+
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            ready, _, _ = select.select([self.master], [], [], left)
+            if not ready:
+                return
+            try:
+                chunk = os.read(self.master, 65536)
+            except OSError:          # the child closed the terminal
+                return
+            if not chunk:
+                return
+            self.screen += chunk.decode("utf-8", errors="replace")
+
+    def wait_for(self, text: str, timeout_s: float, start: int = 0) -> int:
+        import time
+
+        end = time.monotonic() + timeout_s
+        while text not in self.screen[start:]:
+            if time.monotonic() > end or (self.proc.poll() is not None and not self._more()):
+                raise AssertionError(f"{text!r} not shown in {timeout_s} s; screen:\n{self.screen[-3000:]}")
+            self.read(0.2)
+        return self.screen.index(text, start)
+
+    def _more(self) -> bool:
+        before = len(self.screen)
+        self.read(0.2)
+        return len(self.screen) > before
+
+    def type(self, text: str) -> None:
+        import os
+
+        os.write(self.master, text.encode())
+
+    def close(self) -> None:
+        import os
+
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
+        os.close(self.master)
+
+
+@pytest.mark.parametrize("mode, answer", [("plain", "yes"), ("load", "L1")])
+def test_a_key_pressed_before_the_prompt_never_answers_it(mode, answer):
+    import sys
+
+    term = Terminal([sys.executable, "-c", PROMPT_CHILD, mode])
+    try:
+        term.wait_for("MOVING", 60)
+        term.type("\n")                       # Enter while the robot moves ...
+        term.type(f"{answer}\n")              # ... even the right answer, typed ahead
+        at = term.wait_for(">>> hang load L1", 60)
+        term.read(2.0)                        # the progress update comes while the prompt waits
+        assert "ANSWERED" not in term.screen, term.screen
+        progress = term.screen.index("2/12  static pose P3", at)
+        assert ">>> hang load L1" in term.screen[progress:], term.screen   # drawn again below the progress
+        term.type("\n")                       # a bare Enter after the prompt: not a deliberate answer
+        term.wait_for("to go on, or 'a' to abort", 30, progress)
+        term.read(0.5)
+        assert "ANSWERED" not in term.screen
+        term.type(f"{answer}\n")              # the deliberate answer, after the prompt appeared
+        term.wait_for("ANSWERED", 30)
+        assert term.proc.wait(30) == 0
+    finally:
+        term.close()
