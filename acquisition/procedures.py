@@ -256,10 +256,14 @@ class Session:
         """Steps done in this log (run now or copied from the resumed one)."""
         return self._done
 
-    def skip_step(self, step: Step) -> None:
-        """A step already done in the log being resumed."""
+    def skip_step(self, step: Step, duration_s: float | None = None) -> None:
+        """A step already done in the log being resumed; ``duration_s``, how long it
+        took there, corrects the time-left estimate as the steps done here do."""
         self._remaining_s -= step.estimate_s
         self._done += 1
+        if duration_s is not None and duration_s > 0:
+            self._spent_s += duration_s
+            self._estimated_done_s += step.estimate_s
 
     # ------------------------------------------------------------ operator
     def confirm(self, text: str, load_id: str | None = None) -> None:
@@ -563,7 +567,9 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
     """Run the plan's procedures on ``io`` and record everything to ``out_path``.
 
     Returns the :class:`Outcome` (completed or aborted by the operator); a
-    device failure is recorded as a ``fault`` event and raised. ``resume_from``
+    device failure is recorded as a ``fault`` event and raised, with the
+    failed :class:`Outcome` (log path, steps done) as its ``outcome``
+    attribute. ``resume_from``
     names an interrupted log of the same plan and robot: its completed steps
     are copied into the new log and skipped.
     """
@@ -575,6 +581,7 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
     robot_text = robot_text if robot_text is not None else robot.to_toml()
     out_path = pathlib.Path(out_path)
     done_before: set[str] = set()
+    took_s: dict[str, float] = {}      # how long each step of the resumed log took
     last_done_event = -1
     _check_out(out_path, overwrite, resume_from)
     if resume_from is not None:
@@ -585,9 +592,14 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
         if old.robot is None or old.robot.text != robot_text:
             raise InputError("the log was recorded with another robot description", source=str(resume_from))
         done_before = set(old.completed_steps) & {s.id for s in steps}
+        started_at: dict[str, int] = {}
         for i, e in enumerate(old.events):
+            if e["kind"] == "step_start":
+                started_at[e.get("step_id")] = e["t_ns"]
             if e["kind"] == "step_done":
                 last_done_event = i
+                if e.get("step_id") in started_at:
+                    took_s[e["step_id"]] = (e["t_ns"] - started_at[e["step_id"]]) * 1e-9
     started = time.monotonic()
     world = io.world()
     with Recorder(out_path, overwrite=overwrite, clock=io.clock,
@@ -609,11 +621,14 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
                                 f"clear the cell")
             for index, step in enumerate(steps):
                 if step.id in done_before:
-                    session.skip_step(step)
+                    session.skip_step(step, took_s.get(step.id))
                     continue
                 session.begin_step(index, step)
                 step.action(session)
                 session.end_step()
+            if session.load_state not in (None, UNLOADED):
+                # the last load comes off, confirmed by a person, before the robot moves again
+                session.ensure_load(UNLOADED)
         except Aborted as exc:
             session.step = None
             session.event("procedure_end", status="aborted", text=str(exc))
@@ -631,6 +646,9 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
             session.step = None
             session.event("procedure_end", status="failed", text=str(exc))
             ui.close()
+            # where the log is and how far it got, for the resume hint (the error stays the device's)
+            exc.outcome = Outcome(str(out_path), "failed", len(steps), session.done, len(done_before),
+                                  time.monotonic() - started, f"{type(exc).__name__}: {exc}")
             raise
         session.event("procedure_end", status="completed")
         ui.close()

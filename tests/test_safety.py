@@ -4,6 +4,7 @@ terminal, refused load data, device faults and the end of the procedure."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import pytest
@@ -333,3 +334,116 @@ def test_a_key_pressed_before_the_prompt_never_answers_it(mode, answer):
         assert term.proc.wait(30) == 0
     finally:
         term.close()
+
+
+# ------------------------------------------------------------------ item 5: end of the procedure, resume
+def _virtual_static(n_poses: int = 4):
+    import numpy as np
+
+    from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
+    from elastocal.identify.robot import bundled_robot
+    from elastocal.sims.cell import CellTruth, SimCell
+    from elastocal.sims.static import random_poses
+
+    robot = bundled_robot()
+    poses = random_poses(robot, n_poses, np.random.default_rng(11))
+    plan = parse_plan(plan_toml(poses=poses, loads=(LoadSpec("L1", mass_kg=60.0), LoadSpec("L2", mass_kg=110.0)),
+                                markers=("R1", "R2"), repeats=2, reading_s=0.04, speed_rad_s=0.6,
+                                settle=SettleSpec(speed_rad_s=2e-3, spread_m=20e-6, window_s=0.15, timeout_s=20.0)),
+                      source="plan.toml")
+
+    def io(seed=5):
+        return VirtualCellIO(SimCell(robot, CellTruth()), seed=seed,
+                             timing=VirtualTiming(drive_rate_hz=250.0, tracker_rate_hz=250.0))
+
+    return plan, io
+
+
+class _Recording:
+    """An automatic operator that records prompts and progress, and may abort at prompt ``abort_at``."""
+
+    def __new__(cls, abort_at=None):
+        from elastocal.acquisition.ui import Aborted, AutoUI
+
+        class Recording(AutoUI):
+            def __init__(self):
+                super().__init__(quiet=True)
+                self.shown = []
+
+            def progress(self, done, total, label, elapsed_s, left_s):
+                self.shown.append((done, label, elapsed_s, left_s))
+
+            def confirm(self, text):
+                super().confirm(text)
+                if abort_at is not None and len(self.prompts) == abort_at:
+                    raise Aborted(f"aborted by the operator at: {text}")
+                return "yes"
+
+        return Recording()
+
+
+def test_the_procedure_ends_by_asking_to_remove_the_last_load(tmp_path):
+    from elastocal.acquisition.export import read_log
+    from elastocal.acquisition.procedures import run_procedures
+
+    plan, io = _virtual_static(2)
+    ui = _Recording()
+    cell = io()
+    hung = []
+    world = cell.world()
+    original = world.hang
+    world.hang = lambda wrench: (hung.append(wrench), original(wrench))[1]
+    cell.world = lambda: world
+    assert run_procedures(cell, plan, tmp_path / "log.mcap", ui=ui).status == "completed"
+    assert ui.prompts[-1] == "remove load L2 from the load point; step out of the cell"
+    assert hung[-1] is None                                  # taken off the simulated world too
+    kinds = [(e["kind"], e.get("load"), e.get("text")) for e in read_log(tmp_path / "log.mcap").events]
+    last_step = max(i for i, k in enumerate(kinds) if k[0] == "step_done")
+    assert [k[0] for k in kinds[last_step + 1:]] == ["prompt", "answer", "load", "procedure_end"], kinds[last_step:]
+    assert kinds[last_step + 3][1] == "0"
+
+
+def test_time_left_on_resume_counts_the_steps_already_done(tmp_path):
+    from elastocal.acquisition.procedures import build_steps, run_procedures
+
+    plan, io = _virtual_static(4)
+    first = _Recording(abort_at=1 + 3 * 2 + 2)              # while hanging L1 at the third pose
+    assert run_procedures(io(), plan, tmp_path / "a.mcap", ui=first).status == "aborted"
+    left_before = next(left for done, label, _, left in first.shown if done == 2)   # third step begins
+    second = _Recording()
+    out = run_procedures(io(), plan, tmp_path / "b.mcap", ui=second, resume_from=tmp_path / "a.mcap")
+    assert out.status == "completed" and out.steps_resumed == 2
+    done, label, elapsed, left_resumed = second.shown[0]
+    assert (done, label) == (2, "static pose P3") and elapsed == pytest.approx(0.0, abs=0.5)
+    nominal = sum(s.estimate_s for s in build_steps(plan, ("static",), person_s=0.0)[2:])
+    # the steps done before corrected the plan's estimate; the resumed session starts from that correction
+    assert left_before < 0.85 * nominal
+    assert left_resumed == pytest.approx(left_before, rel=0.1), (left_resumed, left_before, nominal)
+
+
+def test_a_device_fault_prints_the_log_and_how_to_resume(tmp_path, capsys):
+    from elastocal.acquisition.export import read_log
+    from elastocal.cli import main
+
+    cell = tmp_path / "cell.toml"
+    cell.write_text(example_cell_config(can_channel="safety-fault", move_speed_rad_s=2.0).to_toml())
+    plan = tmp_path / "plan.toml"       # a cell that never settles this well: the settle times out
+    plan.write_text(plan_toml(poses=[(0.1, 0.3, -0.4, 0.2, 1.0, 0.1)], loads=(LoadSpec("L1", mass_kg=50.0),),
+                              markers=("R1",), settle=SettleSpec(spread_m=1e-12, window_s=0.1, timeout_s=0.5)))
+    log = tmp_path / "cal.mcap"
+    for extra in ([], ["--json"]):
+        rc = main(["calibrate", "--cell", str(cell), "--plan", str(plan), "--out", str(log), "--sim", "--yes",
+                   "--force", *extra])
+        captured = capsys.readouterr()
+        assert rc == 1
+        err = captured.err.strip().splitlines()
+        if extra:
+            obj = json.loads(captured.out)
+            assert (obj["log"], obj["status"], obj["steps"], obj["steps_done"]) == (str(log), "failed", 1, 0)
+            assert len(err) == 1, err                       # one line, nothing else
+        else:
+            assert captured.out.strip() == f"log: {log} (0/1 steps, failed)"
+        assert err[-1].startswith("elastocal calibrate: DeviceTimeout: the cell did not settle"), err
+        assert err[-1].endswith(f"; resume with --resume {log} and a new --out"), err
+        contents = read_log(log)
+        assert contents.complete and [e["kind"] for e in contents.events][-2:] == ["fault", "procedure_end"]

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from elastocal.errors import InputError
+from elastocal.errors import DeviceError, InputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -68,8 +68,13 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--yes answers the prompts of simulated devices only; add --sim, or let a person "
                          "answer", source="--yes")
     ui = AutoUI(sys.stderr, quiet=args.json) if args.yes else TerminalUI(sys.stderr)
-    outcome = run_calibration(config, plan, args.out, yes=args.yes, ui=ui, procedures=procedures,
-                              resume_from=args.resume, overwrite=args.force, simulate=args.sim)
+    try:
+        outcome = run_calibration(config, plan, args.out, yes=args.yes, ui=ui, procedures=procedures,
+                                  resume_from=args.resume, overwrite=args.force, simulate=args.sim)
+    except DeviceError as exc:
+        outcome = getattr(exc, "outcome", None)
+        if outcome is None:       # no log was started (a device could not be opened)
+            raise
     if args.json:
         print(json.dumps({"log": outcome.path, "status": outcome.status, "steps": outcome.steps_total,
                           "steps_done": outcome.steps_done, "steps_resumed": outcome.steps_resumed,
