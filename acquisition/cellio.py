@@ -43,6 +43,8 @@ class TrackerSample:
     t_ns: int
     marker: str
     xyz: tuple[float, float, float]  # m
+    #: the air the tracker measured through, when it reports it (``("temperature_c", 20.5), ...``)
+    environment: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True)

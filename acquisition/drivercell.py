@@ -149,7 +149,7 @@ class DriverCellIO(CellIO):
             s = self._tracker.measure()
             if s.marker != m:
                 raise DeviceTimeout(f"tracker: measured marker {s.marker!r} while {m!r} was selected")
-            out.append(TrackerSample(s.t_ns, m, tuple(float(v) for v in s.tracker_p_marker)))
+            out.append(TrackerSample(s.t_ns, m, tuple(float(v) for v in s.tracker_p_marker), s.environment))
             left = end - time.monotonic()
             if left <= 0:
                 return out

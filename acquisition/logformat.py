@@ -23,6 +23,14 @@ TOPIC_CELL = "/elastocal/cell"
 TOPIC_PLAN = "/elastocal/plan"
 TOPIC_EVENT = "/procedure/event"
 TOPIC_TRACKER = "/tracker"
+#: optional fields of a tracker sample: what the tracker reported about the air (emScon does)
+TRACKER_ENVIRONMENT = {
+    "temperature_c": "air temperature at the tracker [°C] (optional)",
+    "pressure_hpa": "air pressure [hPa] (optional)",
+    "humidity_pct": "relative humidity [%] (optional)",
+    "ifm_refraction_index": "refraction index the interferometer used (optional)",
+    "adm_refraction_index": "refraction index the absolute distance meter used (optional)",
+}
 DRIVE_TOPIC_PREFIX = "/drive/"
 N_JOINTS = 6
 
@@ -91,6 +99,7 @@ SCHEMAS: dict[str, dict] = {
             "x": {"type": "number", "description": "[m], measurement frame"},
             "y": {"type": "number", "description": "[m]"},
             "z": {"type": "number", "description": "[m]"},
+            **{k: {"type": "number", "description": d} for k, d in TRACKER_ENVIRONMENT.items()},
         },
         "required": ["marker", "x", "y", "z"],
     },

@@ -193,7 +193,7 @@ class Session:
         for d in samples.drives:
             rec.drive_sample(d.joint, d.t_ns, d.position_rad, d.velocity_rad_s, d.current_a, d.status)
         for s in samples.tracker:
-            rec.tracker_sample(s.t_ns, s.marker, s.xyz)
+            rec.tracker_sample(s.t_ns, s.marker, s.xyz, s.environment)
         for g in samples.gaps:
             self.event("gap", device=g.device, window_ns=[g.start_ns, g.end_ns], missing=g.missing, text=g.reason)
         self.detector.add(samples)

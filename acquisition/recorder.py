@@ -172,12 +172,19 @@ class Recorder:
             self._write(lf.drive_topic(joint), t_ns, msg, now)
             self._maybe_flush(now)
 
-    def tracker_sample(self, t_ns: int, marker: str, xyz: Sequence[float]) -> None:
-        """One raw tracker measurement of ``marker`` [m]; ``t_ns`` is its acquisition time."""
+    def tracker_sample(self, t_ns: int, marker: str, xyz: Sequence[float],
+                       environment: Sequence[tuple[str, float]] = ()) -> None:
+        """One raw tracker measurement of ``marker`` [m]; ``t_ns`` is its acquisition time;
+        ``environment`` the weather/refraction values the tracker reported with it
+        (keys of ``logformat.TRACKER_ENVIRONMENT``)."""
         x, y, z = (float(v) for v in xyz)
+        msg = {"marker": str(marker), "x": x, "y": y, "z": z}
+        for key, value in environment:
+            if key in lf.TRACKER_ENVIRONMENT and _finite_or_none(value) is not None:
+                msg[key] = float(value)
         with self._lock:
             now = self.clock()
-            self._write(lf.TOPIC_TRACKER, t_ns, {"marker": str(marker), "x": x, "y": y, "z": z}, now)
+            self._write(lf.TOPIC_TRACKER, t_ns, msg, now)
             self._maybe_flush(now)
 
     def event(self, kind: str, **fields: Any) -> int:

@@ -23,6 +23,7 @@ DRIVE_BACKENDS = MappingProxyType({
 TRACKER_BACKENDS = MappingProxyType({
     "tracker+tcp": ("elastocal.drivers.tracker", "LineTracker"),
     "tracker+serial": ("elastocal.drivers.tracker", "LineTracker"),
+    "tracker+emscon": ("elastocal.drivers.emscon", "EmsconTracker"),
 })
 CONTROLLER_BACKENDS = MappingProxyType({
     "modbus+tcp": ("elastocal.drivers.controller", "ModbusCellController"),

@@ -89,6 +89,9 @@ class TrackerSample:
     device_time_s: float            # the tracker's own clock [s]
     marker: str
     tracker_p_marker: tuple[float, float, float]
+    #: what the tracker reports about the air with the measurement (backends that have it, e.g.
+    #: emScon): ``(("temperature_c", 21.3), ("pressure_hpa", 1013.2), ("humidity_pct", 45.0), ...)``
+    environment: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@
     modbus+rtu:///dev/pts/3?baud=115200&unit=1
     tracker+tcp://127.0.0.1:7000             laser tracker, line protocol over TCP
     tracker+serial:///dev/ttyUSB0?baud=115200
+    tracker+emscon://192.168.0.1:700         Leica tracker through its emScon server (port 700 by default)
 
 The schemes are those of the backend tables in :mod:`elastocal.drivers` (listed once, there).
 """
@@ -148,6 +149,10 @@ def parse_device_url(text: str, *, allowed: tuple[str, ...] | None = None,
             raise InputError(f"{text}: give host and port, e.g. {scheme}://127.0.0.1:1502", source=source)
         if scheme == "modbus+tcp":
             url.int_param("unit", 1, source=source, low=0, high=247)
+    elif scheme == "tracker+emscon":
+        if not url.host:
+            raise InputError(f"{text}: give the emScon server, e.g. tracker+emscon://192.168.0.1:700",
+                             source=source)
     else:  # serial
         if not url.path:
             raise InputError(f"{text}: give the serial device, e.g. {scheme}:///dev/ttyUSB0?baud=115200",

@@ -16,7 +16,8 @@ loopback interface only, on a free UDP port of its own:
 :mod:`elastocal.drivers.can_loopback`), Modbus drives and
 the cell controller pymodbus servers on 127.0.0.1 (port 0: an ephemeral port)
 or on a pseudo-terminal pair (``modbus+rtu``), the tracker a line server on
-TCP or on a pseudo-terminal (``tracker+serial``). All read one
+TCP or on a pseudo-terminal (``tracker+serial``), or an emScon server on
+CESAPI's packets (``tracker+emscon``, sims/emscon_server.py). All read one
 :class:`~elastocal.sims.world.SimWorld`. Everything started is stopped by
 :meth:`SimulatedCell.close` (or the ``with`` block).
 """
@@ -88,7 +89,7 @@ class SimulatedCell:
         self.modbus_drives: dict[int, SimModbusDrive] = {}
         self.modbus_servers: dict[tuple, ModbusServerThread] = {}
         self.controller: SimCellController | None = None
-        self.tracker: SimTracker | None = None
+        self.tracker = None             # SimTracker, or SimEmscon for tracker+emscon
         self._ptys: list[PtyPair] = []
         self.config: CellConfig = config
         self._started = False
@@ -176,7 +177,16 @@ class SimulatedCell:
 
         # tracker
         tracker_cfg = cfg.tracker
-        if tracker_cfg is not None:
+        if tracker_cfg is not None and tracker_cfg.url.scheme == "tracker+emscon":
+            url = tracker_cfg.url
+            if url.host not in LOOPBACK:
+                raise InputError(f"{url.text}: simulated devices listen on 127.0.0.1 only")
+            from elastocal.sims.emscon_server import SimEmscon
+
+            self.tracker = SimEmscon(self.world)
+            port = self.tracker.serve_tcp(url.host, url.port or 0)
+            tracker_cfg = replace(tracker_cfg, url=url.with_port(port))
+        elif tracker_cfg is not None:
             self.tracker = SimTracker(self.world, reply_delay_s=sim.tracker_reply_delay_s)
             url = tracker_cfg.url
             if url.scheme == "tracker+tcp":

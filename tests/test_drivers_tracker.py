@@ -1,4 +1,9 @@
-"""Contract suite: the laser tracker over TCP and a pty, against the simulated tracker."""
+"""Contract suite of the laser-tracker interface, run against both tracker backends:
+the line-protocol tracker (``tracker+tcp``, against sims/tracker_server.py) and the
+Leica emScon tracker (``tracker+emscon``, against sims/emscon_server.py on CESAPI's
+packets). Tests of one protocol's own bytes (checksums, the pty line, lost lines of
+a sequence-numbered stream) run on that backend only; tests/test_drivers_emscon.py
+holds the emScon-only ones."""
 
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ from elastocal.sims.config import SimConfig
 from elastocal.drivers.tracker_protocol import Measurement, decode_line, encode_line, parse_measurement
 from elastocal.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, InputError, ProtocolError
 from elastocal.identify.robot import bundled_robot
+from elastocal.sims.emscon_server import SimEmscon
 from elastocal.sims.tracker_server import SimTracker
 from elastocal.sims.world import SimWorld
 
@@ -32,9 +38,43 @@ def world(robot):
     return SimWorld.from_config(robot, SimConfig(tracker_noise_m=0.0, seed=2), MARKERS)
 
 
+class Backend:
+    """What differs between the backends: the simulator, the URL, who the tracker says it is,
+    a stream rate the backend keeps on a loaded machine, the word for a silent stream."""
+
+    def __init__(self, name, make, scheme, identity, rate_hz, silence):
+        self.name, self.make, self.scheme = name, make, scheme
+        self.identity, self.rate_hz, self.silence = identity, rate_hz, silence
+
+    def url(self, sim):
+        return f"{self.scheme}://127.0.0.1:{sim.tcp_port}"
+
+
+BACKENDS = {
+    "line": Backend("line", lambda w: SimTracker(w, serial="SN42"), "tracker+tcp",
+                    ("elastocal", "SimTracker", "SN42"), 200.0, "no line"),
+    # emScon streams are repeated stationary measurements on the host's clock (drivers/emscon.py)
+    "emscon": Backend("emscon", lambda w: SimEmscon(w, serial=42), "tracker+emscon",
+                      ("Leica Geosystems (emScon)", "SimAT401", "42"), 100.0, "no result"),
+}
+
+
+@pytest.fixture(params=sorted(BACKENDS))
+def backend(request):
+    return BACKENDS[request.param]
+
+
 @pytest.fixture
-def sim(world):
-    t = SimTracker(world, serial="SN42")
+def sim(world, backend):
+    t = backend.make(world)
+    t.serve_tcp()
+    yield t
+    t.close()
+
+
+@pytest.fixture
+def line_sim(world):
+    t = BACKENDS["line"].make(world)
     t.serve_tcp()
     yield t
     t.close()
@@ -47,8 +87,15 @@ def tracker_for(url: str, **kw):
 
 
 @pytest.fixture
-def tracker(sim):
-    t = tracker_for(f"tracker+tcp://127.0.0.1:{sim.tcp_port}")
+def tracker(sim, backend):
+    t = tracker_for(backend.url(sim))
+    yield t
+    t.close()
+
+
+@pytest.fixture
+def line_tracker(line_sim):
+    t = tracker_for(f"tracker+tcp://127.0.0.1:{line_sim.tcp_port}")
     yield t
     t.close()
 
@@ -80,7 +127,8 @@ def test_lines_carry_an_xor_checksum():
         parse_measurement("M 7 1500 R1 nan nan nan OK")
 
 
-def test_byte_level_exchange_with_the_simulated_tracker(sim):
+def test_byte_level_exchange_with_the_simulated_tracker(line_sim):
+    sim = line_sim
     with socket.create_connection(("127.0.0.1", sim.tcp_port), timeout=2.0) as s:
         f = s.makefile("rwb")
         f.write(b"IDN?*7C\n")
@@ -97,9 +145,9 @@ def test_byte_level_exchange_with_the_simulated_tracker(sim):
 
 
 # ------------------------------------------------------------------- reads
-def test_measure_gives_the_marker_in_metres(tracker, world):
+def test_measure_gives_the_marker_in_metres(tracker, world, backend):
     info = tracker.identify()
-    assert (info.vendor, info.model, info.serial) == ("elastocal", "SimTracker", "SN42")
+    assert (info.vendor, info.model, info.serial) == backend.identity
     eq = world.equilibrium_at()
     for m in ("R2", "R1"):
         tracker.select(m)
@@ -111,9 +159,27 @@ def test_measure_gives_the_marker_in_metres(tracker, world):
         tracker.select("R9")
 
 
-def test_stream_has_consecutive_sequence_and_device_clock(tracker):
-    rate = 200.0
+def test_stream_has_consecutive_sequence_and_device_clock(tracker, backend):
+    rate = backend.rate_hz
     with tracker.stream(rate) as stream:
+        batch = stream.read_for(0.5)
+    seq = np.array([s.seq for s in batch.samples])
+    holes = sum(g.missing for g in batch.gaps)
+    assert len(seq) >= 0.7 * 0.5 * rate
+    assert seq[-1] - seq[0] + 1 == len(seq) + holes                        # every slot accounted for
+    assert holes <= 0.05 * len(seq)
+    t = np.diff([s.t_ns for s in batch.samples])
+    assert np.all(t > 0) and np.sum(t) / (seq[-1] - seq[0]) == pytest.approx(1e9 / rate, rel=0.02)
+    dev = np.array([s.device_time_s for s in batch.samples])
+    np.testing.assert_allclose(np.diff(dev), np.diff(seq) / rate, atol=2e-6)
+    assert_accounted(batch.samples, batch.gaps, rate)
+    stream_last = batch.samples[-1].t_ns
+    assert tracker.measure().t_ns > stream_last                            # the stream has stopped
+
+
+def test_line_stream_is_stamped_with_the_trackers_clock(line_tracker):
+    rate = 200.0
+    with line_tracker.stream(rate) as stream:
         batch = stream.read_for(0.5)
     seq = np.array([s.seq for s in batch.samples])
     assert not batch.gaps and len(seq) >= 0.7 * 0.5 * rate
@@ -124,7 +190,7 @@ def test_stream_has_consecutive_sequence_and_device_clock(tracker):
     assert np.all(t > 0) and np.mean(t) == pytest.approx(1e9 / rate, rel=0.01)
     dev = np.array([s.device_time_s for s in batch.samples])
     np.testing.assert_allclose(np.diff(dev), 1 / rate, atol=2e-6)
-    assert tracker.measure().seq > seq[-1]                                 # the stream has stopped
+    assert line_tracker.measure().seq > seq[-1]                            # the stream has stopped
 
 
 def test_serial_tracker_on_a_pty(world):
@@ -148,12 +214,12 @@ def test_serial_tracker_on_a_pty(world):
 
 
 # ------------------------------------------------------------------ faults
-def test_beam_break_is_a_gap_and_a_fault(tracker, sim):
+def test_beam_break_is_a_gap_and_a_fault(tracker, sim, backend):
     sim.break_beam(None)
     with pytest.raises(DeviceFault, match="beam broken"):
         tracker.measure()
     sim.restore_beam()
-    rate = 200.0
+    rate = backend.rate_hz
     with tracker.stream(rate) as stream:
         before = stream.read_for(0.1)
         sim.break_beam(0.1)
@@ -167,7 +233,8 @@ def test_beam_break_is_a_gap_and_a_fault(tracker, sim):
     assert_accounted(samples, gaps, rate)
 
 
-def test_lost_and_garbled_lines_are_gaps(tracker, sim):
+def test_lost_and_garbled_lines_are_gaps(line_tracker, line_sim):
+    tracker, sim = line_tracker, line_sim
     with tracker.stream(200.0) as stream:
         stream.read_for(0.05)
         sim.drop_lines(3)
@@ -184,8 +251,8 @@ def test_lost_and_garbled_lines_are_gaps(tracker, sim):
                 stream.read(timeout_s=1.0)
 
 
-def test_disconnect_is_resumed_with_a_gap(tracker, sim):
-    rate = 200.0
+def test_disconnect_is_resumed_with_a_gap(tracker, sim, backend):
+    rate = backend.rate_hz
     with tracker.stream(rate) as stream:
         before = stream.read_for(0.1)
         sim.disconnect_all()
@@ -197,7 +264,7 @@ def test_disconnect_is_resumed_with_a_gap(tracker, sim):
     assert tracker.measure().marker == "R1"
 
 
-def test_stall_is_a_timeout(tracker, sim):
+def test_stall_is_a_timeout(tracker, sim, backend):
     s0, w0 = tracker.measure(), time.monotonic()
     sim.stall(2.5)
     with pytest.raises(DeviceTimeout, match="no reply"):
@@ -210,13 +277,13 @@ def test_stall_is_a_timeout(tracker, sim):
     with tracker.stream(100.0) as stream:
         stream.read_for(0.05)
         sim.stall(1.0)
-        with pytest.raises(DeviceTimeout, match="no line for 0.3 s"):
+        with pytest.raises(DeviceTimeout, match=f"{backend.silence} for 0.3 s"):
             for _ in range(20):
                 stream.read(timeout_s=1.0)
 
 
-def test_unreachable_tracker_is_disconnected(sim):
-    port = sim.tcp_port
+def test_unreachable_tracker_is_disconnected(sim, backend):
+    url = backend.url(sim)
     sim.close()
     with pytest.raises(DeviceDisconnected, match="cannot connect"):
-        tracker_for(f"tracker+tcp://127.0.0.1:{port}", retries=0)
+        tracker_for(url, retries=0)
