@@ -24,8 +24,9 @@ measures whatever reflector the beam is on: bringing the beam to the marker
 ``measure()`` is one stationary measurement (``StartMeasurement`` ->
 ``SingleMeasResult``). ``stream(rate_hz)`` repeats it on the host's clock:
 slot ``k`` is due at ``start + k / rate`` (``seq = k``, ``device_time_s`` the
-slot's time since the driver opened); a slot that could not be requested on
-time, a beam break or a missing target is a recorded gap, a lost connection
+slot's time since the driver opened, ``t_ns`` the middle of its request and
+answer); a slot requested up to ``CATCH_UP_S`` late is still measured, a later
+one is a recorded gap, and so are a beam break and a missing target; a lost connection
 is re-opened with a gap ``reconnected``; ``timeout_s`` without an answer ends
 the stream with :class:`DeviceTimeout`. The fastest stream is the tracker's
 own ``iMaxDataRate`` (GetTrackerInfo).
@@ -67,8 +68,9 @@ from elastocal.errors import DeviceDisconnected, DeviceError, DeviceFault, Devic
 DEFAULT_PORT = 700
 #: result status -> gap reason (in a stream) / fault text (single measurement)
 BLOCKED = {es.ES_RS_MeasurementStatusNotReady: "beam broken", es.ES_RS_NoStationaryResult: "no target"}
-#: a slot requested later than this fraction of the period is not on time
-LATE_FRACTION = 0.5
+#: a slot is still measured when its request is this late [s] (its sample says when it was
+#: taken); slots later than that are a gap "request could not be sent on time"
+CATCH_UP_S = 0.1
 #: garbled answers in a row that end a stream
 MAX_BAD_PACKETS = 10
 
@@ -398,6 +400,7 @@ class _EmsconStream:
         self.tracker = tracker
         self.rate_hz = rate_hz
         self.period_ns = int(round(1e9 / rate_hz))
+        self.catch_up_ns = max(int(CATCH_UP_S * 1e9), self.period_ns)
         self.stream: Stream[TrackerSample] = Stream("tracker", rate_hz, stop=self.stop)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="emscon-stream", daemon=True)
@@ -440,8 +443,9 @@ class _EmsconStream:
             if now < due:
                 self._stop.wait((due - now) / 1e9)
                 continue
-            late = (now - due) // self.period_ns + (1 if (now - due) % self.period_ns > LATE_FRACTION * self.period_ns
-                                                    else 0)
+            late = 0
+            while due + late * self.period_ns < now - self.catch_up_ns:
+                late += 1
             if late:
                 self._hold(int(late), late_reason, now)
                 k += int(late)

@@ -30,6 +30,7 @@ from CESAPI import packet as es
 
 from elastocal.drivers.emscon_packets import PacketSocket, packet_command
 from elastocal.errors import DeviceError
+from elastocal.sims.tcp_listener import TcpListener
 from elastocal.sims.world import SimWorld
 
 LENGTH_FACTOR = {es.ES_LU_Meter: 1.0, es.ES_LU_Millimeter: 1e3, es.ES_LU_Micron: 1e6}
@@ -215,9 +216,7 @@ class SimEmscon:
         self._stall_event.set()
         self._stall_until = 0.0
         self._sessions: list[_Session] = []
-        self._listener: socket.socket | None = None
-        self._acceptor: threading.Thread | None = None
-        self._closing = threading.Event()
+        self._listener: TcpListener | None = None
         self.tcp_port: int | None = None
         #: TCP connections accepted so far
         self.connections = 0
@@ -301,40 +300,22 @@ class SimEmscon:
     # ------------------------------------------------------- transport
     def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> int:
         """Listen on ``host:port`` (0: a port the OS chooses); returns the port."""
-        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind((host, port))
-        sock.listen(8)
-        sock.settimeout(0.1)
-        self._listener = sock
-        self.tcp_port = sock.getsockname()[1]
-        self._acceptor = threading.Thread(target=self._accept_loop, name="sim-emscon-accept", daemon=True)
-        self._acceptor.start()
+        self._listener = TcpListener(host, port, self._accept, name="sim-emscon-accept")
+        self.tcp_port = self._listener.port
         return self.tcp_port
 
-    def _accept_loop(self) -> None:
-        while not self._closing.is_set():
-            try:
-                conn, addr = self._listener.accept()
-            except socket.timeout:
-                continue
-            except OSError:
-                return
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            session = _Session(self, conn, f"tcp{addr[1]}")
-            with self._lock:
-                self._sessions = [s for s in self._sessions if not s.closed.is_set()]
-                self._sessions.append(session)
-                self.connections += 1
-            session.thread.start()
+    def _accept(self, conn: socket.socket, addr: tuple) -> None:
+        session = _Session(self, conn, f"tcp{addr[1]}")
+        with self._lock:
+            self._sessions = [s for s in self._sessions if not s.closed.is_set()]
+            self._sessions.append(session)
+            self.connections += 1
+        session.thread.start()
 
     def close(self) -> None:
-        self._closing.set()
         self._stall_event.set()
         if self._listener is not None:
             self._listener.close()
-        if self._acceptor is not None:
-            self._acceptor.join(timeout=2.0)
         self.disconnect_all()
 
     def __enter__(self) -> "SimEmscon":

@@ -30,6 +30,7 @@ from elastocal.drivers.tracker_protocol import (
     valid_name,
 )
 from elastocal.errors import ProtocolError
+from elastocal.sims.tcp_listener import TcpListener
 from elastocal.sims.world import SimWorld
 
 MAX_RATE_HZ = 1000.0
@@ -201,9 +202,7 @@ class SimTracker:
         self._stall_event = threading.Event()
         self._stall_event.set()
         self._sessions: list[_Session] = []
-        self._listener: socket.socket | None = None
-        self._acceptor: threading.Thread | None = None
-        self._closing = threading.Event()
+        self._listener: TcpListener | None = None
         self._pty: tuple[int, int] | None = None
         self.tcp_port: int | None = None
         self.pty_path: str | None = None
@@ -282,47 +281,32 @@ class SimTracker:
     # ------------------------------------------------------ transports
     def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> int:
         """Listen on ``host:port`` (0: an ephemeral port); returns the port."""
-        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind((host, port))
-        sock.listen(8)
-        sock.settimeout(0.1)
-        self._listener = sock
-        self.tcp_port = sock.getsockname()[1]
-        self._acceptor = threading.Thread(target=self._accept_loop, name="sim-tracker-accept", daemon=True)
-        self._acceptor.start()
+        self._listener = TcpListener(host, port, self._accept, name="sim-tracker-accept")
+        self.tcp_port = self._listener.port
         return self.tcp_port
 
-    def _accept_loop(self) -> None:
-        while not self._closing.is_set():
+    def _accept(self, conn: socket.socket, addr: tuple) -> None:
+        conn.settimeout(0.1)
+
+        def recv(c=conn):
             try:
-                conn, addr = self._listener.accept()
+                return c.recv(4096)
             except socket.timeout:
-                continue
+                return None
+
+        def close(c=conn):
+            try:
+                c.shutdown(socket.SHUT_RDWR)
             except OSError:
-                return
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            conn.settimeout(0.1)
+                pass
+            c.close()
 
-            def recv(c=conn):
-                try:
-                    return c.recv(4096)
-                except socket.timeout:
-                    return None
-
-            def close(c=conn):
-                try:
-                    c.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
-                c.close()
-
-            session = _Session(self, conn.sendall, recv, close, f"tcp{addr[1]}")
-            with self._lock:
-                self._sessions = [s for s in self._sessions if not s._closed.is_set()]
-                self._sessions.append(session)
-                self.connections += 1
-            session.start()
+        session = _Session(self, conn.sendall, recv, close, f"tcp{addr[1]}")
+        with self._lock:
+            self._sessions = [s for s in self._sessions if not s._closed.is_set()]
+            self._sessions.append(session)
+            self.connections += 1
+        session.start()
 
     def serve_pty(self) -> str:
         """Serve on a new pseudo-terminal; returns the device path to open (e.g. /dev/pts/3)."""
@@ -350,12 +334,9 @@ class SimTracker:
         return self.pty_path
 
     def close(self) -> None:
-        self._closing.set()
         self._stall_event.set()
         if self._listener is not None:
             self._listener.close()
-        if self._acceptor is not None:
-            self._acceptor.join(timeout=2.0)
         with self._lock:
             sessions, self._sessions = self._sessions, []
         for s in sessions:
