@@ -116,6 +116,17 @@ class Drift:
     check_noise_floor_m: np.ndarray
 
 
+def clean(obj):
+    """A JSON-safe copy: non-finite floats become null."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [clean(v) for v in obj]
+    return obj
+
+
 def _calibration_from_json(doc: Mapping[str, Any], source: str) -> Calibration:
     if not isinstance(doc, Mapping) or doc.get("format") != FORMAT:
         raise InputError(f"a stored calibration is not {FORMAT}", source=source)
@@ -230,6 +241,12 @@ class History:
                                "FROM calibration ORDER BY time_ns DESC, id DESC LIMIT 1").fetchone()
         return None if row is None else self._calibration_row(row)
 
+    def calibrations_from_log(self, log_sha256: str) -> tuple[CalibrationRecord, ...]:
+        """The calibrations identified from the log (or data file) with this SHA-256, oldest first."""
+        rows = self._db.execute("SELECT id, time_ns, created, robot, json, log_sha256, log_path, plan "
+                                "FROM calibration WHERE log_sha256 = ? ORDER BY time_ns, id", (log_sha256,)).fetchall()
+        return tuple(self._calibration_row(r) for r in rows)
+
     def checks(self) -> tuple[CheckRecord, ...]:
         """Every check, oldest first."""
         rows = self._db.execute("SELECT id, time_ns, calibration_id, verdict, reasons, result, log_sha256, log_path "
@@ -293,6 +310,27 @@ class History:
                      check_time_ns=np.array([r.time_ns for r in checks], dtype=np.int64), check_value=kv,
                      check_verdict=tuple(r.verdict for r in checks), check_unexplained_m=unexplained,
                      check_noise_floor_m=floor)
+
+
+def drift_summary(drift: Drift) -> dict:
+    """Per parameter: first calibrated value, last calibrated value, last check
+    estimate, and the latest evidence (a check after the last calibration,
+    else the last calibration) relative to the first."""
+    out = {}
+    for j, name in enumerate(drift.names):
+        vals = drift.calibration_value[:, j]
+        known = [i for i, v in enumerate(vals) if math.isfinite(v)]
+        if not known:
+            continue
+        first, last_cal = float(vals[known[0]]), float(vals[known[-1]])
+        last_cal_t = drift.calibration_time_ns[known[-1]]
+        checked = [(t, float(v)) for t, v in zip(drift.check_time_ns, drift.check_value[:, j]) if math.isfinite(v)]
+        later = [v for t, v in checked if t >= last_cal_t]
+        latest = later[-1] if later else last_cal
+        out[name] = {"unit": drift.units[j], "first": first, "last_calibration": last_cal,
+                     "last_check": checked[-1][1] if checked else None, "latest": latest,
+                     "change": latest / first - 1.0 if first else None}
+    return out
 
 
 def plot_drift(drift: Drift, path: str | pathlib.Path) -> None:

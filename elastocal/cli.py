@@ -37,6 +37,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check": ("elastocal.commands.check", "check whether the current calibration still holds"),
     "history": ("elastocal.commands.history", "show calibrations and checks of a cell"),
     "schedule": ("elastocal.commands.schedule", "install a periodic calibration check"),
+    "fleet": ("elastocal.commands.fleet", "identify, diagnose or check many logs at once (Dask), record, drift"),
 }
 
 

@@ -7,8 +7,8 @@ import json
 import shlex
 
 from elastocal.commands._inputs import add_input_arguments, add_outlier_argument, load_inputs
-from elastocal.errors import InputError
-from elastocal.identify.effects import ALL_EFFECTS, get_effect, parse_model
+from elastocal.identify.effects import parse_model
+from elastocal.identify.pipeline import diagnose_data, diagnosis_json
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,31 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *, exclude_outliers: bool = False):
     """(static Diagnosis or None, run Diagnosis or None) for the loaded inputs."""
-    from elastocal.identify.diagnose import diagnose_static
-
-    static = None
-    runs = None
-    if inputs.static is not None:
-        static_model = model
-        if inputs.runs is not None:  # run-data effects of the model are the runs' business
-            static_model = tuple(m for m in model if "static" in get_effect(m).seen_in)
-        pool = tuple(e for e in ALL_EFFECTS if e not in model)
-        static = diagnose_static(inputs.robot, inputs.static, model=static_model, torque=torque, form=form,
-                                 effects=pool, exclude_outliers=exclude_outliers)
-    if inputs.runs is not None:
-        from elastocal.identify.diagnose import diagnose_runs
-
-        stiffness = None
-        if static is not None:
-            stiffness = [p.value for p in static.fit.parameters if p.name.startswith("k")]
-            stiffness = stiffness if len(stiffness) == 6 else None
-        runs = diagnose_runs(inputs.robot, inputs.runs, model=model, stiffness=stiffness)
-    if static is None and runs is None:
-        if inputs.log is not None:
-            raise InputError("nothing to diagnose: the log holds neither a static experiment nor runs",
-                             source=str(inputs.log))
-        raise InputError("nothing to diagnose: give a static table and/or runs", source="--static")
-    return static, runs
+    return diagnose_data(inputs.robot, inputs.static, inputs.runs, model, torque, form,
+                         log=None if inputs.log is None else str(inputs.log), exclude_outliers=exclude_outliers)
 
 
 def _um(x: float | None) -> str:
@@ -146,32 +123,6 @@ def format_runs(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:
     if diag.verdict is not None:
         lines.append(f"  add it: {identify_command(args, (*model, diag.verdict))}")
     return "\n".join(lines)
-
-
-def diagnosis_json(static, runs) -> dict:
-    """The ``diagnose --json`` object (cli.md): the static diagnosis when there is
-    one, the run diagnosis alone otherwise. With both, the run diagnosis is under
-    ``runs`` too, and ``candidates`` and ``verdict`` cover both data: every
-    candidate says which data tested it (``data``: static or runs), significant
-    ones first by delta_bic, and the verdict is the first when it is its own
-    data's verdict — so null still means "no missing effect found" in either."""
-    if static is None:
-        obj = runs.to_json()
-        for c in obj["candidates"]:
-            c["data"] = "runs"
-        return obj
-    obj = static.to_json()
-    for c in obj["candidates"]:
-        c["data"] = "static"
-    if runs is None:
-        return obj
-    obj["runs"] = runs.to_json()
-    tagged = [*obj["candidates"], *({**c, "data": "runs"} for c in obj["runs"]["candidates"])]
-    tagged.sort(key=lambda c: (not c["significant"], c["delta_bic"]))
-    obj["candidates"] = tagged
-    verdicts = {"static": static.verdict, "runs": runs.verdict}
-    obj["verdict"] = tagged[0]["effect"] if tagged and verdicts[tagged[0]["data"]] == tagged[0]["effect"] else None
-    return obj
 
 
 def run(args: argparse.Namespace) -> int:

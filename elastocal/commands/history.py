@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import pathlib
 import time
 
+from elastocal.acquisition.history import clean, drift_summary  # clean: also check's
 from elastocal.errors import InputError
 
 
@@ -36,17 +36,6 @@ def history_path(cell_path: str | None, db: str | None) -> pathlib.Path | None:
 
         return load_cell_config(cell_path).history
     return None
-
-
-def clean(obj):
-    """A JSON-safe copy: non-finite floats become null."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [clean(v) for v in obj]
-    return obj
 
 
 def _add(args: argparse.Namespace, db: pathlib.Path) -> int:
@@ -100,27 +89,6 @@ def _k(rec, name: str) -> float | None:
     return float(p["value"]) if p is not None else None
 
 
-def _summary(drift) -> dict:
-    """Per parameter: first calibrated value, last calibrated value, last check
-    estimate, and the latest evidence (a check after the last calibration,
-    else the last calibration) relative to the first."""
-    out = {}
-    for j, name in enumerate(drift.names):
-        vals = drift.calibration_value[:, j]
-        known = [i for i, v in enumerate(vals) if math.isfinite(v)]
-        if not known:
-            continue
-        first, last_cal = float(vals[known[0]]), float(vals[known[-1]])
-        last_cal_t = drift.calibration_time_ns[known[-1]]
-        checked = [(t, float(v)) for t, v in zip(drift.check_time_ns, drift.check_value[:, j]) if math.isfinite(v)]
-        later = [v for t, v in checked if t >= last_cal_t]
-        latest = later[-1] if later else last_cal
-        out[name] = {"unit": drift.units[j], "first": first, "last_calibration": last_cal,
-                     "last_check": checked[-1][1] if checked else None, "latest": latest,
-                     "change": latest / first - 1.0 if first else None}
-    return out
-
-
 def _show(args: argparse.Namespace, db: pathlib.Path) -> int:
     from elastocal.acquisition.history import History, plot_drift
     from elastocal.commands._outputs import Outputs
@@ -135,7 +103,7 @@ def _show(args: argparse.Namespace, db: pathlib.Path) -> int:
         cals = h.calibrations()
         checks = h.checks()
         drift = h.drift()
-    summary = _summary(drift)
+    summary = drift_summary(drift)
     if args.plot:
         with outputs:
             plot_drift(drift, outputs.temp(args.plot))

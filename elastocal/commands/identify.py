@@ -11,6 +11,7 @@ from elastocal.commands._format import format_fit
 from elastocal.errors import InputError
 from elastocal.identify.calibration import calibration_from_fit, write_calibration
 from elastocal.identify.effects import parse_model
+from elastocal.identify.pipeline import identify_data
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,35 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *,
                     exclude_outliers: bool = False) -> tuple[dict, object | None]:
-    """The identify --json object for the inputs, and the static fit if any.
-    ``outliers`` lists the static readings far off their repeats (identify/outliers.py);
-    with ``exclude_outliers`` the fit leaves them out."""
-    from elastocal.identify.outliers import without_outliers
-    from elastocal.identify.static import identify_static
-
-    if inputs.static is None:
-        from elastocal.identify import runs as run_ident  # run data: compensator, friction
-
-        result = run_ident.identify_runs(inputs.robot, inputs.runs, model=model)
-        return result.to_json(), None
-    from elastocal.identify.runs import RUN_EFFECTS
-
-    run_model = tuple(m for m in model if m in RUN_EFFECTS)
-    static_model = tuple(m for m in model if m not in RUN_EFFECTS or inputs.runs is None)
-    table, excluded = without_outliers(inputs.static) if exclude_outliers else (inputs.static, ())
-    fit = identify_static(inputs.robot, table, model=static_model, torque=torque, form=form)
-    obj = fit.to_json()
-    obj["model"] = list(model)
-    obj["outliers"] = [o.to_json() for o in (*excluded, *fit.dataset.outliers)]
-    if inputs.runs is not None:
-        from elastocal.identify import runs as run_ident
-
-        if run_model:
-            result = run_ident.identify_runs(inputs.robot, inputs.runs, model=("joint_stiffness", *run_model))
-            rj = result.to_json()
-            obj["parameters"].update(rj["parameters"])
-            obj["torque_residual"] = rj["residual"]
-    return obj, fit
+    """The identify --json object for the inputs, and the static fit if any
+    (:func:`elastocal.identify.pipeline.identify_data`)."""
+    return identify_data(inputs.robot, inputs.static, inputs.runs, model, torque, form,
+                         exclude_outliers=exclude_outliers)
 
 
 def run(args: argparse.Namespace) -> int:
