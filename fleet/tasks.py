@@ -38,6 +38,7 @@ class FleetTask:
     model: tuple[str, ...] = ("joint_stiffness",)
     torque: str = "current"
     form: str = "exact"
+    exclude_outliers: bool = False
     calibration: Any = None          # elastocal.identify.calibration.Calibration
     calibration_id: int | None = None
     alpha: float = 1e-3
@@ -172,7 +173,8 @@ def _identify(task: FleetTask, data: _Data) -> dict:
 
     if data.static is None and data.runs is None:
         raise InputError("the log holds neither a static experiment nor runs", source=task.path)
-    obj, _ = identify_data(data.robot, data.static, data.runs, task.model, task.torque, task.form)
+    obj, _ = identify_data(data.robot, data.static, data.runs, task.model, task.torque, task.form,
+                           exclude_outliers=task.exclude_outliers)
     cal = calibration_from_fit(data.robot.name, obj, data.files)
     return {"parameters": _parameters(obj["parameters"]), "residual_rms": obj["residual"]["rms"],
             "noise_floor": obj.get("noise_floor"), "calibration": cal}
@@ -182,7 +184,7 @@ def _diagnose(task: FleetTask, data: _Data) -> dict:
     from elastocal.identify.pipeline import diagnose_data, diagnosis_json
 
     static, runs = diagnose_data(data.robot, data.static, data.runs, task.model, task.torque, task.form,
-                                 log=None if task.tables else task.path)
+                                 log=None if task.tables else task.path, exclude_outliers=task.exclude_outliers)
     obj = diagnosis_json(static, runs)
     return {"residual_rms": obj["residual"]["rms"], "noise_floor": obj.get("noise_floor"),
             "verdict": obj.get("verdict")}

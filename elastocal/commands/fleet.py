@@ -33,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="joint torques from motor currents (default) or from the wrench columns")
     parser.add_argument("--form", choices=("exact", "first-order"), default="exact",
                         help="exact (secant, default) or first-order kinematics")
+    parser.add_argument("--exclude-outliers", action="store_true",
+                        help="identify/diagnose: leave out single readings far off their repeats (as identify's flag)")
     parser.add_argument("--alpha", type=float, default=1e-3, help="check: false-alarm probability (default 0.001)")
     parser.add_argument("--friction-tolerance", type=float, default=0.2,
                         help="check: relative friction change that counts, when significant (default 0.2)")
@@ -134,7 +136,8 @@ def _tasks(args: argparse.Namespace, inputs, model: tuple[str, ...]):
                 early[k] = LogResult(path=str(item.path), command="check", cell=cell, cell_config=cfg, error=why)
                 continue
         tasks.append((k, FleetTask(command=args.action, path=str(item.path), tables=item.tables, cell_config=cfg,
-                                   cell=cell, model=model, torque=args.torque, form=args.form, calibration=cal,
+                                   cell=cell, model=model, torque=args.torque, form=args.form,
+                                   exclude_outliers=args.exclude_outliers, calibration=cal,
                                    calibration_id=cal_id, alpha=args.alpha,
                                    friction_tolerance=args.friction_tolerance)))
     return tasks, early
@@ -153,6 +156,9 @@ def run(args: argparse.Namespace) -> int:
     if not args.out:
         raise InputError(f"fleet {args.action} needs --out results.csv or results.parquet", source="--out")
     kind = table_format(args.out)
+    if args.exclude_outliers and args.action == "check":
+        raise InputError("a check compares every reading with the calibration; --exclude-outliers is for "
+                         "identify and diagnose", source="--exclude-outliers")
     if args.record and args.action == "diagnose":
         raise InputError("diagnoses are not kept in the history; --record goes with fleet identify or check",
                          source="--record")
