@@ -7,7 +7,7 @@ import hashlib
 import json
 import math
 import pathlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 from elastocal.errors import InputError
@@ -35,6 +35,8 @@ class Calibration:
     parameters: Mapping[str, Mapping[str, float | str]]
     residual: Mapping[str, float]
     data: tuple[Mapping[str, str], ...] = ()
+    #: the file it was read from, for errors (not part of the calibration)
+    source: str = field(default="", compare=False)
 
     def value(self, name: str) -> float:
         try:
@@ -140,6 +142,8 @@ def _parameter(name: str, p: object, src: str) -> dict:
                          f"{STIFFNESS_RANGE[0]:g} and {STIFFNESS_RANGE[1]:g})", source=src, column=f"{where}.value")
     if not abs(value) <= MAX_VALUE:
         raise InputError(f"{value:g} is not a plausible value", source=src, column=f"{where}.value")
+    if std is not None and not std <= MAX_VALUE:
+        raise InputError(f"{std:g} is not a plausible standard deviation", source=src, column=f"{where}.std")
     return out
 
 
@@ -171,11 +175,12 @@ def read_calibration(path: str | pathlib.Path) -> Calibration:
     if not isinstance(params, dict):
         raise InputError("missing parameters", source=src, column="parameters")
     params = {name: _parameter(name, p, src) for name, p in params.items()}
-    if "joint_stiffness" in model:
-        for j in range(1, 7):
-            if f"k{j}" not in params:
-                raise InputError(f"missing k{j}: a joint_stiffness calibration holds k1..k6", source=src,
-                                 column=f"parameters.k{j}")
+    stiffness = [f"k{j}" for j in range(1, 7)]
+    if any(k in params for k in stiffness):   # run data alone give none; static data give all six
+        for k in stiffness:
+            if k not in params:
+                raise InputError(f"missing {k}: a calibration with joint stiffness holds k1..k6", source=src,
+                                 column=f"parameters.{k}")
     torque = doc.get("torque", "current")
     if torque not in TORQUES:
         raise InputError(f"expected one of {', '.join(TORQUES)}, got {torque!r}", source=src, column="torque")
@@ -197,4 +202,4 @@ def read_calibration(path: str | pathlib.Path) -> Calibration:
     if not isinstance(data, list) or not all(isinstance(d, dict) for d in data):
         raise InputError("expected a list of objects with path and sha256", source=src, column="data")
     return Calibration(robot=robot, created=created, model=tuple(model), torque=torque,
-                       parameters=params, residual=residual, data=tuple(data))
+                       parameters=params, residual=residual, data=tuple(data), source=src)

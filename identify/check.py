@@ -229,7 +229,7 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
     missing = [f"k{j}" for j in range(1, 7) if f"k{j}" not in calibration.parameters]
     if len(missing) == 6:
         raise InputError("the calibration holds no joint stiffness (k1..k6); a static check needs one",
-                         source="--calibration")
+                         source=calibration.source or "--calibration")
     model = tuple(name for name in calibration.model if "static" in get_effect(name).seen_in)
     fit = identify_static(robot, table, model=model or ("joint_stiffness",), torque=calibration.torque, form=form)
     if fit.noise_blocks is None:
@@ -255,7 +255,8 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
         value, std = cal
         if name != beta_name:               # stiffness k -> compliance c
             if value == 0.0:
-                raise InputError(f"calibrated {name} is zero", source="--calibration")
+                raise InputError(f"calibrated {name} is zero", source=calibration.source or "--calibration",
+                                 column=f"parameters.{name}")
             beta_cal, var = 1.0 / value, (std / value ** 2) ** 2
         else:
             beta_cal, var = value, std ** 2
@@ -279,7 +280,12 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
     floor = float(fit.noise_floor or 0.0)
     allowance = _model_allowance(calibration, float(np.mean(np.diag(cov))), len(fit.beta_names))
     cov += allowance ** 2 * np.eye(n)
-    chi2 = float(r @ np.linalg.solve(cov, r))
+    try:
+        chi2 = float(r @ np.linalg.solve(cov, r))
+    except np.linalg.LinAlgError:
+        raise InputError("the calibration's uncertainties leave no test of the deflections (the covariance of "
+                         "the prediction is singular): check the std of its parameters",
+                         source=calibration.source or "--calibration", column="parameters") from None
     dof = n - len(nuisance)
     if dof < 1:
         raise InputError(f"{n} deflection components cannot test the calibration once {len(nuisance)} session "

@@ -168,7 +168,7 @@ def _set_k(value):
 CAL_EDITS = {
     "k tiny": (_set_k(1e-300), "column parameters.k2.value: 1e-300 N*m/rad is not a plausible joint stiffness"),
     "k huge": (_set_k(1e300), "column parameters.k2.value: 1e+300 N*m/rad is not a plausible joint stiffness"),
-    "no k2": (lambda d: d["parameters"].pop("k2"), "column parameters.k2: missing k2"),
+    "no k2": (lambda d: d["parameters"].pop("k2"), "column parameters.k2: missing k2: a calibration with joint stiffness"),
     "std -1": (lambda d: d["parameters"]["k3"].update(std=-1), "column parameters.k3.std: a standard deviation"),
     "std text": (lambda d: d["parameters"]["k3"].update(std="x"), "column parameters.k3.std: std must be a finite"),
     "floor x": (lambda d: d["residual"].update(noise_floor="x"), "column residual.noise_floor: expected a finite"),
