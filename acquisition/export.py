@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import operator
+import os
 import pathlib
 import struct
 from dataclasses import dataclass
@@ -95,6 +96,7 @@ class LogReader:
         self.path = pathlib.Path(path)
         self.complete = False
         self.truncated = False
+        self.trailing_bytes = 0
         self.end_offset = 0
         self.topics: dict[int, str] = {}
         self.schemas: dict[int, str] = {}
@@ -115,6 +117,8 @@ class LogReader:
                     record = next(it)
                 except StopIteration:  # the footer and the closing magic were read
                     self.complete = True
+                    # bytes after the closing magic: garbage, or a second copy appended to the file
+                    self.trailing_bytes = max(os.fstat(f.fileno()).st_size - stream.offset, 0)
                     return
                 except EndOfFile:
                     if stream.offset == 0:
@@ -281,6 +285,7 @@ class LogContents:
     events: tuple[dict, ...]       # each with "t_ns"
     drives: tuple[DriveSamples, ...]  # 6, joint 1..6
     markers: dict[str, TrackerSamples]
+    trailing_bytes: int = 0        # bytes after the MCAP closing magic (ignored)
 
     @property
     def completed_steps(self) -> tuple[str, ...]:
@@ -409,7 +414,7 @@ def read_log(path: str | pathlib.Path) -> LogContents:
     return LogContents(path=source, complete=reader.complete, truncated=reader.truncated, messages=n_messages,
                        robot=docs.get("robot"), cell=docs.get("cell"), plan=docs.get("plan"),
                        sessions=tuple(sessions), events=tuple(events), drives=tuple(drives_out),
-                       markers=markers_out)
+                       markers=markers_out, trailing_bytes=reader.trailing_bytes)
 
 
 # ------------------------------------------------------------------ tables

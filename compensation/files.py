@@ -63,7 +63,7 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
     if any(w_present) and not all(w_present):
         raise InputError(f"the wrench needs all of {','.join(W_COLS)}", source=source, row=1)
     idx = {c: i for i, c in enumerate(header)}
-    t, q, w = [], [], []
+    t, q, w, lines = [], [], [], []
     for lineno, row in reader:
         if not row or all(not c.strip() for c in row):
             continue
@@ -71,6 +71,7 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
             raise InputError(f"{len(row)} fields, the header has {len(header)}", source=source, row=lineno)
         row = [c.strip() for c in row]
         t.append(_number(row[idx["t"]], source, lineno, "t"))
+        lines.append(lineno)
         qv = [_number(row[idx[c]], source, lineno, c) for c in Q_COLS]
         for j, v in enumerate(qv):
             if robot is not None and not robot.lower[j] - 1e-9 <= v <= robot.upper[j] + 1e-9:
@@ -84,7 +85,7 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
             raise InputError("time goes backwards", source=source, row=lineno, column="t")
     if not t:
         raise InputError("the path has no rows", source=source)
-    return PlannedPath(t=np.array(t), q=np.array(q), wrench=np.array(w) if w else None)
+    return PlannedPath(t=np.array(t), q=np.array(q), wrench=np.array(w) if w else None, line=np.array(lines))
 
 
 def read_path(path: str | pathlib.Path, robot: Robot | None = None) -> PlannedPath:

@@ -22,6 +22,7 @@ class PlannedPath:
     t: np.ndarray        # (n,) [s]
     q: np.ndarray        # (n, 6) [rad]
     wrench: np.ndarray | None = None  # (n, 6) [N, N·m] or None when the path file has none
+    line: np.ndarray | None = None    # (n,) line of each sample in the path file (header = 1)
 
     def __len__(self) -> int:
         return len(self.t)

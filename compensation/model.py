@@ -97,6 +97,27 @@ class CompensationModel:
         return cls(robot=robot, stiffness=k, compensator=comp)
 
 
+#: calibration effects compensation models, and those that move no tool point of a planned path
+#: (measurement-side session effects, and friction: a torque, not a deflection at rest)
+MODELLED_EFFECTS = ("joint_stiffness", "compensator", "gravity")
+NO_PATH_DEFLECTION = ("thermal_drift", "tracker_frame", "coulomb_friction", "viscous_friction",
+                      "load_dependent_friction")
+
+
+def unmodelled_effects(cal: Calibration) -> dict[str, list[str]]:
+    """Effects of the calibration that deflect the robot but compensation leaves out, with
+    the calibration's parameters of each (cal.json names them; cli.md's effect table)."""
+    from elastocal.identify.effects import get_effect
+
+    out = {}
+    for name in cal.model:
+        if name in MODELLED_EFFECTS or name in NO_PATH_DEFLECTION:
+            continue
+        names = get_effect(name).parameters
+        out[name] = [p for p in cal.parameters if p in names] or [p for p in names if p in cal.parameters]
+    return out
+
+
 class StaticKernel:
     """Work buffers (one Pinocchio Data) for the static model, evaluated over
     arrays of configurations (n, 6). Pinocchio is called per configuration;
@@ -156,10 +177,24 @@ class StaticKernel:
             return base
         active = np.arange(len(q))
         for _ in range(MAX_FIXED_POINT_ITER):
-            new = base[active] + self.c * self.torque(theta[active], wrench[active])
+            with np.errstate(all="ignore"):
+                new = base[active] + self.c * self.torque(theta[active], wrench[active])
+            diverged = ~np.all(np.isfinite(new), axis=1) | np.any(np.abs(new) > 1e3, axis=1)
+            if np.any(diverged):
+                raise NotConverged(int(active[np.argmax(diverged)]))
             step = np.max(np.abs(new - theta[active]), axis=1)
             theta[active] = new
             active = active[step >= FIXED_POINT_TOL_RAD]
             if active.size == 0:
                 return theta
-        raise InputError("the static model does not converge along the path (stiffness too low for the load?)")
+        raise NotConverged(int(active[0]))
+
+
+class NotConverged(InputError):
+    """The loaded equilibrium of sample ``sample`` (0-based) has no fixed point: the load is too
+    large for the stiffness. The command names the file, line and column of the sample."""
+
+    def __init__(self, sample: int) -> None:
+        self.sample = sample
+        super().__init__(f"the static model does not converge at sample {sample + 1} of the path "
+                         "(stiffness too low for the load?)")

@@ -372,3 +372,66 @@ def test_cell_values_in_the_wrong_unit_are_refused(data, tmp_path, capsys, name)
     rc, _, err = run_cli(capsys, ["check", "--cell", bad, "--calibration", data / "cal.json", "--static",
                                   data / "static.csv", "--no-record"])
     assert_refused(rc, err, f"{bad}, {needle}")
+
+
+# ------------------------------------------------- 8. effects compensate leaves out
+def test_compensate_says_which_calibrated_effects_it_does_not_model(data, tmp_path, capsys):
+    doc = json.loads((data / "cal.json").read_text())
+    doc["model"].append("link_compliance")
+    doc["parameters"].update({"cl2x": {"value": 2e-8, "std": 1e-9, "unit": "rad/(N*m)"},
+                              "cl3y": {"value": 1e-8, "std": 1e-9, "unit": "rad/(N*m)"}})
+    (tmp_path / "lc.json").write_text(json.dumps(doc))
+    argv = ["compensate", "--robot", data / "robot.toml", "--path", data / "path.csv", "--json"]
+    rc, out, err = run_cli(capsys, argv + ["--calibration", data / "cal.json", "--out", tmp_path / "a.csv"])
+    assert rc == 0 and err == "" and json.loads(out)["unmodelled"] == {}
+    rc, out, err = run_cli(capsys, argv + ["--calibration", tmp_path / "lc.json", "--out", tmp_path / "b.csv"])
+    assert rc == 0
+    assert json.loads(out)["unmodelled"] == {"link_compliance": ["cl2x", "cl3y"]}
+    assert err == (f"note: compensate does not model link_compliance (cl2x, cl3y in {tmp_path / 'lc.json'}): "
+                   "the compensated path leaves its deflection uncorrected\n")
+
+
+# ----------------------------------------- 9. non-convergence, appended logs, --write-cell
+def test_a_load_too_large_names_file_line_and_column(data, tmp_path, capsys):
+    rows = _csv_rows(data / "path.csv")
+    rows[3][rows[0].index("fy")] = "-4e7"
+    bad = tmp_path / "path.csv"
+    _write_rows(bad, rows)
+    rc, _, err = run_cli(capsys, ["compensate", "--robot", data / "robot.toml", "--calibration", data / "cal.json",
+                                  "--path", bad, "--out", tmp_path / "out.csv"])
+    assert_refused(rc, err, f"{bad}, line 4, column fy: the static model does not converge under the wrench")
+    assert not (tmp_path / "out.csv").exists()
+    bare = tmp_path / "bare.csv"
+    _write_rows(bare, [r[:7] for r in _csv_rows(data / "path.csv")])
+    rc, _, err = run_cli(capsys, ["compensate", "--robot", data / "robot.toml", "--calibration", data / "cal.json",
+                                  "--path", bare, "--out", tmp_path / "out.csv", "--wrench", "0,0,-1e8,0,0,0"])
+    assert_refused(rc, err, "--wrench: the static model does not converge", "at sample 1 of")
+
+
+@pytest.mark.parametrize("tail", ["copy", "garbage"])
+def test_bytes_appended_to_a_log_are_noted(data, tmp_path, capsys, tail):
+    log = (data / "log.mcap").read_bytes()
+    extra = log if tail == "copy" else bytes(range(256)) * 3
+    bad = tmp_path / "log.mcap"
+    bad.write_bytes(log + extra)
+    rc, out, err = run_cli(capsys, ["identify", data / "log.mcap", "--json"])
+    assert rc == 0 and err == ""
+    reference = json.loads(out)["parameters"]
+    for argv in (["identify", bad, "--json"], ["export", bad, "--out", tmp_path / f"out-{tail}"]):
+        rc, out, err = run_cli(capsys, argv)
+        assert rc == 0
+        assert err == (f"note: {bad} has {len(extra)} bytes after the end of its MCAP data (a second copy or "
+                       "garbage appended to the file?); they were ignored\n")
+        if argv[0] == "identify":
+            assert json.loads(out)["parameters"] == reference
+
+
+def test_sim_serve_write_cell_refuses_to_overwrite_without_force(tmp_path, capsys):
+    cell = tmp_path / "served.toml"
+    cell.write_text("# mine\n")
+    rc, _, err = run_cli(capsys, ["sim", "serve", "--write-cell", cell, "--duration", "0.2"])
+    assert_refused(rc, err, f"{cell}: already exists", "--force")
+    assert cell.read_text() == "# mine\n"
+    rc, _, err = run_cli(capsys, ["sim", "serve", "--write-cell", cell, "--duration", "0.2", "--force", "--json"])
+    assert rc == 0, err
+    assert "[cell]" in cell.read_text() and not list(tmp_path.glob(".*partial*"))

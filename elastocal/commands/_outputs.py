@@ -164,7 +164,12 @@ def note(args, text: str) -> None:
 
 
 def log_note(command_path: str, contents) -> str | None:
-    """The one-line note for a log that ends without its MCAP summary (or None)."""
+    """The one-line note for a log that ends without its MCAP summary, or with bytes after
+    its end (or None)."""
+    extra = getattr(contents, "trailing_bytes", 0)
+    if extra:
+        return (f"note: {command_path} has {extra} bytes after the end of its MCAP data (a second copy or "
+                f"garbage appended to the file?); they were ignored")
     if getattr(contents, "complete", True):
         return None
     return (f"note: {command_path} ends without its MCAP summary (the recorder was killed or is still "

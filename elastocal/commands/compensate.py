@@ -45,6 +45,19 @@ def _parse_wrench(text: str) -> np.ndarray:
     return w
 
 
+def _not_converged(exc, planned, wrench: np.ndarray, args: argparse.Namespace) -> InputError:
+    """The sample the static model has no equilibrium for, by file, line and its largest wrench column."""
+    i = exc.sample
+    w = wrench[i]
+    col = ("fx", "fy", "fz", "mx", "my", "mz")[int(np.argmax(np.abs(w)))]
+    what = (f"the static model does not converge under the wrench {', '.join(f'{v:g}' for v in w)} "
+            "(stiffness too low for so large a load?)")
+    if planned.wrench is None:
+        return InputError(f"{what}, at sample {i + 1} of {args.path}", source="--wrench")
+    line = int(planned.line[i]) if planned.line is not None else i + 2
+    return InputError(what, source=args.path, row=line, column=col)
+
+
 def _stats(d: np.ndarray) -> dict:
     n = np.linalg.norm(d, axis=1)
     return {"rms": float(np.sqrt(np.mean(n ** 2))), "max": float(np.max(n)), "unit": "m"}
@@ -52,7 +65,8 @@ def _stats(d: np.ndarray) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.compensation.files import read_path, write_compensated_csv, write_krl, write_rapid
-    from elastocal.compensation.model import CompensationModel
+    from elastocal.compensation.model import CompensationModel, NotConverged, unmodelled_effects
+    from elastocal.commands._outputs import note
     from elastocal.compensation.trajectory import compensate_path, predicted_residual
     from elastocal.identify.calibration import read_calibration
     from elastocal.commands._outputs import Outputs
@@ -77,13 +91,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("no process wrench: add fx..mz columns to the path or give --wrench "
                          "(0,0,0,0,0,0 for none)", source=args.path)
     wrench = planned.wrench if planned.wrench is not None else np.tile(fixed, (len(planned), 1))
-    result = compensate_path(model, planned.q, wrench, form=args.form, reference=args.reference)
+    try:
+        result = compensate_path(model, planned.q, wrench, form=args.form, reference=args.reference)
+        residual = predicted_residual(model, result)
+    except NotConverged as exc:
+        raise _not_converged(exc, planned, wrench, args) from None
     outside = (result.q_command < robot.lower) | (result.q_command > robot.upper)
     if np.any(outside):
         i, j = (int(v) for v in np.argwhere(outside)[0])
         raise InputError(f"the compensated q{j + 1} = {result.q_command[i, j]:.5f} rad leaves the joint limits",
                          source=args.path, row=i + 2, column=f"q{j + 1}")
-    residual = predicted_residual(model, result)
     with outputs:
         write_compensated_csv(outputs.temp(args.out), planned.t, result)
         # the program is named after the file the user asked for, not the temporary one
@@ -91,7 +108,12 @@ def run(args: argparse.Namespace) -> int:
             write_krl(outputs.temp(args.krl), planned.t, result, name_from=args.krl)
         if args.rapid:
             write_rapid(outputs.temp(args.rapid), planned.t, result, name_from=args.rapid)
+    unmodelled = unmodelled_effects(cal)
+    for effect, params in unmodelled.items():
+        note(args, f"note: compensate does not model {effect} ({', '.join(params) or 'no parameters'} in "
+                   f"{args.calibration}): the compensated path leaves its deflection uncorrected")
     obj = {"n": len(result), "form": result.form, "reference": result.reference, "out": args.out,
+           "unmodelled": unmodelled,
            "deflection": _stats(result.tcp_deflection), "residual": _stats(residual),
            "dtheta_max": {f"q{j + 1}": float(v) for j, v in enumerate(np.max(np.abs(result.dtheta), axis=0))},
            "uses_gravity": model.uses_gravity, "uses_compensator": model.uses_compensator}

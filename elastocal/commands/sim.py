@@ -51,6 +51,7 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--write-cell", metavar="PATH",
                         help="write the cell config with the actual ports and device paths here, "
                              "for `elastocal devices --cell PATH`")
+    parser.add_argument("--force", action="store_true", help="overwrite --write-cell if it exists")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop after S seconds (default: until interrupted)")
     parser.add_argument("--json", action="store_true", help="print the device URLs as one JSON object")
@@ -69,6 +70,12 @@ def _serve(args: argparse.Namespace) -> int:
 
     if args.duration is not None and not args.duration > 0:
         raise InputError(f"--duration must be > 0, got {args.duration}")
+    outputs = None
+    if args.write_cell:      # refused before anything is served, like every other output
+        from elastocal.commands._outputs import Outputs
+
+        outputs = Outputs(force=args.force, inputs=[(args.cell, "--cell")])
+        outputs.add(args.write_cell, "--write-cell")
     config = load_cell_config(args.cell) if args.cell else example_cell_config()
     if args.can == "loopback":
         config = to_loopback_can(config)
@@ -78,11 +85,12 @@ def _serve(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         with SimulatedCell(config) as sim:
-            if args.write_cell:
-                try:
-                    pathlib.Path(args.write_cell).write_text(sim.config.to_toml(), encoding="utf-8")
-                except OSError as exc:
-                    raise InputError(f"cannot write: {exc.strerror}", source=args.write_cell) from None
+            if outputs is not None:
+                with outputs:
+                    try:
+                        outputs.temp(args.write_cell).write_text(sim.config.to_toml(), encoding="utf-8")
+                    except OSError as exc:
+                        raise InputError(f"cannot write: {exc.strerror}", source=args.write_cell) from None
             if args.json:
                 print(json.dumps({"urls": sim.urls, "cell": args.write_cell}), flush=True)
             else:
