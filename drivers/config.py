@@ -258,7 +258,7 @@ def _drive(t: Mapping, i: int, *, source: str) -> DriveConfig:
         raise InputError(f"joint must be 1..{N_JOINTS}, got {joint!r}", source=source, column=f"{where}.joint")
     if "url" not in t:
         raise InputError("missing required key", source=source, column=f"{where}.url")
-    url = parse_device_url(t["url"], allowed=DRIVE_SCHEMES, source=f"{source}, {where}.url")
+    url = parse_device_url(t["url"], allowed=DRIVE_SCHEMES, source=f"{source}, {where}.url", kind="drive")
     regs: tuple[RegisterSpec, ...] = ()
     if url.scheme.startswith("modbus"):
         table = t.get("registers")
@@ -315,7 +315,7 @@ def _tracker(t: Mapping, *, source: str) -> TrackerConfig:
             raise InputError(f"expected 3 finite numbers [m], got {v!r}", source=source,
                              column="tracker.base_p_tracker")
         base_p_tracker = tuple(float(x) for x in v)
-    url = parse_device_url(t["url"], allowed=TRACKER_SCHEMES, source=f"{source}, tracker.url")
+    url = parse_device_url(t["url"], allowed=TRACKER_SCHEMES, source=f"{source}, tracker.url", kind="tracker")
     markers = t.get("markers", [])
     if not isinstance(markers, list) or not markers or not all(isinstance(m, str) and m for m in markers):
         raise InputError("markers must be a non-empty list of marker names", source=source, column="tracker.markers")

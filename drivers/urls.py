@@ -18,7 +18,13 @@ import math
 from dataclasses import dataclass, replace
 from urllib.parse import parse_qsl, urlsplit
 
-from elastocal.drivers import CONTROLLER_BACKENDS, DRIVE_BACKENDS, TRACKER_BACKENDS
+from elastocal.drivers import (
+    CONTROLLER_BACKENDS,
+    DRIVE_BACKENDS,
+    ENTRY_POINT_GROUPS,
+    TRACKER_BACKENDS,
+    plugin_entry_points,
+)
 from elastocal.errors import InputError
 
 #: URL schemes per device kind (the keys of the lazy backend tables)
@@ -113,16 +119,26 @@ class DeviceUrl:
 
 
 def parse_device_url(text: str, *, allowed: tuple[str, ...] | None = None,
-                     source: str = "url") -> DeviceUrl:
-    """Parse and check a device URL (see the module docstring)."""
+                     source: str = "url", kind: str | None = None) -> DeviceUrl:
+    """Parse and check a device URL (see the module docstring). With ``kind`` ("drive",
+    "tracker"), the schemes installed packages register for that kind by entry point are
+    allowed too; their URLs are checked by their backend when it opens."""
     if not isinstance(text, str) or "://" not in text:
         raise InputError(f"expected a device URL like modbus+tcp://127.0.0.1:1502?unit=1, got {text!r}",
                          source=source)
     parts = urlsplit(text)
     scheme = parts.scheme.lower()
     known = DRIVE_SCHEMES + TRACKER_SCHEMES
+    plugins = plugin_entry_points(kind) if kind is not None and scheme not in known else {}
+    if plugins:
+        allowed = None if allowed is None else allowed + tuple(sorted(plugins))
+        known = known + tuple(plugins)
+    if kind is not None and scheme not in known:        # another kind's outside backend?
+        known = known + tuple(s for k in ENTRY_POINT_GROUPS if k != kind for s in plugin_entry_points(k))
     if scheme not in known:
-        raise InputError(f"unknown device scheme {scheme!r} in {text}; one of {', '.join(sorted(set(known)))}",
+        names = sorted(set(known) | set(plugins))
+        raise InputError(f"unknown device scheme {scheme!r} in {text}; one of {', '.join(names)}"
+                         + (" (outside packages add schemes by entry point, docs/devices.md)" if kind else ""),
                          source=source)
     if allowed is not None and scheme not in allowed:
         raise InputError(f"{scheme}:// cannot be used here; expected one of {', '.join(allowed)}", source=source)
@@ -133,7 +149,9 @@ def parse_device_url(text: str, *, allowed: tuple[str, ...] | None = None,
     params = tuple(parse_qsl(parts.query, keep_blank_values=True))
     url = DeviceUrl(text=text, scheme=scheme, host=parts.hostname or "", port=port, path=parts.path,
                     params=params)
-    if scheme == "canopen":
+    if scheme in plugins:
+        pass                            # the outside package's backend checks its own URL when it opens
+    elif scheme == "canopen":
         if not url.host:
             raise InputError(f"{text}: give the python-can interface, e.g. canopen://virtual/cell?node=5",
                              source=source)

@@ -186,6 +186,9 @@ class SimulatedCell:
             self.tracker = SimEmscon(self.world)
             port = self.tracker.serve_tcp(url.host, url.port or 0)
             tracker_cfg = replace(tracker_cfg, url=url.with_port(port))
+        elif tracker_cfg is not None and tracker_cfg.url.scheme not in ("tracker+tcp", "tracker+serial"):
+            raise InputError(f"{tracker_cfg.url.text}: the simulated cell serves tracker+tcp, tracker+serial and "
+                             "tracker+emscon trackers only")
         elif tracker_cfg is not None:
             self.tracker = SimTracker(self.world, reply_delay_s=sim.tracker_reply_delay_s)
             url = tracker_cfg.url
