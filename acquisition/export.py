@@ -349,10 +349,11 @@ def read_log(path: str | pathlib.Path) -> LogContents:
     for groups in reader.grouped():
         offset = segment * SEGMENT_NS
         resumes = 0
-        for topic, (times, values) in groups.items():
-            n_messages += len(times)
+        for topic, (log_times, values) in groups.items():
+            n_messages += len(log_times)
+            times = _monotonic(log_times, values)
             if topic in lf.CHECKED_TOPICS:
-                _check_messages(topic, times, values, source)
+                _check_messages(topic, log_times, values, source)
             j = drive_index.get(topic)
             if j is not None:
                 try:
@@ -423,6 +424,15 @@ def read_log(path: str | pathlib.Path) -> LogContents:
 #: reading windows only ever see samples of their own session
 SEGMENT_NS = 10**17
 MAX_SEGMENTS = 90
+
+
+def _monotonic(log_times: list[int], values: list) -> list[int]:
+    """Acquisition times on the monotonic clock: each message's ``monotonic_ns``, or its
+    log time in logs written before log times became Unix time (docs/log-format.md)."""
+    if not values or not isinstance(values[0], dict) or "monotonic_ns" not in values[0]:
+        if not any(isinstance(v, dict) and "monotonic_ns" in v for v in values):
+            return log_times
+    return [v.get("monotonic_ns", t) if isinstance(v, dict) else t for t, v in zip(log_times, values)]
 
 
 def _keys(times: list[int], offset: int, source: str) -> np.ndarray:

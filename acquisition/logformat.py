@@ -3,14 +3,20 @@
 Every topic is JSON-encoded (message encoding ``json``) with a JSON Schema
 (schema encoding ``jsonschema``), so Foxglove and the ``mcap`` CLI open a log
 without elastocal. Message ``log_time`` is the acquisition timestamp in integer
-nanoseconds of one monotonic clock (``time.monotonic_ns`` of the recording
-host); ``publish_time`` is when the recorder wrote the message, same clock.
+Unix nanoseconds (wall clock: the acquisition time on the recording host's
+monotonic clock plus the session's fixed offset to Unix time), and each sample
+and event keeps its monotonic stamp in ``monotonic_ns``; ``publish_time`` is when
+the recorder wrote the message, same clock. Logs written before the change have
+monotonic log times and no ``monotonic_ns`` field; the reader takes their log
+time as the monotonic stamp. Beside these, the log carries Foxglove's
+well-known channels (:mod:`elastocal.acquisition.foxglove`).
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import pathlib
 
 #: value of the ``format`` field of the ``/elastocal/session`` message and of the log metadata
 LOG_FORMAT = "elastocal.log/1"
@@ -45,6 +51,8 @@ def drive_topic(joint: int) -> str:
 DRIVE_TOPICS = tuple(drive_topic(j) for j in range(1, N_JOINTS + 1))
 
 _NUMBER_OR_NULL = {"type": ["number", "null"]}
+_MONOTONIC = {"type": "integer", "description": "acquisition time on the recording host's monotonic clock [ns]; "
+                                               "log_time is this plus the session's offset to Unix time"}
 _VEC6 = {"type": "array", "items": {"type": "number"}, "minItems": 6, "maxItems": 6}
 
 #: schema name -> JSON Schema (draft 2020-12)
@@ -58,6 +66,9 @@ SCHEMAS: dict[str, dict] = {
             "software": {"type": "string", "description": "elastocal version that wrote the log"},
             "started_utc": {"type": "string", "description": "ISO 8601 wall-clock time at monotonic_ns"},
             "monotonic_ns": {"type": "integer", "description": "monotonic clock reading at started_utc"},
+            "unix_ns": {"type": "integer", "description": "Unix time at monotonic_ns [ns]: the offset of the log clock"},
+            "log_clock": {"type": "string", "enum": ["unix"],
+                          "description": "log times are Unix ns (absent in logs with monotonic log times)"},
             "resumed_from": {"type": ["string", "null"],
                              "description": "log this one continues (copied messages keep their times)"},
         },
@@ -87,6 +98,7 @@ SCHEMAS: dict[str, dict] = {
             "current_a": {**_NUMBER_OR_NULL,
                           "description": "motor current [A], signed: torque_constant * i = load torque"},
             "status": {"type": ["integer", "null"], "description": "drive status word as read"},
+            "monotonic_ns": _MONOTONIC,
         },
         "required": ["joint", "position_rad", "velocity_rad_s", "current_a"],
     },
@@ -100,6 +112,7 @@ SCHEMAS: dict[str, dict] = {
             "y": {"type": "number", "description": "[m]"},
             "z": {"type": "number", "description": "[m]"},
             **{k: {"type": "number", "description": d} for k, d in TRACKER_ENVIRONMENT.items()},
+            "monotonic_ns": _MONOTONIC,
         },
         "required": ["marker", "x", "y", "z"],
     },
@@ -125,7 +138,8 @@ SCHEMAS: dict[str, dict] = {
             "marker": {"type": ["string", "null"]},
             "repeat": {"type": "integer"},
             "window_ns": {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2,
-                          "description": "[start, end] of a reading on the log clock [ns]"},
+                          "description": "[start, end] of a reading on the monotonic clock of the samples' "
+                                         "monotonic_ns (the log time in logs without that field) [ns]"},
             "run": {"type": "string"},
             "direction": {"type": "string", "enum": ["UV", "VU", "+", "-"]},
             "speed_rad_s": {"type": "number"},
@@ -142,6 +156,7 @@ SCHEMAS: dict[str, dict] = {
             "device": {"type": "string", "description": "device of a gap"},
             "missing": {"type": "integer", "description": "samples a gap lost"},
             "completed_steps": {"type": "array", "items": {"type": "string"}},
+            "monotonic_ns": _MONOTONIC,
         },
         "required": ["kind"],
         # what each kind must carry for the log to be turned into tables (docs/log-format.md)
@@ -154,6 +169,21 @@ SCHEMAS: dict[str, dict] = {
     },
 }
 
+#: Foxglove's well-known channels (elastocal.acquisition.foxglove)
+TOPIC_FRAMES = "/cell/frames"
+TOPIC_ROBOT_SCENE = "/cell/robot"
+TOPIC_TRACKER_SCENE = "/cell/tracker"
+TOPIC_LOG = "/cell/log"
+#: topic -> schema name of Foxglove's well-known channels
+FOXGLOVE_TOPIC_SCHEMAS: dict[str, str] = {
+    TOPIC_FRAMES: "foxglove.FrameTransforms",
+    TOPIC_ROBOT_SCENE: "foxglove.SceneUpdate",
+    TOPIC_TRACKER_SCENE: "foxglove.SceneUpdate",
+    TOPIC_LOG: "foxglove.Log",
+}
+#: Foxglove's published JSON Schemas, shipped verbatim with their MIT licence
+FOXGLOVE_SCHEMA_DIR = pathlib.Path(__file__).with_name("foxglove_schemas")
+
 #: topic -> schema name, for the fixed topics
 TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_SESSION: "elastocal.Session",
@@ -163,11 +193,14 @@ TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_EVENT: "elastocal.ProcedureEvent",
     TOPIC_TRACKER: "elastocal.TrackerSample",
     **{t: "elastocal.DriveSample" for t in DRIVE_TOPICS},
+    **FOXGLOVE_TOPIC_SCHEMAS,
 }
 
 
 def schema_bytes(name: str) -> bytes:
-    """The JSON Schema ``name`` as UTF-8 bytes (key order fixed)."""
+    """The JSON Schema ``name`` as UTF-8 bytes (key order fixed); Foxglove's as published."""
+    if name.startswith("foxglove."):
+        return (FOXGLOVE_SCHEMA_DIR / f"{name.removeprefix('foxglove.')}.json").read_bytes()
     return json.dumps(SCHEMAS[name], separators=(",", ":")).encode()
 
 

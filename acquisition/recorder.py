@@ -2,8 +2,15 @@
 
 The recorder is a context manager around :class:`mcap.writer.Writer` (zstd
 chunks). Each JSON Schema is registered once, each topic's channel once, on
-first use. Samples carry the acquisition timestamp their driver gave them
+first use. Samples come with the acquisition timestamp their driver gave them
 (integer ns, one monotonic clock); events are stamped by the recorder's clock.
+Log times are wall-clock Unix ns: the monotonic stamp plus the offset between
+the two clocks taken once when the log opens (so intervals stay monotonic), and
+the monotonic stamp is kept in each sample's and event's ``monotonic_ns``.
+
+Once the robot description is recorded, the recorder also publishes the cell in
+Foxglove's well-known schemas (:class:`elastocal.acquisition.foxglove.CellPublisher`):
+joint frames, links, markers, tracker readings and the procedure's events.
 
 Surviving a kill: the writer keeps the chunk in progress in memory, so the
 recorder finishes the chunk and flushes the file at every procedure event and
@@ -27,7 +34,9 @@ from mcap.writer import CompressionType, Writer
 
 from elastocal import __version__
 from elastocal.acquisition import logformat as lf
+from elastocal.acquisition.foxglove import CellPublisher
 from elastocal.errors import InputError
+from elastocal.identify.robot import parse_robot
 
 Clock = Callable[[], int]
 
@@ -58,7 +67,8 @@ class Recorder:
 
     def __init__(self, path: str | pathlib.Path, *, overwrite: bool = False,
                  chunk_size: int = 256 * 1024, flush_interval_s: float = 1.0,
-                 clock: Clock = time.monotonic_ns, resumed_from: str | None = None) -> None:
+                 clock: Clock = time.monotonic_ns, resumed_from: str | None = None,
+                 unix_clock: Clock = time.time_ns, foxglove: bool = True) -> None:
         self.path = pathlib.Path(path)
         if not overwrite and self.path.exists():
             raise InputError("already exists; choose another --out or remove it", source=str(self.path))
@@ -69,7 +79,11 @@ class Recorder:
         self.chunk_size = chunk_size
         self.flush_interval_ns = int(flush_interval_s * 1e9)
         self.clock = clock
+        self.unix_clock = unix_clock
+        self.foxglove = foxglove
         self.resumed_from = resumed_from
+        self._offset_ns = 0                   # Unix time minus the acquisition clock, fixed at opening
+        self._cell: CellPublisher | None = None
         self._lock = threading.Lock()
         self._file = None
         self._writer: Writer | None = None
@@ -89,10 +103,13 @@ class Recorder:
         self._writer.start(profile=lf.PROFILE, library=f"elastocal/{__version__}")
         self._writer.add_metadata("elastocal", {"format": lf.LOG_FORMAT, "software": __version__})
         now = self.clock()
+        unix_now = int(self.unix_clock())
+        self._offset_ns = unix_now - now
+        started = datetime.datetime.fromtimestamp(unix_now / 1e9, datetime.timezone.utc)
         self._write(lf.TOPIC_SESSION, now, {
             "format": lf.LOG_FORMAT, "software": __version__,
-            "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="microseconds"),
-            "monotonic_ns": now, "resumed_from": self.resumed_from,
+            "started_utc": started.isoformat(timespec="microseconds"),
+            "monotonic_ns": now, "unix_ns": unix_now, "log_clock": "unix", "resumed_from": self.resumed_from,
         }, now)
         self.flush()
         return self
@@ -129,6 +146,10 @@ class Recorder:
         return cid
 
     def _write(self, topic: str, log_time_ns: int, message: dict | bytes, publish_ns: int) -> None:
+        """Write one message; ``log_time_ns`` and ``publish_ns`` on the acquisition clock."""
+        self._write_unix(topic, int(log_time_ns) + self._offset_ns, message, int(publish_ns) + self._offset_ns)
+
+    def _write_unix(self, topic: str, log_time_ns: int, message: dict | bytes, publish_ns: int) -> None:
         if self._writer is None:
             raise RuntimeError("the recorder is not open; use it in a with block")
         data = message if isinstance(message, bytes) else _dumps(message)
@@ -136,6 +157,15 @@ class Recorder:
         self._writer.add_message(self._channel(topic), int(log_time_ns), data, int(publish_ns),
                                  sequence=self._sequence & 0xFFFFFFFF)
         self._messages += 1
+
+    def _publish(self, topic: str, unix_ns: int, message: dict) -> None:
+        """A Foxglove message (the lock is held)."""
+        self._write_unix(topic, unix_ns, message, unix_ns)
+
+    @property
+    def offset_ns(self) -> int:
+        """Unix time minus the acquisition clock [ns] (fixed when the log opened)."""
+        return self._offset_ns
 
     def _maybe_flush(self, now_ns: int) -> None:
         if now_ns - self._last_flush_ns >= self.flush_interval_ns:
@@ -159,17 +189,30 @@ class Recorder:
         with self._lock:
             now = self.clock()
             self._write(topic, now, msg, now)
+            if kind == "robot" and self.foxglove and self._cell is None:
+                self._start_cell(text)
             self._flush_locked(now)
+
+    def _start_cell(self, text: str) -> None:
+        """Publish the robot in Foxglove's schemas from now on (a description elastocal
+        cannot build alone, e.g. one naming a URDF file beside it, gives the log no 3-D view)."""
+        try:
+            robot = parse_robot(text, source="recorded robot")
+        except InputError:
+            return
+        self._cell = CellPublisher(robot, self._publish)
 
     def drive_sample(self, joint: int, t_ns: int, position_rad: float, velocity_rad_s: float | None,
                      current_a: float | None, status: int | None = None) -> None:
         """One raw drive sample; ``t_ns`` is its acquisition time."""
         msg = {"joint": int(joint), "position_rad": float(position_rad),
                "velocity_rad_s": _finite_or_none(velocity_rad_s), "current_a": _finite_or_none(current_a),
-               "status": None if status is None else int(status)}
+               "status": None if status is None else int(status), "monotonic_ns": int(t_ns)}
         with self._lock:
             now = self.clock()
             self._write(lf.drive_topic(joint), t_ns, msg, now)
+            if self._cell is not None:
+                self._cell.measured_sample(joint, t_ns, msg["position_rad"], self._offset_ns)
             self._maybe_flush(now)
 
     def tracker_sample(self, t_ns: int, marker: str, xyz: Sequence[float],
@@ -184,7 +227,10 @@ class Recorder:
                 msg[key] = float(value)
         with self._lock:
             now = self.clock()
+            msg["monotonic_ns"] = int(t_ns)
             self._write(lf.TOPIC_TRACKER, t_ns, msg, now)
+            if self._cell is not None:
+                self._cell.tracker_sample(str(marker), (x, y, z), int(t_ns), self._offset_ns)
             self._maybe_flush(now)
 
     def event(self, kind: str, **fields: Any) -> int:
@@ -194,14 +240,18 @@ class Recorder:
         msg = {"kind": kind, **{k: v for k, v in clean.items() if v is not None}}
         with self._lock:
             now = self.clock()
+            msg["monotonic_ns"] = now
             self._write(lf.TOPIC_EVENT, now, msg, now)
+            if self._cell is not None:
+                self._cell.event(msg, now + self._offset_ns)
             self._flush_locked(now)
         return now
 
     def copy(self, topic: str, log_time_ns: int, publish_time_ns: int, data: bytes) -> None:
-        """Copy a message of an earlier log unchanged (resuming an interrupted procedure)."""
+        """Copy a message of an earlier log unchanged, its times included (resuming an
+        interrupted procedure)."""
         if topic not in lf.TOPIC_SCHEMAS:
             raise InputError(f"unknown topic {topic!r} in the log being resumed")
         with self._lock:
-            self._write(topic, log_time_ns, bytes(data), publish_time_ns)
+            self._write_unix(topic, log_time_ns, bytes(data), publish_time_ns)
             self._maybe_flush(self.clock())

@@ -60,16 +60,23 @@ def test_schemas_registered_once_and_channels_are_json(tmp_path):
         names = [s.name for s in summary.schemas.values()]
         assert sorted(names) == sorted(set(names))   # each schema once
         assert set(names) == {"elastocal.Session", "elastocal.Document", "elastocal.DriveSample",
-                              "elastocal.TrackerSample", "elastocal.ProcedureEvent"}
+                              "elastocal.TrackerSample", "elastocal.ProcedureEvent",
+                              "foxglove.FrameTransforms", "foxglove.SceneUpdate", "foxglove.Log"}
         for s in summary.schemas.values():
             assert s.encoding == "jsonschema"
             doc = json.loads(s.data)
             assert doc["type"] == "object" and doc["title"] == s.name
         topics = {c.topic: c for c in summary.channels.values()}
         assert set(topics) == {lf.TOPIC_SESSION, lf.TOPIC_ROBOT, lf.TOPIC_CELL, lf.TOPIC_PLAN, lf.TOPIC_EVENT,
-                               lf.TOPIC_TRACKER, *lf.DRIVE_TOPICS}
+                               lf.TOPIC_TRACKER, *lf.DRIVE_TOPICS, *lf.FOXGLOVE_TOPIC_SCHEMAS}
         assert all(c.message_encoding == "json" for c in topics.values())
-        assert summary.statistics.message_count == 3 + 1 + 6 * 2 + 6 * 40 * 7
+        counts = summary.statistics.channel_message_counts
+        raw = sum(n for cid, n in counts.items() if summary.channels[cid].topic not in lf.FOXGLOVE_TOPIC_SCHEMAS)
+        assert raw == 3 + 1 + 6 * 2 + 6 * 40 * 7
+        # Foxglove's channels: one log line per event, measured frames every 100 ms of the 240 ms of samples
+        fox = {summary.channels[cid].topic: n for cid, n in counts.items()
+               if summary.channels[cid].topic in lf.FOXGLOVE_TOPIC_SCHEMAS}
+        assert fox[lf.TOPIC_LOG] == 6 * 2 and fox[lf.TOPIC_FRAMES] == 3
         meta = list(reader.iter_metadata())
         assert meta[0].name == "elastocal" and meta[0].metadata["format"] == lf.LOG_FORMAT
         # every message decodes with the mcap reader and carries only fields its schema names
