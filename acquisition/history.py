@@ -290,7 +290,9 @@ class History:
         kv = np.full((len(checks), len(names)), np.nan)
         unexplained = np.full(len(checks), np.nan)
         floor = np.full(len(checks), np.nan)
+        by_id = {rec.id: rec.calibration for rec in cals}
         for i, rec in enumerate(checks):
+            _friction_drift(rec.result, by_id.get(rec.calibration_id), names, kv[i])
             defl = rec.result.get("deflection") if isinstance(rec.result, Mapping) else None
             if not isinstance(defl, Mapping):
                 continue
@@ -310,6 +312,31 @@ class History:
                      check_time_ns=np.array([r.time_ns for r in checks], dtype=np.int64), check_value=kv,
                      check_verdict=tuple(r.verdict for r in checks), check_unexplained_m=unexplained,
                      check_noise_floor_m=floor)
+
+
+#: friction parameters of joint j, which a check's UV/VU runs see together (the mean friction along its path)
+FRICTION_PREFIXES = ("fc", "fv", "fl")
+
+
+def _friction_drift(result: object, calibration: Calibration | None, names: Sequence[str], row: np.ndarray) -> None:
+    """A check's friction as parameter values: the runs give the level of each joint's total friction
+    along the check path, measured against what the calibration predicts there; each of the joint's
+    friction parameters is shown at its calibrated value times that ratio (what the check says it has
+    become, if the friction changed in proportion). Only joints the check determined are filled."""
+    friction = result.get("friction") if isinstance(result, Mapping) else None
+    if calibration is None or not isinstance(friction, Mapping) or not isinstance(friction.get("joints"), Mapping):
+        return
+    for joint, f in friction["joints"].items():
+        if not isinstance(f, Mapping):
+            continue
+        measured, predicted = f.get("measured"), f.get("predicted")
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (measured, predicted)) or not predicted:
+            continue
+        for prefix in FRICTION_PREFIXES:
+            name = f"{prefix}{joint}"
+            p = calibration.parameters.get(name)
+            if name in names and isinstance(p, Mapping) and isinstance(p.get("value"), (int, float)):
+                row[names.index(name)] = float(p["value"]) * measured / predicted
 
 
 def drift_summary(drift: Drift) -> dict:
@@ -334,17 +361,22 @@ def drift_summary(drift: Drift) -> dict:
 
 
 def plot_drift(drift: Drift, path: str | pathlib.Path) -> None:
-    """Write the drift plot (PNG or SVG by suffix): the joint stiffness and
-    other parameters relative to the first calibration (calibrations with
-    their std, checks as open markers), and each check's unexplained
-    deflection against its noise floor, coloured by verdict."""
-    from matplotlib.figure import Figure
-
+    """Write the drift plot (PNG or SVG by suffix), :func:`drift_figure`."""
     path = pathlib.Path(path)
     if path.suffix.lower() not in (".png", ".svg"):
         raise InputError("the drift plot is written as .png or .svg", source=str(path))
     if not len(drift.calibration_time_ns):
         raise InputError("the history holds no calibration to plot", source=str(path))
+    drift_figure(drift).savefig(path, dpi=110)
+
+
+def drift_figure(drift: Drift):
+    """The drift plot: the joint stiffness and other parameters relative to the
+    first calibration (calibrations with their std, checks as open markers,
+    friction from the checks' runs among them), and each check's unexplained
+    deflection against its noise floor, coloured by verdict; every check is
+    marked on every panel, a check without static poses on the checks panel's axis."""
+    from matplotlib.figure import Figure
 
     def days(t_ns: np.ndarray) -> np.ndarray:
         return np.asarray(t_ns, dtype=np.int64).astype("datetime64[ns]")
@@ -355,12 +387,20 @@ def plot_drift(drift: Drift, path: str | pathlib.Path) -> None:
     fig = Figure(figsize=(9.0, 2.8 * len(panels)), layout="constrained")
     axes = np.atleast_1d(fig.subplots(len(panels), 1, sharex=True))
     tc, tk = days(drift.calibration_time_ns), days(drift.check_time_ns)
+    colours = ["tab:green" if v == "holds" else "tab:red" for v in drift.check_verdict]
     for ax, (title, cols) in zip(axes, panels):
+        for t, c in zip(tk, colours):       # every check, on every panel, whatever it could measure
+            ax.axvline(t, color=c, lw=0.6, alpha=0.4, zorder=0)
         if cols is None:
-            colours = ["tab:green" if v == "holds" else "tab:red" for v in drift.check_verdict]
             if len(tk):
-                ax.scatter(tk, drift.check_unexplained_m * 1e6, c=colours, zorder=3, label="unexplained (rms)")
+                static = np.isfinite(drift.check_unexplained_m)
+                ax.scatter(tk[static], drift.check_unexplained_m[static] * 1e6,
+                           c=[c for c, s_ in zip(colours, static) if s_], zorder=3, label="unexplained (rms)")
                 ax.plot(tk, drift.check_noise_floor_m * 1e6, "k--", lw=0.8, label="noise floor")
+                if np.any(~static):   # checks without static poses (friction runs only): on the axis
+                    ax.scatter(tk[~static], np.zeros(int(np.sum(~static))), marker="^",
+                               c=[c for c, s_ in zip(colours, static) if not s_], zorder=3,
+                               label="no static poses (runs only)")
                 ax.legend(fontsize=8, loc="upper left")
             ax.set_ylabel("deflection [µm]")
             ax.set_title("checks: green holds, red recalibrate", fontsize=10)
@@ -384,4 +424,4 @@ def plot_drift(drift: Drift, path: str | pathlib.Path) -> None:
         ax.legend(fontsize=8, ncol=6, loc="upper left")
     axes[-1].set_xlabel("time (UTC)")
     fig.autofmt_xdate()
-    fig.savefig(path, dpi=110)
+    return fig

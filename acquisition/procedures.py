@@ -73,6 +73,7 @@ class Outcome:
     steps_resumed: int          # copied from resume_from
     duration_s: float
     message: str = ""
+    skipped: tuple[str, ...] = ()   # labels of the steps an unattended run left out (they need a person)
 
 
 # ------------------------------------------------------------------ settle
@@ -563,7 +564,7 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
                    procedures: Sequence[str] | None = None, resume_from: str | pathlib.Path | None = None,
                    cell_text: str = "", cell_name: str = "cell", cell_path: str | None = None,
                    robot_text: str | None = None, overwrite: bool = False,
-                   recorder_options: dict | None = None) -> Outcome:
+                   recorder_options: dict | None = None, unattended: bool = False) -> Outcome:
     """Run the plan's procedures on ``io`` and record everything to ``out_path``.
 
     Returns the :class:`Outcome` (completed or aborted by the operator); a
@@ -572,12 +573,24 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
     attribute. ``resume_from``
     names an interrupted log of the same plan and robot: its completed steps
     are copied into the new log and skipped.
+
+    ``unattended``: no person is at the cell (a scheduled check). The steps that
+    need one (hanging or removing a load) are left out and listed in the
+    outcome's ``skipped``; the cell is taken as unloaded, as every procedure
+    leaves it, and nothing is asked. Refused when no step remains.
     """
     ui = ui if ui is not None else AutoUI(quiet=True)
     robot = io.robot
     plan.validate_for(robot)
     procs = _procedures(plan, procedures)
     steps = build_steps(plan, procs, person_s=0.0 if ui.automatic else PERSON_S)
+    skipped: tuple[str, ...] = ()
+    if unattended:
+        skipped = tuple(s.label for s in steps if s.needs_person)
+        steps = [s for s in steps if not s.needs_person]
+        if not steps:
+            raise InputError(f"no step of {', '.join(procs)} runs without a person at the cell (each hangs a "
+                             "load): nothing to do unattended", source=plan.source)
     robot_text = robot_text if robot_text is not None else robot.to_toml()
     out_path = pathlib.Path(out_path)
     done_before: set[str] = set()
@@ -615,8 +628,12 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
         session = Session(io, rec, ui, plan, steps, world)
         session.event("procedure_start", procedure=",".join(procs), steps=len(steps))
         remaining = [s for s in steps if s.id not in done_before]
+        if unattended:
+            session.load_state = UNLOADED
+            session.event("unattended", text="no person at the cell: the cell is taken as unloaded; skipped "
+                                             + ("; ".join(skipped) or "nothing"))
         try:
-            if remaining:
+            if remaining and not unattended:
                 session.confirm(f"the robot will run {len(remaining)} step(s) of {', '.join(procs)}; "
                                 f"clear the cell")
             for index, step in enumerate(steps):
@@ -653,7 +670,7 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
         session.event("procedure_end", status="completed")
         ui.close()
     return Outcome(str(out_path), "completed", len(steps), session.done, len(done_before),
-                   time.monotonic() - started)
+                   time.monotonic() - started, skipped=skipped)
 
 
 def _robot_text(robot, robot_path) -> str:
@@ -668,7 +685,7 @@ def _robot_text(robot, robot_path) -> str:
 def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, yes: bool = True,
                     ui: OperatorUI | None = None, world=None, simulate: bool = False,
                     procedures: Sequence[str] | None = None, resume_from: str | pathlib.Path | None = None,
-                    overwrite: bool = False) -> Outcome:
+                    overwrite: bool = False, unattended: bool = False) -> Outcome:
     """The guided calibration of the cell ``cell_config`` (a
     :class:`elastocal.drivers.config.CellConfig`) by ``plan``, recorded to ``out_path``.
 
@@ -711,4 +728,5 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
         return run_procedures(io, plan, out_path, ui=ui, procedures=procedures, resume_from=resume_from,
                               cell_text=cell_config.to_toml(), cell_name=cell_config.name,
                               cell_path=str(cell_config.source),
-                              robot_text=_robot_text(robot, robot_path), overwrite=overwrite)
+                              robot_text=_robot_text(robot, robot_path), overwrite=overwrite,
+                              unattended=unattended)

@@ -435,3 +435,106 @@ def test_sim_serve_write_cell_refuses_to_overwrite_without_force(tmp_path, capsy
     rc, _, err = run_cli(capsys, ["sim", "serve", "--write-cell", cell, "--duration", "0.2", "--force", "--json"])
     assert rc == 0, err
     assert "[cell]" in cell.read_text() and not list(tmp_path.glob(".*partial*"))
+
+
+# ------------------------------------------- 10. unattended checks, friction drift
+def _check_plan(friction: bool = True) -> str:
+    from elastocal.acquisition.plan import CheckSpec, FrictionSpec, LoadSpec, SettleSpec, plan_toml
+
+    poses = {"P1": (0.2, 0.3, -0.4, 0.3, 1.0, 0.2), "P2": (0.5, 0.55, -0.2, 0.6, 1.2, 0.5)}
+    spec = (FrictionSpec("F1", start=(-0.2, 0.3, -0.5, -0.1, 0.6, -0.1), end=(0.0, 0.4, -0.4, 0.1, 0.7, 0.1),
+                         speeds_rad_s=(0.2,)),)
+    return plan_toml(poses=poses, loads=(LoadSpec("L1", force_n=(-635.0, 635.0, -635.0)),),
+                     markers=("R1", "R2", "R3"), repeats=2, reading_s=0.04, speed_rad_s=0.8,
+                     settle=SettleSpec(speed_rad_s=2e-3, spread_m=60e-6, window_s=0.15, timeout_s=20.0),
+                     friction=spec, check=CheckSpec(poses=("P1", "P2"), load="L1",
+                                                    friction="F1" if friction else None))
+
+
+def test_unattended_procedure_skips_what_needs_a_person(tmp_path):
+    from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
+    from elastocal.acquisition.export import read_log
+    from elastocal.acquisition.plan import parse_plan
+    from elastocal.acquisition.procedures import run_procedures
+    from elastocal.errors import InputError
+    from elastocal.sims.cell import SimCell
+
+    timing = VirtualTiming(drive_rate_hz=100.0, tracker_rate_hz=100.0)
+    io = VirtualCellIO(SimCell(ROBOT, CellTruth()), seed=3, timing=timing)
+    out = run_procedures(io, parse_plan(_check_plan()), tmp_path / "u.mcap", procedures=("check",), unattended=True)
+    assert out.status == "completed" and out.skipped == ("check pose P1", "check pose P2")
+    contents = read_log(tmp_path / "u.mcap")
+    kinds = [e["kind"] for e in contents.events]
+    assert "prompt" not in kinds and kinds.count("run_start") == 2 and "reading" not in kinds
+    assert [e["text"] for e in contents.events if e["kind"] == "unattended"] == [
+        "no person at the cell: the cell is taken as unloaded; skipped check pose P1; check pose P2"]
+    with pytest.raises(InputError, match="no step of check runs without a person at the cell"):
+        run_procedures(VirtualCellIO(SimCell(ROBOT, CellTruth()), seed=3, timing=timing),
+                       parse_plan(_check_plan(friction=False)), tmp_path / "v.mcap", procedures=("check",),
+                       unattended=True)
+    assert not (tmp_path / "v.mcap").exists()
+
+
+def test_a_check_without_terminal_runs_unattended(data, tmp_path, capsys, monkeypatch):
+    """`check --sim` without a terminal (a scheduled run): the static poses, which need a person to
+    hang the load, are skipped and said so; the friction runs are checked; nothing is asked."""
+    from elastocal.sims.serve import example_cell_config
+
+    config = example_cell_config()
+    text = config.to_toml().replace("rate_hz = 1000.0", "rate_hz = 200.0")
+    text = text.replace("u = [-0.5, 0.2, -0.6, -0.3, 0.4, -0.2]\nv = [0.5, 0.5, -0.3, 0.3, 0.7, 0.3]",
+                        "u = [-0.2, 0.3, -0.5, -0.1, 0.6, -0.1]\nv = [0.0, 0.4, -0.4, 0.1, 0.7, 0.1]")
+    (tmp_path / "cell.toml").write_text(text)
+    (tmp_path / "plan.toml").write_text(_check_plan())
+    doc = json.loads((data / "cal.json").read_text())
+    for j in range(1, 7):
+        doc["parameters"][f"fc{j}"] = {"value": 50.0, "std": 1.0, "unit": "N*m"}
+    doc["model"].append("coulomb_friction")
+    (tmp_path / "cal.json").write_text(json.dumps(doc))
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))
+    rc, out, err = run_cli(capsys, ["check", "--cell", tmp_path / "cell.toml", "--calibration", tmp_path / "cal.json",
+                                    "--plan", tmp_path / "plan.toml", "--sim", "--out", tmp_path / "c.mcap",
+                                    "--no-record", "--json"])
+    assert rc in (0, 3), err
+    obj = json.loads(out)
+    assert obj["skipped"] == ["check pose P1", "check pose P2"] and obj["deflection"] is None
+    assert obj["friction"]["joints"]
+    assert obj["reasons"][-1] == "not checked, no person at the cell (unattended): check pose P1; check pose P2"
+    assert "aborted" not in err
+
+
+def test_history_shows_friction_drift_and_plots_every_check(tmp_path, capsys):
+    from elastocal.acquisition.history import History, drift_figure, drift_summary
+    from elastocal.identify.calibration import Calibration
+
+    params = {f"k{j}": {"value": 5e5, "std": 5e2, "unit": "N*m/rad"} for j in range(1, 7)}
+    params.update(fc2={"value": 90.0, "std": 0.5, "unit": "N*m"}, fv2={"value": 600.0, "std": 3.0,
+                                                                       "unit": "N*m*s/rad"})
+    cal = Calibration(robot="HH-150", created="2026-01-05T08:00:00Z",
+                      model=("joint_stiffness", "coulomb_friction", "viscous_friction"), torque="current",
+                      parameters=params, residual={"rms": 8e-6, "max": 3e-5, "n": 100})
+    t0 = 1_767_600_000 * 10**9
+    db = tmp_path / "h.sqlite"
+    with History(db) as h:
+        cid = h.add_calibration(cal, time_ns=t0)
+        h.add_check(calibration_id=cid, time_ns=t0 + 10**12, verdict="recalibrate", reasons=("friction",),
+                    result={"verdict": "recalibrate", "deflection": None,
+                            "friction": {"joints": {"2": {"measured": 143.1, "predicted": 90.0, "relative": 0.59}}}})
+        h.add_check(calibration_id=cid, time_ns=t0 + 2 * 10**12, verdict="holds", reasons=("fine",),
+                    result={"verdict": "holds", "deflection": {"rms_unexplained": 8e-6, "noise_floor": 7e-6,
+                                                               "parameters": {}}, "friction": None})
+        drift = h.drift()
+    summary = drift_summary(drift)
+    assert summary["fc2"]["latest"] == pytest.approx(90.0 * 143.1 / 90.0)
+    assert summary["fc2"]["change"] == pytest.approx(0.59, abs=1e-3)
+    assert summary["fv2"]["change"] == pytest.approx(0.59, abs=1e-3)
+    assert summary["k2"]["change"] == 0.0
+    rc, out, _ = run_cli(capsys, ["history", "--db", db])
+    assert rc == 0 and "fc2   90 -> 143.1 N*m (+59.00 %)" in out
+    fig = drift_figure(drift)
+    for ax in fig.axes:                    # every check is marked on every panel
+        assert sum(1 for line in ax.lines if line.get_linestyle() == "-" and len(line.get_xdata()) == 2
+                   and line.get_xdata()[0] == line.get_xdata()[1]) >= 2
+    checks_panel = fig.axes[-1]
+    points = sum(len(c.get_offsets()) for c in checks_panel.collections)
+    assert points == 2                     # the friction-only check too, on the axis

@@ -11,6 +11,7 @@ input; 1 device fault. The verdict is recorded in the cell's history.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pathlib
 import sys
@@ -36,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     proc.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     proc.add_argument("--sim", action="store_true", help="serve the cell's simulated devices in this process")
     proc.add_argument("--yes", action="store_true", help="answer every prompt automatically (simulated devices only)")
+    proc.add_argument("--unattended", action="store_true",
+                      help="no person at the cell (the default without a terminal, as when scheduled): run the "
+                           "steps that need nobody, say which were skipped")
     test = parser.add_argument_group("the test")
     test.add_argument("--alpha", type=float, default=1e-3,
                       help="false-alarm probability of the whole check when nothing changed (default 0.001)")
@@ -68,9 +72,21 @@ def _calibration(args: argparse.Namespace, db: pathlib.Path | None):
     return rec.calibration, rec.id, rec.plan
 
 
+def unattended(args: argparse.Namespace) -> bool:
+    """No person can answer prompts: --unattended, or no terminal on stdin (a scheduled run) without --yes."""
+    if args.yes:
+        return False
+    if args.unattended:
+        return True
+    try:
+        return not sys.stdin.isatty()
+    except (AttributeError, ValueError, OSError):      # no stdin at all
+        return True
+
+
 def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: pathlib.Path | None,
-                   now_ns: int) -> pathlib.Path:
-    """Run the plan's [check] on the cell; returns the log."""
+                   now_ns: int):
+    """Run the plan's [check] on the cell; returns the log and the labels of the steps skipped."""
     from elastocal.acquisition.history import iso_utc
     from elastocal.acquisition.plan import load_plan, parse_plan
     from elastocal.acquisition.procedures import run_calibration
@@ -99,12 +115,14 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
         raise InputError("--yes answers the prompts of simulated devices only; add --sim, or let a person answer",
                          source="--yes")
     ui = AutoUI(sys.stderr, quiet=args.json) if args.yes else TerminalUI(sys.stderr)
+    if args.yes and args.unattended:
+        raise InputError("--yes answers prompts, --unattended runs without them: give one", source="--unattended")
     outcome = run_calibration(config, plan, out, yes=args.yes, ui=ui, procedures=("check",), simulate=args.sim,
-                              overwrite=args.force)
+                              overwrite=args.force, unattended=unattended(args))
     if outcome.status != "completed":
         raise InputError(f"the check procedure did not complete ({outcome.status}: {outcome.message})",
                          source=str(out))
-    return out
+    return out, outcome.skipped
 
 
 def run(args: argparse.Namespace) -> int:
@@ -131,24 +149,37 @@ def run(args: argparse.Namespace) -> int:
     if (args.static or args.runs) and args.log:
         raise InputError("give either a log or --static/--runs tables, not both", source=args.log)
     log_path = None
+    skipped: tuple[str, ...] = ()
+    if args.static or args.runs or args.log:
+        if any((args.plan, args.sim, args.yes, args.out, args.unattended)):
+            raise InputError("--plan, --sim, --yes, --unattended and --out run the check procedure; not with "
+                             "--static, --runs or --log", source="--log" if args.log else "--static")
     if args.static or args.runs:
-        if any((args.plan, args.sim, args.yes, args.out)):
-            raise InputError("--plan, --sim, --yes and --out run the check procedure; not with --static/--runs",
-                             source="--static")
         static = read_static_table(args.static, robot) if args.static else None
         runs = read_run_table(args.runs, robot) if args.runs else None
         data_path = pathlib.Path(args.static or args.runs)
     else:
         from elastocal.commands._inputs import load_log_noted
 
-        log_path = pathlib.Path(args.log) if args.log else _run_procedure(args, config, plan_text, db, now_ns)
+        if args.log:
+            log_path = pathlib.Path(args.log)
+        else:
+            log_path, skipped = _run_procedure(args, config, plan_text, db, now_ns)
         _, static, runs = load_log_noted(args, log_path)
         data_path = log_path
         if static is None and runs is None:
             raise InputError("nothing to check: the log holds neither static poses nor runs", source=str(log_path))
     result = check_calibration(robot, cal, static=static, runs=runs, alpha=args.alpha,
                                friction_tolerance=args.friction_tolerance)
+    if skipped:
+        tested = result.deflection is not None or (result.friction is not None and result.friction.joints)
+        if not tested:
+            raise InputError(f"the unattended check tested nothing: it skipped {'; '.join(skipped)} (no person to "
+                             "hang the load), and the rest does not test this calibration", source=str(log_path))
+        result = dataclasses.replace(result, reasons=result.reasons + (
+            f"not checked, no person at the cell (unattended): {'; '.join(skipped)}",))
     obj = clean(result.to_json())
+    obj["skipped"] = list(skipped)
     recorded = None
     if not args.no_record and db is not None:
         if cal_id is None:
