@@ -711,9 +711,6 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
     plan.validate_for(robot)
     _procedures(plan, procedures)
     _check_out(out_path, overwrite, resume_from)
-    if yes and world is None and not simulate:
-        raise InputError("--yes answers the prompts of a simulated cell only; a person confirms every load "
-                         "change on a real cell", source="--yes")
     with contextlib.ExitStack() as stack:
         config = cell_config
         if simulate:
@@ -721,6 +718,15 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
 
             sim = stack.enter_context(SimulatedCell(cell_config))
             config, world = sim.config, sim.world
+        elif world is None:     # a cell `sim serve` serves: its load rig hangs the loads the operator confirms
+            from elastocal.sims.load_rig import served_loads
+
+            rig = served_loads(cell_config)
+            if rig is not None:
+                world = stack.enter_context(rig)
+        if yes and world is None:
+            raise InputError("--yes answers the prompts of a simulated cell only; a person confirms every load "
+                             "change on a real cell", source="--yes")
         devices = stack.enter_context(open_cell(config))
         io = stack.enter_context(DriverCellIO(robot, config, drives=list(devices.drives.values()),
                                               tracker=devices.tracker, controller=devices.controller,

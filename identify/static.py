@@ -37,6 +37,7 @@ from elastocal.identify.robot import (
     SPRINGS_IN_LINK_MODEL,
     Robot,
 )
+from elastocal.identify.evidence import check_loads_changed, mark_stiffness
 from elastocal.identify.tables import StaticTable
 
 TORQUE_SOURCES = ("current", "force")
@@ -234,7 +235,8 @@ class StaticFit:
             "model": list(self.model),
             "torque": self.torque,
             "form": self.form,
-            "parameters": {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in self.parameters},
+            "parameters": mark_stiffness({p.name: {"value": p.value, "std": p.std, "unit": p.unit}
+                                          for p in self.parameters}),
             "residual": {"rms": self.rms, "max": self.max, "n": self.n, "unit": "m"},
             "noise_floor": self.noise_floor,
         }
@@ -442,6 +444,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     if torque == "force" and not ds.has_wrench:
         raise InputError("force-based identification needs the wrench fx..mz of every loaded state",
                          source=ds.source)
+    check_loads_changed(ds)          # loads that changed nothing determine nothing (identify/evidence.py)
     names = tuple(dict.fromkeys(["joint_stiffness", *model]))
     effects = tuple(get_effect(n) for n in names)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)

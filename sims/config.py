@@ -34,6 +34,8 @@ class SimConfig:
     can_reply_delay_s: float = 50e-6
     modbus_reply_delay_s: float = 0.0
     tracker_reply_delay_s: float = 0.0
+    #: the load rig of a served cell (sims/load_rig.py): written by ``sim serve --write-cell``
+    load_url: str = ""
 
 
 def _sim(t: Mapping, *, source: str) -> SimConfig:
@@ -64,7 +66,10 @@ def _sim(t: Mapping, *, source: str) -> SimConfig:
                                   positive=False),
         tracker_reply_delay_s=_num(t, "tracker_reply_delay_s", d.tracker_reply_delay_s, source=source,
                                    where=where, positive=False),
+        load_url=t.get("load_url", d.load_url),
     )
+    if not isinstance(kw["load_url"], str):
+        raise InputError("expected a modbus+tcp:// URL on 127.0.0.1", source=source, column="sim.load_url")
     for key in ("tracker_noise_m", "current_noise_a", "can_reply_delay_s", "modbus_reply_delay_s",
                 "tracker_reply_delay_s"):
         if kw[key] < 0:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import pathlib
 from dataclasses import replace
+from types import MappingProxyType
 from importlib import resources
 from types import MappingProxyType
 
@@ -38,6 +39,7 @@ from elastocal.sims.canbus import BusStats
 from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork
 from elastocal.sims.config import sim_config
 from elastocal.sims.modbus_server import ModbusServerThread, PtyPair, SimCellController, SimModbusDrive
+from elastocal.sims.load_rig import SimLoadRig
 from elastocal.sims.tracker_server import SimTracker
 from elastocal.sims.world import SimWorld
 
@@ -77,8 +79,11 @@ def _endpoint(url: DeviceUrl) -> tuple:
 class SimulatedCell:
     """All simulated devices of ``config`` (see the module docstring)."""
 
-    def __init__(self, config: CellConfig, *, robot=None, tpdo2: bool = False) -> None:
+    def __init__(self, config: CellConfig, *, robot=None, tpdo2: bool = False, load_rig: bool = False) -> None:
         self.source_config = config
+        self._with_rig = load_rig          # serve the load rig (sims/load_rig.py): loads from other processes
+        self.load_rig: SimLoadRig | None = None
+        self._rig_server: ModbusServerThread | None = None
         self.robot = robot if robot is not None else config.load_robot()
         markers = config.tracker.markers if config.tracker is not None else None
         self.sim = sim_config(config)
@@ -201,8 +206,14 @@ class SimulatedCell:
                 path = self.tracker.serve_pty()
                 tracker_cfg = replace(tracker_cfg, url=url.with_path(path))
 
+        sim_table = cfg.sim
+        if self._with_rig:
+            self.load_rig = SimLoadRig(self.world)
+            self._rig_server = ModbusServerThread([self.load_rig.device], tcp=("127.0.0.1", 0)).start()
+            sim_table = MappingProxyType({**cfg.sim, "load_url": f"modbus+tcp://127.0.0.1:{self._rig_server.port}"
+                                                                 f"?unit={self.load_rig.unit}"})
         self.config = replace(cfg, drives=tuple(resolved_drives[d.joint] for d in cfg.drives),
-                              tracker=tracker_cfg, controller=controller)
+                              tracker=tracker_cfg, controller=controller, sim=sim_table)
 
     # ------------------------------------------------------------- info
     @property
@@ -213,6 +224,8 @@ class SimulatedCell:
             out["tracker"] = self.config.tracker.url.text
         if self.config.controller is not None:
             out["controller"] = self.config.controller.url.text
+        if self._rig_server is not None:
+            out["load rig"] = self.config.sim["load_url"]
         return out
 
     def can_stats(self) -> dict[str, BusStats]:
@@ -224,6 +237,7 @@ class SimulatedCell:
         errors = []
         for closer in ([n.close for n in self.can_networks.values()]
                        + [s.close for s in self.modbus_servers.values()]
+                       + ([self._rig_server.close] if self._rig_server is not None else [])
                        + ([self.controller.close] if self.controller is not None else [])
                        + ([self.tracker.close] if self.tracker is not None else [])
                        + [p.close for p in self._ptys]):
@@ -233,6 +247,7 @@ class SimulatedCell:
                 errors.append(exc)
         self.can_networks.clear()
         self.modbus_servers.clear()
+        self._rig_server = None
         self._ptys.clear()
         self.controller = None
         self.tracker = None

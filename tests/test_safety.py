@@ -447,3 +447,154 @@ def test_a_device_fault_prints_the_log_and_how_to_resume(tmp_path, capsys):
         assert err[-1].endswith(f"; resume with --resume {log} and a new --out"), err
         contents = read_log(log)
         assert contents.complete and [e["kind"] for e in contents.events][-2:] == ["fault", "procedure_end"]
+
+
+# ------------------------------------------------------------------ item 4: loads that changed nothing, undetermined k
+def _not_hung(table, seed):
+    """``table``'s experiment as a cell nobody could load records it: the plan's wrenches in the
+    table, the unloaded cell in the measurements."""
+    import numpy as np
+
+    from elastocal.identify.robot import bundled_robot
+    from elastocal.sims.cell import CellTruth
+    from elastocal.sims.static import StaticPlan, simulate_static
+
+    poses = np.array([table.q[table.pose == p][0] for p in dict.fromkeys(table.pose)])
+    n_loads = len(set(table.load)) - 1
+    empty = simulate_static(bundled_robot(), CellTruth(), seed=seed, poses=poses,
+                            wrenches=[np.zeros((n_loads, 6))] * len(poses),
+                            plan=StaticPlan(n_poses=len(poses), n_loads=n_loads, repeats=2))
+    return replace(empty, wrench=table.wrench)
+
+
+def test_loads_that_changed_nothing_are_refused_and_real_loads_never(tmp_path, capsys):
+    import numpy as np
+
+    from elastocal.cli import main
+    from elastocal.identify.evidence import LOADS_ALPHA, load_evidence
+    from elastocal.identify.robot import bundled_robot
+    from elastocal.identify.static import build_dataset, identify_static
+    from elastocal.identify.tables import write_static_table
+    from elastocal.sims.cell import CellTruth
+    from elastocal.sims.static import StaticPlan, simulate_static
+
+    robot = bundled_robot()
+    plan = StaticPlan(n_poses=4, n_loads=2, repeats=2)
+    seeds = range(40)
+    hung = [simulate_static(robot, CellTruth(), seed=s, plan=plan) for s in seeds]
+    refused_real = [s for s, t in zip(seeds, hung) if not load_evidence(build_dataset(t)).changed]
+    evidence = [load_evidence(build_dataset(_not_hung(t, 1000 + s))) for s, t in zip(seeds, hung)]
+    passed_empty = [s for s, e in zip(seeds, evidence) if e.changed]
+    assert refused_real == []                           # real loads: tens of standard deviations
+    assert min(load_evidence(build_dataset(t)).max_z for t in hung) > 50
+    # no load hung: refused but for the 1 % the chi-square test lets through (binomial, 40 seeds)
+    assert len(passed_empty) <= 3, (passed_empty, LOADS_ALPHA)
+    assert all(e.quantity == "current" and e.decided and e.n == 4 * 2 * 6 for e in evidence)
+
+    # force-based data without currents: judged by the deflections against the tracker's repeatability
+    no_currents = replace(_not_hung(hung[0], 7), currents=np.full_like(hung[0].currents, np.nan))
+    ev = load_evidence(build_dataset(no_currents))
+    assert ev.quantity == "deflection" and not ev.changed
+    with pytest.raises(InputError, match="were they hung"):
+        identify_static(robot, no_currents, torque="force")
+
+    # the command: one line naming the file, exit 2, nothing written
+    write_static_table(tmp_path / "static.csv", _not_hung(hung[1], 3))
+    (tmp_path / "robot.toml").write_text(robot.to_toml())
+    rc = main(["identify", "--robot", str(tmp_path / "robot.toml"), "--static", str(tmp_path / "static.csv"),
+               "--out", str(tmp_path / "cal.json")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert f"{tmp_path / 'static.csv'}: the loads did not change the joint torques: were they hung?" in err[0]
+    assert not (tmp_path / "cal.json").exists()
+
+
+def test_a_procedure_whose_loads_nobody_hung_is_refused_by_identify(tmp_path, capsys):
+    from elastocal.acquisition.procedures import run_procedures
+    from elastocal.cli import main
+
+    plan, io = _virtual_static(3)
+    cell = io()
+    cell.world = lambda: None                        # nobody can hang a load in this cell
+    assert run_procedures(cell, plan, tmp_path / "log.mcap").status == "completed"
+    rc = main(["identify", str(tmp_path / "log.mcap")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "the loads did not change the joint torques: were they hung?" in err, err
+
+
+def test_a_stiffness_the_data_do_not_determine_is_marked_never_a_finding(tmp_path, capsys):
+    from elastocal.cli import main
+    from elastocal.identify.calibration import read_calibration
+    from elastocal.identify.evidence import stiffness_problem
+
+    assert stiffness_problem(-2e6, 3e6).startswith("negative")
+    assert stiffness_problem(2.5e6, 6.2e6).startswith("not determined: its standard deviation is 248 %")
+    assert stiffness_problem(559000.0, 500.0) is None
+    # two vertical loads per pose cannot load joint 1 (its axis is vertical): k1 is not determined
+    assert main(["sim", "static", "--seed", "3", "--poses", "6", "--loads", "2", "--repeats", "2", "--out",
+                 str(tmp_path), "--json"]) == 0
+    capsys.readouterr()
+    tables = ["--robot", str(tmp_path / "robot.toml"), "--static", str(tmp_path / "static.csv")]
+    assert main(["identify", *tables, "--json"]) == 0
+    params = json.loads(capsys.readouterr().out)["parameters"]
+    assert params["k1"]["determined"] is False and "not determined" in params["k1"]["note"]
+    assert all("determined" not in params[f"k{j}"] for j in range(2, 7))
+    assert main(["identify", *tables]) == 0
+    text = capsys.readouterr().out
+    k1_line = next(line for line in text.splitlines() if line.strip().startswith("k1"))
+    assert "NOT DETERMINED" in k1_line and "k1 not determined by these data: this is not a calibration" in text
+    assert f"{params['k1']['value']:.6g}" not in k1_line.split("[")[0]      # no value in the value column
+    assert main(["identify", *tables, "--out", str(tmp_path / "cal.json")]) == 0
+    captured = capsys.readouterr()
+    assert "k1 not determined by these data, marked" in captured.err
+    cal = read_calibration(tmp_path / "cal.json")
+    assert cal.parameters["k1"]["determined"] is False and "determined" not in cal.parameters["k2"]
+
+
+@pytest.mark.slow
+def test_served_cell_rehearsal_calibrates_the_true_stiffness(tmp_path, capsys):
+    """The documented rehearsal: `elastocal sim serve --write-cell` in one process, `elastocal
+    calibrate` against the written cell in another; the loads confirmed at the prompts hang in the
+    served world through its load rig, and the log identifies the simulated cell's stiffness."""
+    import subprocess
+    import sys
+    import time
+
+    import numpy as np
+
+    from elastocal.cli import main
+    from elastocal.identify.robot import bundled_robot
+    from elastocal.sims.cell import CellTruth
+    from elastocal.sims.static import random_poses
+
+    robot = bundled_robot()
+    plan = tmp_path / "plan.toml"
+    plan.write_text(plan_toml(poses=random_poses(robot, 5, np.random.default_rng(2)),
+                              loads=(LoadSpec("L1", mass_kg=110.0), LoadSpec("L2", force_n=(650.0, -300.0, -400.0))),
+                              markers=("R1", "R2", "R3"), repeats=2, reading_s=0.05,
+                              settle=SettleSpec(spread_m=20e-6, window_s=0.15, timeout_s=20.0)))
+    cell = tmp_path / "served.toml"
+    serve = subprocess.Popen([sys.executable, "-m", "elastocal", "sim", "serve", "--write-cell", str(cell),
+                              "--duration", "600"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not cell.exists() and time.monotonic() < deadline and serve.poll() is None:
+            time.sleep(0.1)
+        assert cell.exists(), serve.stderr.read() if serve.poll() is not None else "no cell written"
+        time.sleep(0.5)
+        log = tmp_path / "cal.mcap"
+        rc = main(["calibrate", "--cell", str(cell), "--plan", str(plan), "--out", str(log), "--yes", "--json"])
+        captured = capsys.readouterr()
+        assert rc == 0, captured.err
+        assert json.loads(captured.out)["status"] == "completed"
+    finally:
+        serve.terminate()
+        serve.wait(30)
+    assert main(["identify", str(log), "--json"]) == 0
+    fit = json.loads(capsys.readouterr().out)
+    k = np.array([fit["parameters"][f"k{j}"]["value"] for j in range(1, 7)])
+    truth = np.array(CellTruth().stiffness)
+    err = np.abs(k - truth) / truth
+    assert np.all(err[:3] < 0.02) and np.all(err[3:] < 0.05), err
+    assert all("determined" not in fit["parameters"][f"k{j}"] for j in range(1, 7))
+    assert fit["residual"]["rms"] <= 1.5 * fit["noise_floor"], fit

@@ -22,6 +22,10 @@ def format_parameters(params: Mapping[str, Mapping], truth: Mapping[str, Mapping
         head += f" {'true':>14} {'error':>8}"
     lines = [head]
     for name, p in params.items():
+        if p.get("determined") is False:   # never shown as a finding (identify/evidence.py)
+            lines.append(f"  {name:<10} {'NOT DETERMINED':>27}  {p.get('unit', ''):<11} {p.get('note', '')} "
+                         f"[fit gave {_num(p['value'])} ± {_num(p.get('std'))}]")
+            continue
         line = f"  {name:<10} {_num(p['value']):>14} {_num(p.get('std')):>12}  {p.get('unit', ''):<11}"
         if truth and name in truth:
             t = float(truth[name]["value"])
@@ -42,6 +46,10 @@ def verdict_line(rms: float, floor: float | None) -> str:
 def format_fit(obj: Mapping, title: str, truth: Mapping[str, Mapping] | None = None) -> str:
     lines = [title, format_parameters(obj["parameters"], truth)]
     res = obj["residual"]
+    bad = [n for n, p in obj["parameters"].items() if p.get("determined") is False]
+    if bad:
+        lines.append(f"{', '.join(bad)} not determined by these data: this is not a calibration "
+                     "(more poses or larger loads; were the loads hung?)")
     if res.get("unit", "m") == "m":
         lines.append(verdict_line(res["rms"], obj.get("noise_floor")))
     else:

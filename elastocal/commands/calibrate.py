@@ -64,9 +64,9 @@ def run(args: argparse.Namespace) -> int:
         for p in procedures:
             if p not in PROCEDURES:
                 raise InputError(f"unknown procedure {p!r}; one of {', '.join(PROCEDURES)}", source="--procedure")
-    if args.yes and not args.sim:
-        raise InputError("--yes answers the prompts of simulated devices only; add --sim, or let a person "
-                         "answer", source="--yes")
+    if args.yes and not args.sim and not config.sim.get("load_url"):
+        raise InputError("--yes answers the prompts of simulated devices only; add --sim (or use the cell "
+                         "`elastocal sim serve --write-cell` wrote), or let a person answer", source="--yes")
     ui = AutoUI(sys.stderr, quiet=args.json) if args.yes else TerminalUI(sys.stderr)
     try:
         outcome = run_calibration(config, plan, args.out, yes=args.yes, ui=ui, procedures=procedures,

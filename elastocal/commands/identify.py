@@ -9,6 +9,7 @@ from elastocal.commands._inputs import add_input_arguments, add_outlier_argument
 from elastocal.commands._outputs import Outputs
 from elastocal.commands._format import format_fit
 from elastocal.errors import InputError
+from elastocal.identify.evidence import undetermined
 from elastocal.identify.calibration import calibration_from_fit, write_calibration
 from elastocal.identify.effects import parse_model
 from elastocal.identify.pipeline import identify_data
@@ -39,8 +40,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("the log holds neither a static experiment nor runs", source=args.log or "--static")
     obj, fit = identify_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers)
     if args.out:
+        calibration = calibration_from_fit(inputs.robot.name, obj, inputs.files)
+        bad = undetermined(obj["parameters"])
+        if bad:   # a stiffness the data do not determine is written marked, never as a finding
+            args.notes.append(f"elastocal identify: note: {', '.join(bad)} not determined by these data, marked "
+                              f"\"determined\": false in {args.out}: not a calibration of "
+                              f"{'these joints' if len(bad) > 1 else 'this joint'} (add poses and loads that load "
+                              f"{'them' if len(bad) > 1 else 'it'}: elastocal plan)")
         with outputs:
-            write_calibration(outputs.temp(args.out), calibration_from_fit(inputs.robot.name, obj, inputs.files))
+            write_calibration(outputs.temp(args.out), calibration)
     if args.json:
         print(json.dumps(obj))
     else:

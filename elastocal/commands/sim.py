@@ -84,7 +84,7 @@ def _serve(args: argparse.Namespace) -> int:
     if previous is not None:
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
-        with SimulatedCell(config) as sim:
+        with SimulatedCell(config, load_rig=True) as sim:   # calibrate hangs its loads through the rig
             if outputs is not None:
                 with outputs:
                     try:
