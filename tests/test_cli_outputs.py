@@ -175,7 +175,8 @@ def test_export_refuses_then_replaces_another_logs_tables(s, tmp_path, capsys):
     q = np.tile([0.0, 0.3, -0.4, 0.0, 0.6, 0.0], (n, 1))
     q[:, 1] += np.linspace(0, 0.2, n)
     runs = run_table_from_arrays(run=["r1"] * n, direction=["+"] * n, load=["0"] * n, t=np.arange(n) * 0.1, q=q,
-                                 dq=np.zeros((n, 6)), currents=np.ones((n, 6)), wrench=np.zeros((n, 6)))
+                                 dq=np.zeros((n, 6)) + np.eye(6)[1] * 0.2 / 1.9, currents=np.ones((n, 6)),
+                                 wrench=np.zeros((n, 6)))
     runs_log = tmp_path / "runs.mcap"
     write_log_from_tables(runs_log, load_robot(s / "robot.toml"), runs=runs)
     (out / "robot.toml").unlink()
