@@ -14,6 +14,7 @@ interrupted between its unloaded reference and its loads is left out whole.
 
 from __future__ import annotations
 
+import datetime
 import hashlib
 import json
 import operator
@@ -467,6 +468,53 @@ def _wrench(value) -> list[float]:
     return [float(x) for x in value]
 
 
+@dataclass(frozen=True)
+class StaticReading:
+    """One ``reading`` event of a completed static step and what the log holds for it."""
+
+    pose: str
+    load: str
+    marker: str
+    window: tuple[int, int]         # sample keys (session * SEGMENT_NS + monotonic ns)
+    t_s: float                      # the window's middle, seconds from the log's time origin
+    q: tuple[float, ...]            # commanded pose [rad]
+    wrench: tuple[float, ...]       # nominal load [N, N·m], NaN when unknown
+    currents: tuple[float, ...]     # mean current of each drive over the window [A], NaN without samples
+    wall_s: tuple[float, float]     # the window on the UTC clock of its session (epoch seconds)
+
+
+def static_readings(contents: LogContents) -> list[StaticReading]:
+    """The ``reading`` events of the log's completed static steps, in log order (the rows
+    :func:`static_table_from_log` makes, without the tracker's positions)."""
+    done = set(contents.completed_steps)
+    origin = _time_origin(contents)
+    out = []
+    for e in contents.events:
+        if e["kind"] != "reading" or e.get("step_id") not in done:
+            continue
+        start, end = (_key(e, v) for v in e["window_ns"])
+        cur = []
+        for d in contents.drives:
+            dsl = _window(d.t_ns, start, end)
+            cur.append(float(np.mean(d.current_a[dsl])) if dsl.stop > dsl.start else float("nan"))
+        session = contents.sessions[min(int(e["segment"]), len(contents.sessions) - 1)]
+        wall0 = _utc_seconds(session["started_utc"], contents.path) - int(session["monotonic_ns"]) * 1e-9
+        out.append(StaticReading(
+            pose=str(e["pose"]), load=str(e["load"]), marker=str(e["marker"]), window=(start, end),
+            t_s=((start + end) // 2 - e["segment"] * SEGMENT_NS - origin) * 1e-9,
+            q=tuple(float(v) for v in e["q"]), wrench=tuple(_wrench(e.get("wrench"))), currents=tuple(cur),
+            wall_s=tuple(wall0 + int(v) * 1e-9 for v in e["window_ns"])))
+    return out
+
+
+def _utc_seconds(text: str, source: str) -> float:
+    try:
+        dt = datetime.datetime.fromisoformat(str(text).replace("Z", "+00:00"))
+    except ValueError:
+        raise InputError(f"session start {text!r} is not an ISO 8601 time", source=source) from None
+    return (dt if dt.tzinfo else dt.replace(tzinfo=datetime.timezone.utc)).timestamp()
+
+
 def static_table_from_log(contents: LogContents, robot: Robot | None = None) -> StaticTable | None:
     """The static deflection table of the log's completed static steps, or None.
 
@@ -475,32 +523,25 @@ def static_table_from_log(contents: LogContents, robot: Robot | None = None) -> 
     window's middle in seconds from the log's first event; ``q`` and the wrench
     are the commanded pose and the nominal load the event names.
     """
-    done = set(contents.completed_steps)
-    readings = [e for e in contents.events if e["kind"] == "reading" and e.get("step_id") in done]
+    readings = static_readings(contents)
     if not readings:
         return None
-    origin = _time_origin(contents)
     pose, load, t, q, wrench, currents, marker, xyz = [], [], [], [], [], [], [], []
-    for e in readings:
-        start, end = (_key(e, v) for v in e["window_ns"])
-        m = e["marker"]
-        samples = contents.markers.get(m)
+    for r in readings:
+        start, end = r.window
+        samples = contents.markers.get(r.marker)
         sl = _window(samples.t_ns, start, end) if samples is not None else slice(0, 0)
         if samples is None or sl.stop <= sl.start:
-            raise InputError(f"reading of marker {m} at pose {e['pose']} load {e['load']} has no tracker sample "
+            raise InputError(f"reading of marker {r.marker} at pose {r.pose} load {r.load} has no tracker sample "
                              f"in its window", source=contents.path)
         xyz.append(samples.xyz[sl].mean(axis=0))
-        cur = []
-        for d in contents.drives:
-            dsl = _window(d.t_ns, start, end)
-            cur.append(float(np.mean(d.current_a[dsl])) if dsl.stop > dsl.start else float("nan"))
-        currents.append(cur)
-        pose.append(str(e["pose"]))
-        load.append(str(e["load"]))
-        t.append(((start + end) // 2 - e["segment"] * SEGMENT_NS - origin) * 1e-9)
-        q.append([float(v) for v in e["q"]])
-        wrench.append(_wrench(e.get("wrench")))
-        marker.append(m)
+        currents.append(list(r.currents))
+        pose.append(r.pose)
+        load.append(r.load)
+        t.append(r.t_s)
+        q.append(list(r.q))
+        wrench.append(list(r.wrench))
+        marker.append(r.marker)
     try:
         return static_table_from_arrays(pose=pose, load=load, t=t, q=q, wrench=wrench, currents=currents,
                                         marker=marker, xyz=xyz, source=contents.path, robot=robot)

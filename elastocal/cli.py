@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "devices": ("elastocal.commands.devices", "connect to the cell's devices and stream live readings"),
     "calibrate": ("elastocal.commands.calibrate", "run the guided calibration procedure"),
     "export": ("elastocal.commands.export", "turn an MCAP log into robot.toml and CSV tables"),
+    "import": ("elastocal.commands.import_", "turn tracker exports plus the joint log into the static table"),
     "geometry": ("elastocal.commands.geometry", "compensator geometry from a joint-2 marker sweep"),
     "compensate": ("elastocal.commands.compensate", "compensated joint trajectory for a planned path"),
     "plan": ("elastocal.commands.plan", "choose calibration poses and loads (design of experiments)"),

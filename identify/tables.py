@@ -27,6 +27,9 @@ I_COLS = tuple(f"i{j}" for j in range(1, 7))
 W_COLS = ("fx", "fy", "fz", "mx", "my", "mz")
 XYZ_COLS = ("x", "y", "z")
 STATIC_COLUMNS = ("pose", "load", "t") + Q_COLS + W_COLS + I_COLS + ("marker",) + XYZ_COLS
+#: optional columns of the static table (docs/formats.md §2): the tracker's per-point expanded
+#: uncertainty U95 [m] (weights the fit) and the air it measured through [°C, hPa, %]
+STATIC_OPTIONAL_COLUMNS = ("u95", "temperature_c", "pressure_hpa", "humidity_pct")
 RUN_COLUMNS = ("run", "direction", "load", "t") + Q_COLS + DQ_COLS + I_COLS + W_COLS + ("marker",) + XYZ_COLS
 
 #: a marker coordinate beyond this is taken as millimetres [m]
@@ -62,9 +65,15 @@ class StaticTable:
     marker: np.ndarray    # (n,) str
     xyz: np.ndarray       # (n, 3) m
     line: np.ndarray      # (n,) line number in the file (header = 1)
+    #: optional columns present (STATIC_OPTIONAL_COLUMNS): name -> (n,) values, NaN when empty
+    extra: tuple[tuple[str, np.ndarray], ...] = ()
 
     def __len__(self) -> int:
         return len(self.pose)
+
+    def optional(self, name: str) -> np.ndarray | None:
+        """The optional column ``name`` (NaN where empty), None when the table has none."""
+        return dict(self.extra).get(name)
 
     @property
     def has_currents(self) -> bool:
@@ -82,7 +91,7 @@ class StaticTable:
     def subset(self, mask: np.ndarray) -> "StaticTable":
         return StaticTable(self.source, self.pose[mask], self.load[mask], self.t[mask], self.q[mask],
                            self.wrench[mask], self.currents[mask], self.marker[mask], self.xyz[mask],
-                           self.line[mask])
+                           self.line[mask], tuple((k, v[mask]) for k, v in self.extra))
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,7 +275,9 @@ def _check_currents(source: str, lineno: int, currents: list[float]) -> None:
 
 
 def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "<static.csv>") -> StaticTable:
-    rows = _Rows(text, source, required=STATIC_COLUMNS, known=STATIC_COLUMNS)
+    rows = _Rows(text, source, required=STATIC_COLUMNS, known=STATIC_COLUMNS + STATIC_OPTIONAL_COLUMNS)
+    extra_cols = [c for c in STATIC_OPTIONAL_COLUMNS if c in rows.index]
+    extra: dict[str, list[float]] = {c: [] for c in extra_cols}
     markers = set(robot.marker_names) if robot is not None else None
     pose, load, t, q, w, cur, marker, xyz, line = [], [], [], [], [], [], [], [], []
     for lineno, row in rows.rows:
@@ -293,9 +304,16 @@ def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "
         _check_position_units(rows.source, lineno, pv)
         xyz.append(pv)
         line.append(lineno)
+        for c in extra_cols:
+            v = rows.number(lineno, row, c, required=False)
+            if c == "u95" and not (math.isnan(v) or 0 <= v < 0.01):
+                raise InputError(f"u95 {v:g} must be >= 0 and below 0.01 m (metres, not millimetres)",
+                                 source=source, row=lineno, column=c)
+            extra[c].append(v)
     table = StaticTable(source, np.array(pose, dtype=str), np.array(load, dtype=str), np.array(t, dtype=float),
                         np.array(q, dtype=float), np.array(w, dtype=float), np.array(cur, dtype=float),
-                        np.array(marker, dtype=str), np.array(xyz, dtype=float), np.array(line, dtype=int))
+                        np.array(marker, dtype=str), np.array(xyz, dtype=float), np.array(line, dtype=int),
+                        tuple((c, np.array(extra[c], dtype=float)) for c in extra_cols))
     _check_static_structure(table)
     return table
 
@@ -460,12 +478,12 @@ def _fmt(x: float) -> str:
 def format_static_table(table: StaticTable) -> str:
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(STATIC_COLUMNS)
+    writer.writerow(STATIC_COLUMNS + tuple(k for k, _ in table.extra))
     for n in range(len(table)):
         writer.writerow([table.pose[n], table.load[n], _fmt(table.t[n])]
                         + [_fmt(v) for v in table.q[n]] + [_fmt(v) for v in table.wrench[n]]
                         + [_fmt(v) for v in table.currents[n]] + [table.marker[n]]
-                        + [_fmt(v) for v in table.xyz[n]])
+                        + [_fmt(v) for v in table.xyz[n]] + [_fmt(v[n]) for _, v in table.extra])
     return out.getvalue()
 
 
@@ -552,7 +570,8 @@ def check_table_values(table: StaticTable | RunTable, robot: Robot | None = None
 
 
 def static_table_from_arrays(*, pose, load, q, marker, xyz, t=None, wrench=None, currents=None,
-                             source: str = "<memory>", robot: Robot | None = None) -> StaticTable:
+                             source: str = "<memory>", robot: Robot | None = None,
+                             extra: dict | None = None) -> StaticTable:
     """Build a validated StaticTable from arrays, e.g. from a simulation or a log: the values
     pass the checks of :func:`parse_static_table` (joint limits of ``robot`` when given)."""
     n = len(pose)
@@ -563,7 +582,9 @@ def static_table_from_arrays(*, pose, load, q, marker, xyz, t=None, wrench=None,
                         nan6 if wrench is None else np.asarray(wrench, dtype=float).reshape(n, 6),
                         nan6.copy() if currents is None else np.asarray(currents, dtype=float).reshape(n, 6),
                         np.asarray(marker, dtype=str), np.asarray(xyz, dtype=float).reshape(n, 3),
-                        np.arange(2, n + 2))
+                        np.arange(2, n + 2),
+                        tuple((k, np.asarray(extra[k], dtype=float)) for k in STATIC_OPTIONAL_COLUMNS
+                              if extra and k in extra))
     check_table_values(table, robot)
     _check_static_structure(table)
     return table

@@ -1,0 +1,104 @@
+"""`elastocal import EXPORT... --log LOG.mcap|--joints joints.csv --out static.csv`: tracker
+exports plus the robot's joint log as the static table (docs/import.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("exports", nargs="+", metavar="EXPORT",
+                        help="point files of the tracker software (Leica-style CSV, .xyz, or CSV with --columns)")
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("--log", help="the MCAP log of `elastocal calibrate` (poses, loads, currents, the robot)")
+    src.add_argument("--joints", help="a joint/current log CSV: t,q1..q6,i1..i6 [,pose,load] [,fx..mz]")
+    parser.add_argument("--out", required=True, help="the static table to write (formats.md §2)")
+    parser.add_argument("--robot", help="robot.toml to check markers and joint limits against; default: the "
+                                        "log's robot (with --log)")
+    parser.add_argument("--layout", choices=("auto", "leica", "xyz", "csv"), default="auto",
+                        help="the export layout (default: .xyz/.txt files are xyz, --columns means csv, "
+                             "else Leica-style CSV)")
+    parser.add_argument("--columns", metavar="MAP",
+                        help="generic CSV: role=column,... with roles name,x,y,z (required) and t,u95,target,"
+                             "temperature,pressure,humidity")
+    parser.add_argument("--unit", help="length unit of the coordinates when the header does not say it "
+                                       "(m, mm, um, cm, in, ft; .xyz default mm)")
+    parser.add_argument("--names", metavar="PATTERN",
+                        help="point-name pattern giving pose, load and marker, e.g. 'P{pose}_L{load}_{marker}'")
+    parser.add_argument("--by", choices=("name", "time"), default=None,
+                        help="pair by name (needs --names) or by timestamp (default: name when --names is given)")
+    parser.add_argument("--window", type=float, default=0.5, metavar="S",
+                        help="with --joints: joint samples within S seconds around a point are averaged (0.5)")
+    parser.add_argument("--tolerance", type=float, default=0.5, metavar="S",
+                        help="with --log and --by time: a point up to S seconds outside a reading's window still "
+                             "belongs to it (0.5)")
+    parser.add_argument("--clock-offset", type=float, default=0.0, metavar="S",
+                        help="seconds added to the export's timestamps to put them on the log's clock")
+    parser.add_argument("--force", action="store_true", help="overwrite --out")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+
+
+def run(args: argparse.Namespace) -> int:
+    from elastocal.acquisition.trackerexports import parse_columns, read_points
+    from elastocal.acquisition.trackerimport import NamePattern, build_table, pair_with_joints, pair_with_log, \
+        read_joint_csv
+    from elastocal.commands._outputs import Outputs, note
+    from elastocal.errors import InputError
+    from elastocal.identify.tables import format_static_table
+
+    for flag, value in (("--window", args.window), ("--tolerance", args.tolerance)):
+        if not value > 0 or value != value or value == float("inf"):
+            raise InputError(f"must be a positive number of seconds, got {value:g}", source=flag)
+    if args.clock_offset != args.clock_offset or abs(args.clock_offset) == float("inf"):
+        raise InputError("must be a finite number of seconds", source="--clock-offset")
+    names = NamePattern.parse(args.names) if args.names is not None else None
+    by = args.by or ("name" if names is not None else "time")
+    if by == "name" and names is None:
+        raise InputError("pairing by name needs the point-name pattern (--names 'P{pose}_L{load}_{marker}')",
+                         source="--by")
+    columns = parse_columns(args.columns)
+    if columns is not None and args.layout not in ("auto", "csv"):
+        raise InputError(f"--columns is for the generic CSV layout, not {args.layout}", source="--columns")
+    inputs = [(p, "EXPORT") for p in args.exports] + [(args.log, "--log"), (args.joints, "--joints"),
+                                                      (args.robot, "--robot")]
+    outputs = Outputs(force=args.force, inputs=inputs)
+    out = outputs.add(args.out, "--out")
+
+    points = []
+    for path in args.exports:
+        points += read_points(path, layout=args.layout, unit=args.unit, columns=columns)
+    robot = None
+    if args.robot is not None:
+        from elastocal.identify.robot import load_robot
+
+        robot = load_robot(args.robot)
+    if args.log is not None:
+        from elastocal.acquisition.export import read_log, robot_from_log
+
+        contents = read_log(args.log)
+        if robot is None:
+            robot = robot_from_log(contents)
+        markers = tuple(robot.marker_names)
+        rows, unpaired = pair_with_log(points, contents, names=names, by=by, tolerance_s=args.tolerance,
+                                       clock_offset_s=args.clock_offset, markers=markers)
+        source = args.log
+    else:
+        joints = read_joint_csv(args.joints)
+        markers = tuple(robot.marker_names) if robot is not None else None
+        rows, unpaired = pair_with_joints(points, joints, names=names, by=by, window_s=args.window,
+                                          clock_offset_s=args.clock_offset, markers=markers)
+        source = args.joints
+    result = build_table(rows, unpaired, source=source, robot=robot)
+    with outputs:
+        outputs.temp(out).write_text(format_static_table(result.table), encoding="utf-8")
+    if args.json:
+        print(json.dumps({"out": str(out), "rows": len(result.table), "points": len(points), "by": by,
+                          "columns": [k for k, _ in result.table.extra],
+                          "unpaired": [{"file": p.source, "line": p.line, "name": p.name, "reason": why}
+                                       for p, why in result.unpaired]}))
+    else:
+        print(f"wrote {out}: {len(result.table)} rows from {len(points)} points, paired by {by}")
+    if result.unpaired:
+        note(args, result.unpaired_line())
+    return 0

@@ -1,0 +1,187 @@
+"""`elastocal import`: tracker exports plus the joint log give the static table.
+
+Acceptance: every export layout, filled with the readings of a simulated procedure, imports to
+exactly the table `elastocal export` writes from that procedure's log (positions to 1e-9 m).
+The hand-written exports in tests/data/ check the pairing row by row."""
+
+import datetime
+import json
+import pathlib
+
+import numpy as np
+import pytest
+
+from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
+from elastocal.acquisition.export import read_log, static_readings, static_table_from_log
+from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
+from elastocal.acquisition.procedures import run_procedures
+from elastocal.cli import main
+from elastocal.identify.robot import bundled_robot
+from elastocal.identify.tables import STATIC_COLUMNS, read_static_table
+from elastocal.sims.cell import CellTruth, SimCell
+from elastocal.sims.static import random_poses
+
+DATA = pathlib.Path(__file__).parent / "data"
+
+
+@pytest.fixture(scope="module")
+def procedure(tmp_path_factory):
+    """A small simulated static procedure: its log, its exported table, its readings."""
+    robot = bundled_robot()
+    poses = random_poses(robot, 3, np.random.default_rng(4))
+    plan = parse_plan(plan_toml(poses=poses, loads=(LoadSpec("L1", mass_kg=80.0),), markers=("R1", "R2"),
+                                repeats=2, reading_s=0.04, speed_rad_s=0.6,
+                                settle=SettleSpec(speed_rad_s=2e-3, spread_m=20e-6, window_s=0.15, timeout_s=20.0)),
+                      source="plan.toml")
+    folder = tmp_path_factory.mktemp("procedure")
+    io = VirtualCellIO(SimCell(robot, CellTruth()), seed=3, timing=VirtualTiming(250.0, 250.0))
+    assert run_procedures(io, plan, folder / "log.mcap").status == "completed"
+    contents = read_log(folder / "log.mcap")
+    return folder / "log.mcap", static_table_from_log(contents), static_readings(contents)
+
+
+def iso(t: float) -> str:
+    return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).isoformat(timespec="microseconds")
+
+
+def write_layouts(folder, table, readings):
+    """The procedure's readings as the three export layouts (mm, mm, m)."""
+    names = [f"{r.pose}_{r.load}_{r.marker}" for r in readings]
+    mids = [(r.wall_s[0] + r.wall_s[1]) / 2 for r in readings]
+    leica = ["Point,X [mm],Y [mm],Z [mm],U(95) [mm],Target Type,Temperature [°C],Pressure [hPa],Humidity [%],"
+             "Timestamp"]
+    leica += [f"{n},{float(x) * 1e3!r},{float(y) * 1e3!r},{float(z) * 1e3!r},0.012,RRR 1.5in,20.5,1013.2,45,{iso(t)}"
+              for n, (x, y, z), t in zip(names, table.xyz, mids)]
+    (folder / "leica.csv").write_text("\n".join(leica) + "\n")
+    xyz = [f"{n};{float(x) * 1e3!r};{float(y) * 1e3!r};{float(z) * 1e3!r}" for n, (x, y, z) in zip(names, table.xyz)]
+    (folder / "points.xyz").write_text("# SpatialAnalyzer export, mm\n" + "\n".join(xyz) + "\n")
+    generic = ["When,Label,East,North,Up"] + [f"{t!r},{r.marker},{float(x)!r},{float(y)!r},{float(z)!r}"
+                                             for r, (x, y, z), t in zip(readings, table.xyz, mids)]
+    (folder / "generic.csv").write_text("\n".join(generic) + "\n")
+
+
+def assert_same_table(got, want):
+    for col in ("pose", "load", "marker"):
+        assert list(getattr(got, col)) == list(getattr(want, col)), col
+    np.testing.assert_allclose(got.xyz, want.xyz, rtol=0, atol=1e-9)
+    for col in ("q", "currents", "t"):
+        np.testing.assert_allclose(getattr(got, col), getattr(want, col), rtol=0, atol=1e-12, err_msg=col)
+    np.testing.assert_array_equal(np.isnan(got.wrench), np.isnan(want.wrench))
+    np.testing.assert_allclose(np.nan_to_num(got.wrench), np.nan_to_num(want.wrench), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("layout, flags", [
+    ("leica.csv", ["--names", "{pose}_{load}_{marker}"]),
+    ("leica.csv", ["--names", "{pose}_{load}_{marker}", "--by", "time"]),
+    ("points.xyz", ["--names", "{pose}_{load}_{marker}"]),
+    ("generic.csv", ["--columns", "name=Label,x=East,y=North,z=Up,t=When", "--unit", "m", "--by", "time"]),
+])
+def test_each_layout_imports_to_the_exported_table(procedure, tmp_path, capsys, layout, flags):
+    log, table, readings = procedure
+    write_layouts(tmp_path, table, readings)
+    out = tmp_path / "static.csv"
+    rc = main(["import", str(tmp_path / layout), "--log", str(log), "--out", str(out), "--json", *flags])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    obj = json.loads(captured.out)
+    assert obj["rows"] == obj["points"] == len(table) and obj["unpaired"] == []
+    got = read_static_table(out, bundled_robot())
+    assert_same_table(got, table)
+    if layout == "leica.csv":               # U95 and the weather are kept, as the optional columns
+        assert obj["columns"] == ["u95", "temperature_c", "pressure_hpa", "humidity_pct"]
+        assert np.allclose(got.optional("u95"), 12e-6) and np.all(got.optional("pressure_hpa") == 1013.2)
+        assert out.read_text().split("\n")[0] == ",".join(STATIC_COLUMNS + tuple(obj["columns"]))
+    else:
+        assert obj["columns"] == [] and out.read_text().split("\n")[0] == ",".join(STATIC_COLUMNS)
+
+
+# ------------------------------------------------------- hand-written exports
+ROWS = [("1", "0", "R1"), ("1", "0", "R2"), ("1", "1", "R1"), ("1", "1", "R2"),
+        ("2", "0", "R1"), ("2", "0", "R2"), ("2", "1", "R1"), ("2", "1", "R2")]
+XYZ_MM = [(1500.125, -250.5, 800), (1520, -250, 790), (1500.1, -250.4, 799.2), (1519.9, -250.1, 789.1),
+          (1400, 300, 1200), (1410, 310, 1190), (1399.7, 300.2, 1199.1), (1409.6, 310.3, 1189)]
+Q = {"1": (0.1, 0.2, -0.3, 0.4, 0.5, 0.6), "2": (0.2, 0.3, -0.2, 0.1, 0.6, 0.0)}
+BASE_CURRENT = {("1", "0"): 1.0, ("1", "1"): 2.0, ("2", "0"): 3.0, ("2", "1"): 4.0}
+
+
+def run_import(capsys, *argv):
+    rc = main(["import", *map(str, argv), "--json"])
+    captured = capsys.readouterr()
+    return rc, (json.loads(captured.out) if rc == 0 else None), captured.err
+
+
+def check_rows(table, *, times):
+    assert [(p, ld, m) for p, ld, m in zip(table.pose, table.load, table.marker)] == ROWS
+    np.testing.assert_allclose(table.xyz, np.array(XYZ_MM) * 1e-3, rtol=0, atol=1e-12)
+    for n, (pose, load, _) in enumerate(ROWS):
+        np.testing.assert_allclose(table.q[n], Q[pose], atol=1e-12)
+        # the mean of the joint samples it was paired with (two at +-0.1 s, or all of its pose and load)
+        np.testing.assert_allclose(table.currents[n], BASE_CURRENT[(pose, load)] + 0.1 * np.arange(6), atol=1e-12)
+    assert np.all(np.isnan(table.wrench))
+    if times:
+        np.testing.assert_allclose(table.t, [0, 1, 10, 11, 30, 31, 40, 41], atol=1e-6)
+    else:
+        assert np.all(np.isnan(table.t))
+
+
+def test_leica_csv_by_name_against_a_joint_csv(tmp_path, capsys):
+    out = tmp_path / "static.csv"
+    rc, obj, err = run_import(capsys, DATA / "import" / "leica_points.csv", "--joints", DATA / "import" / "joints.csv",
+                              "--names", "P{pose}_L{load}_{marker}", "--out", out)
+    assert rc == 0, err
+    table = read_static_table(out)
+    check_rows(table, times=True)
+    np.testing.assert_allclose(table.optional("u95"), [15e-6, 16e-6, 15e-6, 17e-6, 15e-6, 16e-6, 15e-6, 16e-6])
+    np.testing.assert_allclose(table.optional("temperature_c"), [20.4, 20.4, 20.5, 20.5, 20.6, 20.6, 20.6, 20.7])
+    assert [(u["line"], u["name"]) for u in obj["unpaired"]] == [(6, "SCALEBAR_A"), (11, "P3_L0_R1")]
+    assert "no sample of pose 3 load 0" in obj["unpaired"][1]["reason"]
+    # every unpaired point named in one line on stderr
+    lines = [ln for ln in err.splitlines() if ln]
+    assert len(lines) == 1 and "2 point(s) not paired" in lines[0]
+    assert "leica_points.csv:6 SCALEBAR_A" in lines[0] and "leica_points.csv:11 P3_L0_R1" in lines[0]
+
+
+def test_xyz_by_name_and_generic_csv_by_time(tmp_path, capsys):
+    out = tmp_path / "xyz.csv"
+    rc, obj, err = run_import(capsys, DATA / "import" / "points.xyz", "--joints", DATA / "import" / "joints.csv",
+                              "--names", "P{pose}_L{load}_{marker}", "--out", out)
+    assert rc == 0, err
+    check_rows(read_static_table(out), times=False)
+    assert [u["name"] for u in obj["unpaired"]] == ["P9_L0_R1"]
+    out = tmp_path / "generic.csv"
+    rc, obj, err = run_import(capsys, DATA / "import" / "generic_points.csv", "--joints",
+                              DATA / "import" / "joints.csv", "--columns",
+                              "name=Name,x=East [m],y=North [m],z=Height [m],t=Time", "--unit", "m", "--out", out)
+    assert rc == 0, err
+    check_rows(read_static_table(out), times=True)               # pose and load from the joint log
+    assert [(u["line"], u["reason"]) for u in obj["unpaired"]] == [(10, "no joint sample within ±0.25 s of its time")]
+
+
+def test_bad_files_get_one_line_errors_and_nothing_is_written(tmp_path, capsys):
+    joints = DATA / "import" / "joints.csv"
+    out = tmp_path / "static.csv"
+    bad = tmp_path / "bad.csv"
+    bad.write_text((DATA / "import" / "leica_points.csv").read_text().replace("1520,0000", "15x0"))
+    cases = [
+        ([bad, "--joints", joints, "--names", "P{pose}_L{load}_{marker}"], "bad.csv, line 3, column X [mm]: "
+                                                                           "'15x0' is not a number"),
+        ([DATA / "import" / "points.xyz", "--unit", "m", "--joints", joints, "--names", "P{pose}_L{load}_{marker}"],
+         "beyond a tracker's 160 m: the numbers look like millimetres"),
+        ([DATA / "import" / "leica_points.csv", "--unit", "m", "--joints", joints], "--unit m contradicts"),
+        ([DATA / "import" / "leica_points.csv", "--joints", joints, "--by", "name"], "needs the point-name pattern"),
+        ([DATA / "import" / "leica_points.csv", "--joints", joints, "--names", "P{pose}_{marker}"], "needs {load}"),
+        ([DATA / "import" / "generic_points.csv", "--joints", joints, "--columns", "name=Name,x=East"],
+         "--columns must map y, z"),
+        ([DATA / "import" / "leica_points.csv", "--joints", DATA / "import" / "points.xyz"], "missing column(s) t"),
+    ]
+    for argv, message in cases:
+        rc, _, err = run_import(capsys, *argv, "--out", out)
+        assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, (argv, err)
+        assert not out.exists() and not list(tmp_path.glob(".*partial*"))
+    out.write_text("keep me\n")
+    rc, _, err = run_import(capsys, DATA / "import" / "leica_points.csv", "--joints", joints, "--names",
+                            "P{pose}_L{load}_{marker}", "--out", out)
+    assert rc == 2 and "already exists" in err and out.read_text() == "keep me\n"
+    rc, _, err = run_import(capsys, DATA / "import" / "leica_points.csv", "--joints", joints, "--names",
+                            "P{pose}_L{load}_{marker}", "--out", out, "--force")
+    assert rc == 0 and out.read_text().startswith("pose,load,t,")
