@@ -200,6 +200,8 @@ def test_sim_serve_listens_on_loopback_only_on_ports_of_its_own(tmp_path):
             config = load_cell_config(cell)
             urls = {d.url.can_interface for d in config.drives}
             assert urls == {"udp_loopback"}, urls
+            # the rate and stall timeout the packaged cell ships (item 5), written into the served config
+            assert {(d.rate_hz, d.timeout_s) for d in config.drives} == {(SHIPPED_RATE_HZ, SHIPPED_STALL_S)}
             port = {d.url.int_param("port", 0) for d in config.drives}
             assert len(port) == 1 and port != {0} and port != {43113}
             ports.append(port.pop())
@@ -336,7 +338,21 @@ def test_a_key_pressed_before_the_prompt_never_answers_it(mode, answer):
         term.close()
 
 
-# ------------------------------------------------------------------ item 5: end of the procedure, resume
+# ------------------------------------------------------------------ item 5: rate, end of the procedure, resume
+#: what the packaged simulated cell streams at and how long a drive may stay silent (measured:
+#: sims/data/sim_cell.toml); the benchmark keeps 1 kHz
+SHIPPED_RATE_HZ, SHIPPED_STALL_S = 250.0, 2.0
+
+
+def test_the_packaged_cell_ships_a_rate_that_holds_and_the_benchmark_keeps_1khz():
+    import pathlib
+    import re
+
+    config = example_cell_config()
+    assert {(d.rate_hz, d.timeout_s) for d in config.drives} == {(SHIPPED_RATE_HZ, SHIPPED_STALL_S)}
+    bench = (pathlib.Path(__file__).parents[1] / "benchmarks" / "bench_devices.py").read_text(encoding="utf-8")
+    assert re.search(r'"--rate", type=float, default=1000\.0', bench)
+
 def _virtual_static(n_poses: int = 4):
     import numpy as np
 

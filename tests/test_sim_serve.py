@@ -95,7 +95,8 @@ def test_devices_command_identifies_and_streams(tmp_path, capsys):
         out = json.loads(capsys.readouterr().out)
         assert [d["name"] for d in out["devices"]] == [f"drive J{j}" for j in range(1, 7)] + ["tracker", "controller"]
         streams = {s["device"]: s for s in out["streams"]}
-        assert streams["drive J2"]["received"] > 200 and streams["tracker"]["received"] > 20
+        assert streams["drive J2"]["received"] > 0.5 * 0.6 * sim.config.drive(2).rate_hz
+        assert streams["tracker"]["received"] > 20
         assert streams["drive J2"]["expected"] == streams["drive J2"]["received"] + streams["drive J2"]["missing"]
         assert streams["drive J2"]["last"]["position_rad"] == pytest.approx(0.2, abs=1e-7)
         assert main(["devices", "--cell", str(cell), "--identify-only"]) == 0
