@@ -38,6 +38,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check": ("elastocal.commands.check", "check whether the current calibration still holds"),
     "history": ("elastocal.commands.history", "show calibrations and checks of a cell"),
     "schedule": ("elastocal.commands.schedule", "install a periodic calibration check"),
+    "view": ("elastocal.commands.view", "show the cell in 3-D: poses, markers, errors magnified (local page)"),
     "fleet": ("elastocal.commands.fleet", "identify, diagnose or check many logs at once (Dask), record, drift"),
 }
 
