@@ -614,3 +614,71 @@ def test_served_cell_rehearsal_calibrates_the_true_stiffness(tmp_path, capsys):
     assert np.all(err[:3] < 0.02) and np.all(err[3:] < 0.05), err
     assert all("determined" not in fit["parameters"][f"k{j}"] for j in range(1, 7))
     assert fit["residual"]["rms"] <= 1.5 * fit["noise_floor"], fit
+
+
+@pytest.mark.slow
+def test_the_operator_rehearses_in_a_terminal_and_stray_keys_answer_nothing(tmp_path):
+    """`elastocal calibrate` on a terminal against `elastocal sim serve`: an Enter pressed while the
+    robot moves never answers the next prompt; typing the load's name (or yes) after it appeared
+    does, and the load it names hangs in the served world."""
+    import subprocess
+    import sys
+    import time
+
+    from elastocal.acquisition.export import read_log
+
+    plan = tmp_path / "plan.toml"
+    plan.write_text(plan_toml(poses=[(0.1, 0.3, -0.4, 0.2, 1.0, 0.1), (0.4, 0.5, -0.3, 0.4, 0.9, 0.3)],
+                              loads=(LoadSpec("L1", mass_kg=110.0),), markers=("R1",), repeats=2, reading_s=0.05,
+                              settle=SettleSpec(spread_m=20e-6, window_s=0.15, timeout_s=20.0)))
+    cell = tmp_path / "served.toml"
+    serve = subprocess.Popen([sys.executable, "-m", "elastocal", "sim", "serve", "--write-cell", str(cell),
+                              "--duration", "600"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    term = None
+    try:
+        deadline = time.monotonic() + 60
+        while not cell.exists() and time.monotonic() < deadline and serve.poll() is None:
+            time.sleep(0.1)
+        assert cell.exists()
+        log = tmp_path / "rehearsal.mcap"
+        term = Terminal([sys.executable, "-m", "elastocal", "calibrate", "--cell", str(cell), "--plan", str(plan),
+                         "--out", str(log)])
+        answered = 0
+        at = 0
+        while True:
+            try:
+                shown = term.wait_for(">>> ", 120, at)
+            except AssertionError:
+                break                                   # no more prompts: the procedure ended
+            if term.proc.poll() is not None:
+                break
+            end = term.wait_for("(a + Enter aborts): ", 30, shown)
+            prompt = term.screen[shown:end]
+            term.read(1.0)                              # the prompt waits: nothing moves on
+            later = term.screen[end:]
+            assert term.proc.poll() is None and "log:" not in later, later
+            assert all(p.startswith(prompt[4:]) for p in later.split(">>> ")[1:]), later   # only redrawn
+            before = term.screen.count("to go on, or 'a' to abort")
+            term.type("\n")                             # a bare Enter: asked again
+            deadline = time.monotonic() + 30
+            while term.screen.count("to go on, or 'a' to abort") == before and time.monotonic() < deadline:
+                term.read(0.1)
+            asked = term.screen.rindex("to go on, or 'a' to abort")
+            term.wait_for(prompt, 30, asked)                # drawn again
+            answer = "L1" if "'L1'" in prompt else "yes"
+            term.type(answer + "\n")
+            at = term.wait_for(answer + "\r\n", 30, asked) + len(answer) + 2
+            answered += 1
+            term.type("\n")                             # a stray Enter while the robot moves on
+        assert term.proc.wait(120) == 0, term.screen[-2000:]
+        assert f"log: {log} (2/2 steps, completed)" in term.screen
+    finally:
+        if term is not None:
+            term.close()
+        serve.terminate()
+        serve.wait(30)
+    events = read_log(log).events
+    prompts = [e["text"] for e in events if e["kind"] == "prompt"]
+    assert answered == len(prompts) == 1 + 2 * 2 + 1, prompts     # clear; per pose unload + hang; unload at the end
+    assert prompts[-1] == "remove load L1 from the load point; step out of the cell"
+    assert all(e["answer"] == "yes" and e["automatic"] is False for e in events if e["kind"] == "answer")
