@@ -25,26 +25,8 @@ from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
+from elastocal.drivers.samples import DriveSample, TrackerSample
 from elastocal.identify.robot import Robot
-
-
-@dataclass(frozen=True)
-class DriveSample:
-    joint: int                  # 1..6
-    t_ns: int                   # acquisition time
-    position_rad: float
-    velocity_rad_s: float | None
-    current_a: float | None
-    status: int | None = None
-
-
-@dataclass(frozen=True)
-class TrackerSample:
-    t_ns: int
-    marker: str
-    xyz: tuple[float, float, float]  # m
-    #: the air the tracker measured through, when it reports it (``("temperature_c", 20.5), ...``)
-    environment: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -152,6 +134,7 @@ class VirtualCellIO(CellIO):
         self._t_ns = timing.start_ns
         self._next_drive_ns = timing.start_ns
         self._next_tracker_ns = timing.start_ns
+        self._tracker_seq = 0
         q0 = np.zeros(6) if q0 is None else np.asarray(q0, dtype=float)
         self._move = (q0, q0, self._t_ns, self._t_ns)  # start, end, t_start, t_end
         self._wrench = np.zeros(6)
@@ -249,7 +232,8 @@ class VirtualCellIO(CellIO):
             currents, _ = self._state(t, ())
             noise = self._rng.normal(0.0, truth.current_noise_a, 6)
             for j in range(6):
-                drives.append(DriveSample(j + 1, t, float(q[j]), float(dq[j]), float(currents[j] + noise[j]), 0x0237))
+                drives.append(DriveSample(t_ns=t, joint=j + 1, position_rad=float(q[j]), velocity_rad_s=float(dq[j]),
+                                          current_a=float(currents[j] + noise[j]), status=0x0237))
             self._next_drive_ns += drive_period
         if markers:
             while self._next_tracker_ns <= end_ns:
@@ -260,7 +244,9 @@ class VirtualCellIO(CellIO):
                 noisy = (positions + truth.drift_velocity * t_s + ring
                          + self._rng.normal(0.0, truth.tracker_noise_m, positions.shape))
                 for m, p in zip(markers, noisy):
-                    tracker.append(TrackerSample(t, m, (float(p[0]), float(p[1]), float(p[2]))))
+                    self._tracker_seq += 1
+                    tracker.append(TrackerSample(t_ns=t, seq=self._tracker_seq, device_time_s=t_s, marker=m,
+                                                 tracker_p_marker=(float(p[0]), float(p[1]), float(p[2]))))
                 self._next_tracker_ns += tracker_period
         else:
             self._next_tracker_ns = max(self._next_tracker_ns, end_ns)

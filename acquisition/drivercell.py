@@ -21,7 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
-from elastocal.acquisition.cellio import CellIO, DriveSample, LoadWorld, SampleGap, Samples, TrackerSample
+from elastocal.acquisition.cellio import CellIO, LoadWorld, SampleGap, Samples
+from elastocal.drivers.samples import DriveSample, TrackerSample
 from elastocal.errors import DeviceTimeout, InputError
 
 #: two joint vectors closer than this are the same pose [rad]
@@ -149,7 +150,7 @@ class DriverCellIO(CellIO):
             s = self._tracker.measure()
             if s.marker != m:
                 raise DeviceTimeout(f"tracker: measured marker {s.marker!r} while {m!r} was selected")
-            out.append(TrackerSample(s.t_ns, m, tuple(float(v) for v in s.tracker_p_marker), s.environment))
+            out.append(s)
             left = end - time.monotonic()
             if left <= 0:
                 return out
@@ -167,8 +168,7 @@ class DriverCellIO(CellIO):
         gaps: list[SampleGap] = []
         for d, stream in zip(self._drives, self._streams):
             batch = stream.read(timeout_s=self.config.drive(d.joint).timeout_s)
-            for s in batch.samples:
-                drives.append(DriveSample(d.joint, s.t_ns, s.position_rad, s.velocity_rad_s, s.current_a, s.status))
+            drives.extend(batch.samples)
             for g in batch.gaps:
                 gaps.append(SampleGap(g.device, g.start_ns, g.end_ns, g.missing, g.reason, d.joint))
         return Samples(tuple(drives), tuple(tracker), tuple(gaps))

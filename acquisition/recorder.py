@@ -16,7 +16,7 @@ Surviving a kill: the writer keeps the chunk in progress in memory, so the
 recorder finishes the chunk and flushes the file at every procedure event and
 at least every ``flush_interval_s`` while samples arrive. A process killed at
 any moment leaves a file whose complete chunks
-:class:`elastocal.acquisition.export.LogReader` reads up to the kill.
+:class:`elastocal.acquisition.logreader.LogReader` reads up to the kill.
 """
 
 from __future__ import annotations

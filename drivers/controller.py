@@ -9,7 +9,8 @@ anything is written.
 
 from __future__ import annotations
 
-from elastocal.drivers.base import CellController, ControllerStatus, DeviceInfo, SharedLinks
+from elastocal.drivers.base import CellController, ControllerStatus, SharedLinks
+from elastocal.drivers.samples import DeviceInfo
 from elastocal.drivers.config import ControllerConfig
 from elastocal.drivers.modbus import encode
 from elastocal.drivers.modbus_drive import acquire_link

@@ -51,7 +51,8 @@ from dataclasses import dataclass
 
 from CESAPI import packet as es
 
-from elastocal.drivers.base import DeviceInfo, Stream, Tracker, TrackerSample
+from elastocal.drivers.base import Tracker
+from elastocal.drivers.samples import DeviceInfo, Stream, TrackerSample
 from elastocal.drivers.config import TrackerConfig
 from elastocal.drivers.emscon_packets import (
     PacketSocket,

@@ -20,7 +20,8 @@ import threading
 import time
 from typing import Callable
 
-from elastocal.drivers.base import DeviceInfo, Drive, DriveSample, ModbusExceptionError, SharedLinks, Stream
+from elastocal.drivers.base import Drive, ModbusExceptionError, SharedLinks
+from elastocal.drivers.samples import DeviceInfo, DriveSample, Stream
 from elastocal.drivers.config import DriveConfig
 from elastocal.drivers.modbus import ModbusLink
 from elastocal.errors import DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout, ProtocolError

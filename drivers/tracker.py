@@ -40,7 +40,8 @@ import time
 
 import serial
 
-from elastocal.drivers.base import DeviceInfo, Stream, Tracker, TrackerSample
+from elastocal.drivers.base import Tracker
+from elastocal.drivers.samples import DeviceInfo, Stream, TrackerSample
 from elastocal.drivers.config import TrackerConfig
 from elastocal.drivers.tracker_protocol import (
     STATUS_OK,

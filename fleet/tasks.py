@@ -144,7 +144,8 @@ def _load(task: FleetTask) -> _Data:
         runs = read_run_table(runs_csv, robot) if runs_csv.is_file() else None
         files = tuple(p for p in (static_csv, runs_csv) if p.is_file())
         return _Data(robot, static, runs, files, files[0], task.cell, "", None, None)
-    from elastocal.acquisition.export import read_log, tables_from_log
+    from elastocal.acquisition.export import tables_from_log
+    from elastocal.acquisition.logreader import read_log
 
     contents = read_log(path)
     robot, static, runs = tables_from_log(contents)

@@ -60,7 +60,7 @@ def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: str, form
         static_diag = diagnose_static(robot, static, model=static_model, torque=torque, form=form, effects=pool,
                                       exclude_outliers=exclude_outliers)
     if runs is not None:
-        from elastocal.identify.diagnose import diagnose_runs
+        from elastocal.identify.diagnose_runs import diagnose_runs
 
         stiffness = None
         if static_diag is not None:

@@ -22,7 +22,9 @@ from typing import Sequence
 
 import numpy as np
 
-from elastocal.identify.diagnose import Diagnosis, RunDiagnosis, Where, where_it_fails
+from elastocal.identify.diagnose import Diagnosis
+from elastocal.identify.diagnose_runs import RunDiagnosis
+from elastocal.identify.where import Where, where_it_fails
 from elastocal.identify.robot import Robot
 from elastocal.identify.static import StaticFit
 

@@ -15,6 +15,11 @@ URDF (:mod:`elastocal.identify.urdf`):
 Every method allocates its own Pinocchio ``Data`` (or takes one), so a
 ``Robot`` can be shared between threads. Kinematics, Jacobians and gravity all
 come from Pinocchio.
+
+Why one module over 500 lines: the description's validation (every key named
+with its file), the Pinocchio models built from it and the immutable :class:`Robot`
+are one fact, the robot model of the bottom layer; split, each half would need the
+other's private tables.
 """
 
 from __future__ import annotations

@@ -16,6 +16,10 @@ configurations are known) or from the wrench columns (``J_f^T W - g - M``).
 The noise floor is the residual rms that measurement noise alone leaves: the
 tracker's and the currents' repeatability, estimated from repeated readings and
 propagated through the fitted model and the hat matrix.
+
+Why one module over 500 lines: the dataset, the problem and its two forms (first
+order, exact secant Gauss-Newton) share private state of one solve; the effects'
+physics is not here but in identify/effects, one module each.
 """
 
 from __future__ import annotations

@@ -15,7 +15,8 @@ import pathlib
 import numpy as np
 import pytest
 
-from elastocal.acquisition.export import LogReader, write_log_from_tables
+from elastocal.acquisition.logreader import LogReader
+from elastocal.acquisition.logwriter import write_log_from_tables
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main
 from elastocal.identify.calibration import read_calibration

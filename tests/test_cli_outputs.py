@@ -159,7 +159,7 @@ def test_sim_refuses_an_earlier_dataset_and_bad_folders(s, tmp_path, capsys):
 
 # ---------------------------------------------------------------- export
 def test_export_refuses_then_replaces_another_logs_tables(s, tmp_path, capsys):
-    from elastocal.acquisition.export import write_log_from_tables
+    from elastocal.acquisition.logwriter import write_log_from_tables
     from elastocal.identify.robot import load_robot
     from elastocal.identify.tables import run_table_from_arrays
 

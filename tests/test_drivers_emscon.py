@@ -11,7 +11,8 @@ import pytest
 from CESAPI import packet as es
 
 from elastocal.drivers import open_tracker
-from elastocal.drivers.config import TrackerConfig, parse_device_url
+from elastocal.drivers.config import TrackerConfig
+from elastocal.drivers.urls import parse_device_url
 from elastocal.sims.config import SimConfig
 from elastocal.drivers.emscon_packets import PacketSocket, decode
 from elastocal.errors import DeviceFault, InputError, ProtocolError

@@ -20,7 +20,8 @@ DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs" / "devices.md"
 
 DRIVE_ADAPTER = '''
 import time
-from elastocal.drivers.base import DeviceInfo, Drive, DriveSample
+from elastocal.drivers.base import Drive
+from elastocal.drivers.samples import DeviceInfo, DriveSample
 from elastocal.errors import InputError
 
 

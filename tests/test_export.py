@@ -9,7 +9,9 @@ import pytest
 from mcap.writer import CompressionType, Writer
 
 from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
-from elastocal.acquisition.export import export_log, load_log, read_log, write_log_from_tables
+from elastocal.acquisition.export import export_log, load_log
+from elastocal.acquisition.logreader import read_log
+from elastocal.acquisition.logwriter import write_log_from_tables
 from elastocal.acquisition.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.acquisition.recorder import Recorder

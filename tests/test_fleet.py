@@ -39,7 +39,7 @@ def _write_cell(folder: pathlib.Path, name: str) -> pathlib.Path:
 
 @pytest.fixture(scope="session")
 def plant(tmp_path_factory):
-    from elastocal.acquisition.export import write_log_from_tables
+    from elastocal.acquisition.logwriter import write_log_from_tables
     from elastocal.identify.robot import bundled_robot
     from elastocal.identify.tables import write_static_table
     from elastocal.sims.cell import CellTruth

@@ -30,7 +30,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from elastocal.acquisition.export import LogReader, write_log_from_tables
+from elastocal.acquisition.logreader import LogReader
+from elastocal.acquisition.logwriter import write_log_from_tables
 from elastocal.acquisition.plan import LoadSpec, plan_toml
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main

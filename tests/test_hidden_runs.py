@@ -7,7 +7,7 @@ import json
 import pytest
 
 from elastocal.cli import main
-from elastocal.identify.diagnose import diagnose_runs
+from elastocal.identify.diagnose_runs import diagnose_runs
 from elastocal.identify.robot import bundled_robot
 from elastocal.identify.tables import read_run_table
 from elastocal.sims.cell import CellTruth

@@ -164,3 +164,18 @@ def test_a_module_without_a_layer_is_named(tree):
     (tree / "elastocal" / "newthing.py").write_text('"""x"""\n', encoding="utf-8")
     assert violations(tree) == ["elastocal/newthing.py: module elastocal.newthing has no layer; "
                                 "add it to tests/test_layers.py"]
+
+
+#: a module longer than this says at its top why it is one module
+LONG_MODULE_LINES = 520
+
+
+def test_long_modules_say_why():
+    long = []
+    for name, path in modules(ROOT).items():
+        text = path.read_text(encoding="utf-8")
+        if text.count("\n") > LONG_MODULE_LINES:
+            doc = ast.get_docstring(ast.parse(text)) or ""
+            if "Why one module over 500 lines" not in doc:
+                long.append(f"{path.relative_to(ROOT)}: {text.count(chr(10))} lines")
+    assert not long, "split these or write at their top why they are one module: " + "; ".join(long)

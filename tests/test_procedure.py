@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from elastocal.acquisition.cellio import SampleGap, Samples, VirtualCellIO, VirtualTiming
-from elastocal.acquisition.export import load_log, read_log
+from elastocal.acquisition.export import load_log
+from elastocal.acquisition.logreader import read_log
 from elastocal.acquisition.plan import (
     CheckSpec,
     FrictionSpec,
@@ -20,7 +21,8 @@ from elastocal.acquisition.plan import (
     parse_plan,
     plan_toml,
 )
-from elastocal.acquisition.procedures import build_steps, run_procedures
+from elastocal.acquisition.procedures import run_procedures
+from elastocal.acquisition.steps import build_steps
 from elastocal.acquisition.ui import Aborted, AutoUI, TerminalUI, progress_line
 from elastocal.errors import DeviceTimeout, InputError
 from elastocal.identify.robot import bundled_robot

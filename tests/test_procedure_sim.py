@@ -8,7 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from elastocal.acquisition.export import load_log, read_log
+from elastocal.acquisition.export import load_log
+from elastocal.acquisition.logreader import read_log
 from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_calibration
 from elastocal.acquisition.ui import Aborted, AutoUI

@@ -16,7 +16,8 @@ from mcap.records import Message
 from mcap.stream_reader import StreamReader
 
 from elastocal.acquisition import logformat as lf
-from elastocal.acquisition.export import LogReader, load_log, read_log
+from elastocal.acquisition.export import load_log
+from elastocal.acquisition.logreader import LogReader, read_log
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main
 from elastocal.errors import InputError

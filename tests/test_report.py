@@ -8,7 +8,8 @@ import re
 import pytest
 
 from elastocal.cli import main
-from elastocal.identify.diagnose import diagnose_runs, diagnose_static
+from elastocal.identify.diagnose import diagnose_static
+from elastocal.identify.diagnose_runs import diagnose_runs
 from elastocal.identify.report import render_report
 from elastocal.identify.robot import bundled_robot
 from elastocal.sims.cell import HH150_STIFFNESS, CellTruth

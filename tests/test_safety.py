@@ -399,7 +399,7 @@ class _Recording:
 
 
 def test_the_procedure_ends_by_asking_to_remove_the_last_load(tmp_path):
-    from elastocal.acquisition.export import read_log
+    from elastocal.acquisition.logreader import read_log
     from elastocal.acquisition.procedures import run_procedures
 
     plan, io = _virtual_static(2)
@@ -420,7 +420,8 @@ def test_the_procedure_ends_by_asking_to_remove_the_last_load(tmp_path):
 
 
 def test_time_left_on_resume_counts_the_steps_already_done(tmp_path):
-    from elastocal.acquisition.procedures import build_steps, run_procedures
+    from elastocal.acquisition.procedures import run_procedures
+    from elastocal.acquisition.steps import build_steps
 
     plan, io = _virtual_static(4)
     first = _Recording(abort_at=1 + 3 * 2 + 2)              # while hanging L1 at the third pose
@@ -438,7 +439,7 @@ def test_time_left_on_resume_counts_the_steps_already_done(tmp_path):
 
 
 def test_a_device_fault_prints_the_log_and_how_to_resume(tmp_path, capsys):
-    from elastocal.acquisition.export import read_log
+    from elastocal.acquisition.logreader import read_log
     from elastocal.cli import main
 
     cell = tmp_path / "cell.toml"

@@ -51,7 +51,8 @@ def load_log_noted(args: argparse.Namespace, path: str | pathlib.Path):
     ``acquisition.export.load_log``, with one note for stderr when the log ends
     without its MCAP summary (a killed recorder): what was read is then only
     what came before its last complete chunk."""
-    from elastocal.acquisition.export import read_log, tables_from_log
+    from elastocal.acquisition.export import tables_from_log
+    from elastocal.acquisition.logreader import read_log
     from elastocal.commands._outputs import log_note, note
 
     contents = read_log(path)

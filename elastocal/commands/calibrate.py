@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def resolve_plan(plan_arg: str | None, config, resume: str | None):
     """The plan to run: ``--plan``, else the one recorded in the ``--resume``
     log, else the cell's (``[cell] plan``)."""
-    from elastocal.acquisition.export import read_log
+    from elastocal.acquisition.logreader import read_log
     from elastocal.acquisition.plan import load_plan, parse_plan
 
     if plan_arg:

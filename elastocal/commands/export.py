@@ -17,7 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from elastocal.acquisition.export import export_files, read_log, write_export_file
+    from elastocal.acquisition.export import export_files, write_export_file
+    from elastocal.acquisition.logreader import read_log
     from elastocal.commands._outputs import Outputs, check_folder, log_note, note
 
     out = check_folder(args.out, "--out")

@@ -54,7 +54,7 @@ def _add(args: argparse.Namespace, db: pathlib.Path) -> int:
                              source=args.calibration)
     log_sha = log_path = plan_text = None
     if args.log:
-        from elastocal.acquisition.export import read_log
+        from elastocal.acquisition.logreader import read_log
         from elastocal.commands._outputs import log_note, note
 
         log_path = str(pathlib.Path(args.log).resolve())

@@ -140,30 +140,11 @@ def _friction(args: argparse.Namespace, robot=None):
     return (FrictionSpec("F1", start=u, end=v, speeds_rad_s=speeds),)
 
 
-def _load_specs(forces: np.ndarray, gravity: np.ndarray):
-    from elastocal.acquisition.plan import LoadSpec
-
-    g = float(np.linalg.norm(gravity))
-    down = gravity / g
-    specs = []
-    for k, f in enumerate(forces, start=1):
-        size = float(np.linalg.norm(f))
-        if np.allclose(f / size, down, atol=1e-9):
-            specs.append(LoadSpec(f"L{k}", mass_kg=size / g, description=f"hung weight of {size / g:.1f} kg"))
-        else:
-            u = f / size + 0.0        # + 0.0: no negative zeros in the file
-            specs.append(LoadSpec(f"L{k}", force_n=tuple(float(x) + 0.0 for x in f),
-                                  description=f"pull of {size:.0f} N toward ({u[0]:+.2f}, {u[1]:+.2f}, {u[2]:+.2f}) "
-                                              "in base axes, through a force gauge"))
-    return tuple(specs)
-
-
 def run(args: argparse.Namespace) -> int:
-    from elastocal.acquisition.plan import CheckSpec, parse_plan, plan_toml
+    from elastocal.acquisition.planning import plan_calibration
     from elastocal.identify import design as dz
-    from elastocal.sims import first_order_map as fom
-    from elastocal.identify import design_candidates as dzc
     from elastocal.identify.robot import load_robot
+    from elastocal.sims import first_order_map as fom
 
     from elastocal.commands._outputs import Outputs
 
@@ -222,33 +203,21 @@ def run(args: argparse.Namespace) -> int:
                           else 0.0, repeats=args.repeats)
     prior, prior_source = _prior(args)
     friction = _friction(args, robot)
-    rng = np.random.default_rng(args.seed)
-    candidates = dzc.sample_candidates(robot, args.candidates, rng, workspace, markers)
-    t_plan = time.monotonic()
-    design = dz.plan_experiment(robot, candidates, test, n_poses=args.poses, loads_per_pose=args.loads_per_pose,
-                                workspace=workspace, markers=markers, prior_stiffness=prior, noise=noise)
-    plan_s = time.monotonic() - t_plan
-    baseline = dz.random_design_k40(robot, candidates, design.forces, test, n_poses=args.poses, markers=markers,
-                                    rng=rng)
-    random_quality = dz.evaluate_design(robot, candidates.q[rng.choice(len(candidates.q), args.poses, replace=False)],
-                                        list(design.wrenches), test, markers, prior_stiffness=prior, noise=noise)
-    check = dz.choose_check(robot, design, test, n_check=min(args.check_poses, args.poses), markers=markers,
-                            prior_stiffness=prior, noise=noise)
-    loads = _load_specs(design.forces, np.array(robot.gravity))
-    pose_ids = [f"P{k}" for k in range(1, len(design.q) + 1)]
-    check_spec = CheckSpec(poses=tuple(pose_ids[i] for i in check.poses), load=loads[check.load].id,
-                           friction=friction[0].id if friction else None)
-    text = plan_toml(poses=dict(zip(pose_ids, (tuple(float(v) for v in q) for q in design.q))), loads=loads,
-                     markers=markers, name=args.name, repeats=args.repeats, friction=friction, check=check_spec,
-                     procedures=("static", "friction") if friction else ("static",))
     try:
-        plan = parse_plan(text, source=str(out))
-        plan.validate_for(robot)
+        planned = plan_calibration(robot, test, workspace, noise, markers=markers, n_poses=args.poses,
+                                   loads_per_pose=args.loads_per_pose, n_candidates=args.candidates,
+                                   n_check=args.check_poses, prior_stiffness=prior, friction=friction,
+                                   name=args.name, repeats=args.repeats, seed=args.seed, source=str(out))
     except InputError as exc:
-        # the text is made here from the flags: name the flag the bad value came from
+        # the plan text is made from the flags: name the flag the bad value came from
         if exc.column and exc.column.startswith("friction"):
             raise InputError(exc.detail, source="--friction-path") from None
         raise
+    design, candidates, baseline, random_quality = (planned.design, planned.candidates, planned.baseline_k40,
+                                                    planned.random_quality)
+    check, loads, pose_ids, check_spec, text = (planned.check, planned.loads, planned.pose_ids, planned.check_spec,
+                                                planned.text)
+    plan_s = planned.planning_s
     fmap = None
     if args.map:
         map_load = (_wrench(args.map_load, "--map-load") if args.map_load

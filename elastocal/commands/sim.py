@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         outputs.add(out / name, "--out", in_folder=True)
     robot = _robot(args)
 
-    from elastocal.acquisition.export import write_log_from_tables
+    from elastocal.acquisition.logwriter import write_log_from_tables
 
     written = {"robot": str(out / "robot.toml")}
     if static:
