@@ -1,7 +1,7 @@
 """The calibration history of a cell: an embedded SQLite database (docs/history.md).
 
 One file per cell (``[cell] history`` in cell.toml) holds every calibration
-(its JSON as formats.md §4, the hash of the log it came from, the plan it was
+(its JSON as docs/formats.md §4, the hash of the log it came from, the plan it was
 measured with, when it was recorded) and every check (which calibration it
 tested, its verdict, the reasons and the whole result). Times are wall-clock
 UTC, integer nanoseconds since the Unix epoch, given by the caller.
@@ -39,7 +39,7 @@ CREATE TABLE calibration (
     time_ns INTEGER NOT NULL,          -- when it was recorded (UTC, ns since the epoch)
     created TEXT NOT NULL,             -- the calibration's own "created"
     robot TEXT NOT NULL,
-    json TEXT NOT NULL,                -- the calibration JSON (formats.md §4)
+    json TEXT NOT NULL,                -- the calibration JSON (docs/formats.md §4)
     log_sha256 TEXT,                   -- the log (or data file) it was identified from
     log_path TEXT,
     plan TEXT                          -- plan.toml text it was measured with

@@ -1,6 +1,6 @@
 """Path files in, compensated trajectories out: CSV, KUKA KRL, ABB RAPID.
 
-Path CSV (cli.md ``compensate``): ``t,q1..q6`` and optionally ``fx,fy,fz,mx,my,mz``
+Path CSV (docs/cli.md ``compensate``): ``t,q1..q6`` and optionally ``fx,fy,fz,mx,my,mz``
 per sample (SI units, radians, base-frame wrench on the load point).
 
 Output CSV: the input columns, then the compensated commands ``qc1..qc6`` [rad]

@@ -1,8 +1,8 @@
 """The static model compensation uses: joint springs, gravity, compensator, process wrench.
 
-``CompensationModel`` is the robot description plus a calibration (formats.md
+``CompensationModel`` is the robot description plus a calibration (docs/formats.md
 §4): joint stiffness ``k1..k6`` and, optionally, the compensator parameters.
-The load torque the joints carry is the full static one (formats.md sign)::
+The load torque the joints carry is the full static one (docs/formats.md sign)::
 
     tau(theta, W) = J_f(theta)^T W - g(theta) - M(q2) e2
 
@@ -106,7 +106,7 @@ NO_PATH_DEFLECTION = ("thermal_drift", "tracker_frame", "coulomb_friction", "vis
 
 def unmodelled_effects(cal: Calibration) -> dict[str, list[str]]:
     """Effects of the calibration that deflect the robot but compensation leaves out, with
-    the calibration's parameters of each (cal.json names them; cli.md's effect table)."""
+    the calibration's parameters of each (cal.json names them; docs/cli.md's effect table)."""
     from elastocal.identify.effects import get_effect
 
     out = {}

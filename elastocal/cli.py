@@ -5,7 +5,7 @@ when it is used (a lazy table, like python-can's interface table). A command
 module defines ``add_arguments(parser)`` and ``run(args) -> int``.
 
 Expected errors print one line on stderr and exit 2 (bad input or usage) or
-1 (device or runtime fault); see ../spec/cli.md.
+1 (device or runtime fault); see docs/cli.md.
 """
 
 from __future__ import annotations

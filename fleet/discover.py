@@ -1,7 +1,7 @@
 """What a fleet run analyses: the logs and table folders under some paths, and their cells.
 
 A **log** is any ``*.mcap`` file. A **table folder** is a folder holding
-``static.csv`` and/or ``runs.csv`` (formats.md §2-3) and no MCAP log (a folder
+``static.csv`` and/or ``runs.csv`` (docs/formats.md §2-3) and no MCAP log (a folder
 written by ``elastocal sim`` holds ``log.mcap`` beside the tables it came
 from: the log is analysed, once). Hidden files and folders (``.name``) are
 skipped. Inputs come in path order (sorted, each path's own entries together).

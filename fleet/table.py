@@ -1,4 +1,4 @@
-"""The results table of a fleet run (cli.md ``fleet``): columns, CSV and Parquet.
+"""The results table of a fleet run (docs/cli.md ``fleet``): columns, CSV and Parquet.
 
 One row per input, in path order. Columns: ``path``, ``cell``, ``robot``,
 ``sha256``, ``error`` (empty when it worked), ``note`` (optional extension: a

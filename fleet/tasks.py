@@ -51,7 +51,7 @@ class FleetTask:
 
 @dataclass(frozen=True)
 class LogResult:
-    """What one task gives back (one row of the results table, cli.md ``fleet``).
+    """What one task gives back (one row of the results table, docs/cli.md ``fleet``).
 
     ``parameters`` are (name, value, std) in the command's order; ``verdict`` is
     diagnose's (None: no missing effect found), ``decision`` check's (``holds``

@@ -1,4 +1,4 @@
-"""Calibration JSON (formats.md §4): write and read."""
+"""Calibration JSON (docs/formats.md §4): write and read."""
 
 from __future__ import annotations
 
@@ -78,7 +78,7 @@ MAX_VALUE = 1e30
 
 
 def parameter_unit(name: str) -> str | None:
-    """The SI unit of a calibration parameter (formats.md §4, cli.md's effect table), None if unknown."""
+    """The SI unit of a calibration parameter (docs/formats.md §4, docs/cli.md's effect table), None if unknown."""
     from elastocal.identify.effects import ALL_EFFECTS, get_effect
     from elastocal.identify.robot import HYDRO_UNITS, SPRING_UNITS
 
@@ -161,7 +161,7 @@ def read_calibration(path: str | pathlib.Path) -> Calibration:
     robot = doc.get("robot")
     if not isinstance(robot, str) or not robot.strip():
         what = "missing" if robot is None else f"expected the robot's name, got {robot!r}"
-        raise InputError(f"{what}: the calibration must name its robot (formats.md §4)", source=src, column="robot")
+        raise InputError(f"{what}: the calibration must name its robot (docs/formats.md §4)", source=src, column="robot")
     model = doc.get("model", ["joint_stiffness"])
     if not isinstance(model, list) or not model or not all(isinstance(m, str) and m for m in model):
         raise InputError(f"expected a list of effect names, got {model!r}", source=src, column="model")

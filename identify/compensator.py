@@ -2,7 +2,7 @@
 
 Joint 2 moves slowly through a range, forward and backward, the other joints
 held. At one q2 the load torque joint 2 carries is the same both ways and
-friction changes sign (formats.md sign: ``xi i = tau_load - f sign(dq)``), so
+friction changes sign (docs/formats.md sign: ``xi i = tau_load - f sign(dq)``), so
 the mean of the two directions is friction-free::
 
     xi2 (i_fwd + i_bwd)/2 = tau2_load = [J^T W]_2 - g2(theta) - M(q2)
@@ -81,7 +81,7 @@ class CompensatorFit:
         return float(np.sqrt(np.mean(self.residuals ** 2)))
 
     def parameters(self) -> dict[str, dict[str, float | str]]:
-        """formats.md §4 entries for the compensator parameters."""
+        """docs/formats.md §4 entries for the compensator parameters."""
         return {n: {"value": float(v), "std": float(s), "unit": u}
                 for n, v, s, u in zip(self.names, self.values, self.std, self.units)}
 

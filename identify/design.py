@@ -1,4 +1,4 @@
-"""Design of calibration experiments (K §V.C, Y §4.2; physics.md "Design of experiments").
+"""Design of calibration experiments (K §V.C, Y §4.2; docs/physics.md "Design of experiments").
 
 Which poses and loads make the joint stiffness most accurate *where the robot
 works*? Klimchik's industry measure answers: after compensation with the

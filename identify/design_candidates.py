@@ -1,6 +1,6 @@
 """Design of experiments, the inputs: where the robot works (:class:`TestPose`),
 what a calibration pose and load must respect (:class:`Workspace`), and the
-candidate poses and load directions the search chooses from (physics.md "Design of
+candidate poses and load directions the search chooses from (docs/physics.md "Design of
 experiments"). The measures are in :mod:`elastocal.identify.design_measures`, the
 search in :mod:`elastocal.identify.design`."""
 

@@ -1,6 +1,6 @@
 """Design of experiments, the measures: Klimchik's industry measure K40 and the
 predicted accuracy of an experiment with the full noise model (K §V.C, Y §4.2;
-physics.md "Design of experiments"). The search that minimises them is in
+docs/physics.md "Design of experiments"). The search that minimises them is in
 :mod:`elastocal.identify.design`."""
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def _noise_per_pose(jc: np.ndarray, n_loads: int, noise: NoiseModel, xi: np.ndar
     is shared, hence ``(I_L + 1 1^T)``."""
     per = noise.tracker_m ** 2 / noise.repeats * np.eye(jc.shape[0])
     if noise.current_a > 0:
-        # one current sample per tracker reading (formats.md §2): a state's mean
+        # one current sample per tracker reading (docs/formats.md §2): a state's mean
         # current averages repeats x markers samples
         var_tau = (xi * noise.current_a) ** 2 / (noise.repeats * (jc.shape[0] // 3))
         per = per + (jc * var_tau) @ jc.T

@@ -26,7 +26,7 @@ reading) at the level that makes the model's own residual what noise leaves,
 which keeps the false-alarm rate near its nominal value but costs power; no
 noise floor is reported.
 
-The verdict (cli.md) is the best candidate when its p < 0.01 and its
+The verdict (docs/cli.md) is the best candidate when its p < 0.01 and its
 delta_bic < -10, else None. With q ln n in the BIC, a candidate of 3 to 6
 parameters on the default 324 components needs W above 27 to 45: a false alarm
 on complete data has probability below 1e-5 per candidate.
@@ -135,7 +135,7 @@ class Candidate:
 
 @dataclass(frozen=True, eq=False)
 class Diagnosis:
-    """What ``elastocal diagnose`` finds (cli.md, ``diagnose --json``)."""
+    """What ``elastocal diagnose`` finds (docs/cli.md, ``diagnose --json``)."""
 
     model: tuple[str, ...]
     torque: str
@@ -309,7 +309,7 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
                     model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
                     form: str = "exact", effects: Sequence[str] | None = None,
                     exclude_outliers: bool = False) -> Diagnosis:
-    """Fit ``model``, test each effect it lacks, and diagnose stepwise (cli.md).
+    """Fit ``model``, test each effect it lacks, and diagnose stepwise (docs/cli.md).
 
     ``candidates`` are the effects tested against the model as given, best
     first; the best significant, plausible one is added and the rest tested

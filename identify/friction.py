@@ -2,7 +2,7 @@
 
 The same slow path is run forward (UV) and backward (VU). At one point of the
 path the load torque a joint carries is the same both ways, friction opposes
-the motion and so changes sign (formats.md sign: ``xi i = tau_load - f``)::
+the motion and so changes sign (docs/formats.md sign: ``xi i = tau_load - f``)::
 
     xi (i_UV - i_VU) / 2 = -sign(dq_UV) f          (Y48, in torque)
     xi (i_UV + i_VU) / 2 = tau_load
@@ -32,11 +32,11 @@ from scipy.spatial import cKDTree
 
 from elastocal.errors import InputError
 
-#: friction terms, their parameter prefixes (formats.md §4) and units
+#: friction terms, their parameter prefixes (docs/formats.md §4) and units
 FRICTION_TERMS = ("coulomb", "viscous", "load_dependent")
 TERM_PREFIX = {"coulomb": "fc", "viscous": "fv", "load_dependent": "fl"}
 TERM_UNIT = {"coulomb": "N*m", "viscous": "N*m*s/rad", "load_dependent": "1"}
-#: effect names of cli.md for each term
+#: effect names of docs/cli.md for each term
 TERM_EFFECT = {"coulomb": "coulomb_friction", "viscous": "viscous_friction",
                "load_dependent": "load_dependent_friction"}
 #: a scaled design worse conditioned than this cannot separate its terms
@@ -135,7 +135,7 @@ class FrictionFit:
         return tuple(out)
 
     def parameters(self) -> dict[str, dict[str, float | str]]:
-        """Identified parameters under formats.md §4 names (fc1.., fv1.., fl1..)."""
+        """Identified parameters under docs/formats.md §4 names (fc1.., fv1.., fl1..)."""
         out: dict[str, dict[str, float | str]] = {}
         std = self.std
         for k, term in enumerate(self.terms):
@@ -292,7 +292,7 @@ def identify_friction(samples: FrictionSamples, *, terms: Sequence[str] = FRICTI
 
 def friction_from_run_table(table, torque_constants: Sequence[float], *, terms: Sequence[str] = FRICTION_TERMS,
                             min_speed_rad_s: float = 1e-3) -> FrictionFit:
-    """:func:`identify_friction` on the UV/VU runs of a run table (formats.md §3)."""
+    """:func:`identify_friction` on the UV/VU runs of a run table (docs/formats.md §3)."""
     uvvu = np.isin(table.direction, ("UV", "VU"))
     if not np.any(uvvu):
         raise InputError("the table has no UV/VU runs", source=table.source, column="direction")

@@ -295,7 +295,7 @@ def identify_compensator_geometry(q2: np.ndarray, pivot_xyz: np.ndarray,
 
 
 def geometry_from_run_table(table, *, pivot: str, cylinder: Sequence[str], joint: int = 2) -> CompensatorGeometry:
-    """:func:`identify_compensator_geometry` on a run table (formats.md §3): the
+    """:func:`identify_compensator_geometry` on a run table (docs/formats.md §3): the
     rows of marker ``pivot`` with their ``q<joint>``, and the rows of each
     ``cylinder`` marker."""
     def rows(name: str) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Outliers: single tracker readings far off their repeats (cli.md ``outliers``).
+"""Outliers: single tracker readings far off their repeats (docs/cli.md ``outliers``).
 
 The readings that repeat ``(pose, load, marker)`` measure one position; a
 reading far off the others (a beam break, a reflector knocked, a reading of the

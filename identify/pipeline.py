@@ -75,7 +75,7 @@ def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: str, form
 
 
 def diagnosis_json(static, runs) -> dict:
-    """The ``diagnose --json`` object (cli.md): the static diagnosis when there is
+    """The ``diagnose --json`` object (docs/cli.md): the static diagnosis when there is
     one, the run diagnosis alone otherwise. With both, the run diagnosis is under
     ``runs`` too, and ``candidates`` and ``verdict`` cover both data: every
     candidate says which data tested it (``data``: static or runs), significant

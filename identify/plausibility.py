@@ -1,4 +1,4 @@
-"""Plausibility and conditioning of a candidate's fit (cli.md: "implausible").
+"""Plausibility and conditioning of a candidate's fit (docs/cli.md: "implausible").
 
 A candidate whose fitted values are physically implausible, or whose fit is
 near-singular, is never a step of the diagnosis: a significant drop of the

@@ -1,4 +1,4 @@
-"""Robot description (``robot.toml``, formats.md §1) and its Pinocchio models.
+"""Robot description (``robot.toml``, docs/formats.md §1) and its Pinocchio models.
 
 The description is resolved once into frozen dataclasses; :class:`Robot` holds
 two immutable Pinocchio models built from the modified-DH table, or from a
@@ -85,7 +85,7 @@ def _vec3(value, *, source: str, column: str) -> tuple[float, float, float]:
     return arr  # type: ignore[return-value]
 
 
-#: the keys robot.toml knows (formats.md §1 plus elastocal's optional URDF keys)
+#: the keys robot.toml knows (docs/formats.md §1 plus elastocal's optional URDF keys)
 TOP_KEYS = ("name", "convention", "gravity", "urdf", "urdf_xml", "joint", "tool", "compensator")
 JOINT_KEYS = ("name", "a", "alpha", "d", "offset", "lower", "upper", "torque_constant", "mass", "com")
 TOOL_KEYS = ("load_point", "markers", "flange")
@@ -155,13 +155,13 @@ SPRING_UNITS = {"K_c": "N/m", "s0": "m"}
 
 @dataclass(frozen=True)
 class CompensatorSpec:
-    """Gravity compensator on joint 2 (physics.md).
+    """Gravity compensator on joint 2 (docs/physics.md).
 
     ``kind = "hydropneumatic"`` (Yang): geometry ``a, b, h`` [m], parameters
     ``C`` [N·m] and ``l_c`` [m]. ``kind = "spring"`` (Klimchik): geometry
     ``a, L`` [m] and ``alpha`` [rad], parameters ``K_c`` [N/m] and ``s0`` [m].
     ``nominal`` optionally holds known parameter values (an elastocal
-    extension of formats.md: keys ``C``/``l_c`` or ``K_c``/``s0`` in the table).
+    extension of docs/formats.md: keys ``C``/``l_c`` or ``K_c``/``s0`` in the table).
 
     The torque is the balancing torque ``M`` of the papers (Y32: ``M = tau2^0 -
     xi2 i2``): it relieves joint 2, so the load torque joint 2 carries is
@@ -405,7 +405,7 @@ class Robot:
     def load_torque(self, theta: np.ndarray, wrench: np.ndarray | None,
                     compensator_params: Sequence[float] | None = None, *, gravity: bool = True,
                     links: bool = False, q2: float | None = None) -> np.ndarray:
-        """Load torque the joints carry, ``J_f^T W - g(theta) - M e2`` (formats.md sign).
+        """Load torque the joints carry, ``J_f^T W - g(theta) - M e2`` (docs/formats.md sign).
 
         ``wrench`` is (fx, fy, fz, mx, my, mz) on the load point in base axes;
         ``q2`` is the compensator's joint coordinate (default ``theta2 - offset2``).
@@ -427,7 +427,7 @@ class Robot:
 
     # ------------------------------------------------------------ serialise
     def to_toml(self) -> str:
-        """The description as robot.toml text (formats.md §1)."""
+        """The description as robot.toml text (docs/formats.md §1)."""
 
         def num(x: float) -> str:
             return repr(float(x))

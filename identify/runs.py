@@ -1,9 +1,9 @@
-"""Identification from run data (formats.md §3): compensator and friction.
+"""Identification from run data (docs/formats.md §3): compensator and friction.
 
 Dispatches the run-data effects of ``--model`` to their fits —
 ``compensator`` (and ``gravity``) to identify/compensator.py on the joint-2
 sweeps, the friction effects to identify/friction.py on the UV/VU pairs — and
-gathers one result with the torque residual of cli.md: measured ``xi i`` minus
+gathers one result with the torque residual of docs/cli.md: measured ``xi i`` minus
 the torque model, in the reduced form each fit uses (forward/backward means of
 joint 2 along the sweeps; UV/VU half-differences per moving joint).
 """

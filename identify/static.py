@@ -68,7 +68,7 @@ class StaticDataset:
     state_load: np.ndarray        # (S,) str
     state_ref: np.ndarray         # (S,) index of the pose's reference state
     state_currents: np.ndarray    # (S, 6) mean currents [A], NaN when absent
-    state_n_currents: np.ndarray  # (S,) distinct drive readings averaged (formats.md §2)
+    state_n_currents: np.ndarray  # (S,) distinct drive readings averaged (docs/formats.md §2)
     state_wrench: np.ndarray      # (S, 6) [N, N·m], NaN when unknown; 0 for references without one
     defl_state: np.ndarray        # (D,)
     defl_ref: np.ndarray          # (D,)
@@ -102,7 +102,7 @@ class StaticDataset:
 
 
 def distinct_readings(currents: np.ndarray) -> np.ndarray:
-    """The distinct drive readings among a load state's rows (formats.md §2):
+    """The distinct drive readings among a load state's rows (docs/formats.md §2):
     rows that carry identical currents share one reading (the currents of one
     repeat read once for all its markers), which counts once in the mean and
     in the noise estimate. Order of first appearance is kept."""
@@ -234,7 +234,7 @@ class StaticFit:
         return np.array([self.parameter(n).std for n in names])
 
     def to_json(self) -> dict:
-        """The ``identify --json`` object of cli.md."""
+        """The ``identify --json`` object of docs/cli.md."""
         out = {
             "model": list(self.model),
             "torque": self.torque,

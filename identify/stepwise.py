@@ -1,4 +1,4 @@
-"""Stepwise diagnosis and the verdict rule (cli.md, ``diagnose --json``).
+"""Stepwise diagnosis and the verdict rule (docs/cli.md, ``diagnose --json``).
 
 As a user would work: test every candidate effect against the model, add the
 best significant one that is physically plausible, test the rest again
@@ -24,7 +24,7 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
-#: the final residual within this factor of the floor sits at it (cli.md)
+#: the final residual within this factor of the floor sits at it (docs/cli.md)
 FLOOR_RATIO = 1.3
 #: an excess of the residual over the floor below this p-value is significant
 EXCESS_P = 1e-3
@@ -114,7 +114,7 @@ def stepwise(base_fit, test: Callable[[object, Sequence[str]], Sequence], *, max
 
 
 def at_floor(rms: float, noise_floor: float | None, excess_p: float | None) -> bool:
-    """cli.md's rule: the final residual sits at the floor."""
+    """docs/cli.md's rule: the final residual sits at the floor."""
     if noise_floor is None or not noise_floor > 0:
         return True
     if rms <= FLOOR_RATIO * noise_floor:

@@ -1,4 +1,4 @@
-"""The CSV tables of formats.md §2 (static deflections) and §3 (runs).
+"""The CSV tables of docs/formats.md §2 (static deflections) and §3 (runs).
 
 Readers validate strictly and fail with one line naming file, line and column:
 unknown marker, missing unloaded reference, a pose with one load state,
@@ -53,7 +53,7 @@ DIRECTIONS = ("UV", "VU", "+", "-")
 
 @dataclass(frozen=True, eq=False)
 class StaticTable:
-    """Rows of a static deflection table (formats.md §2) as arrays."""
+    """Rows of a static deflection table (docs/formats.md §2) as arrays."""
 
     source: str
     pose: np.ndarray      # (n,) str
@@ -96,7 +96,7 @@ class StaticTable:
 
 @dataclass(frozen=True, eq=False)
 class RunTable:
-    """Samples of slow motions (formats.md §3) as arrays."""
+    """Samples of slow motions (docs/formats.md §3) as arrays."""
 
     source: str
     run: np.ndarray        # (n,) str
@@ -433,7 +433,7 @@ def _check_speeds_against_motion(table: RunTable) -> None:
     degrees per second (180/pi times the motion), in rpm, with the opposite sign,
     zero while the joint moves, or t not in seconds.
 
-    A run goes one way (formats.md §3), so for each run and joint whose dq
+    A run goes one way (docs/formats.md §3), so for each run and joint whose dq
     column is filled, the travel the speeds give, the integral of dq over t, is
     compared with the travel of q, last minus first sample. Only a joint that
     travels at least :data:`MIN_TRAVEL_RAD` is judged: a joint held still has

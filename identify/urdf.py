@@ -3,7 +3,7 @@ and the modified-DH robots written out as URDF.
 
 A URDF robot's ``robot.toml`` gives ``urdf = "path.urdf"`` (or the text inline
 as ``urdf_xml``) and one ``[[joint]]`` table per actuated joint naming a URDF
-joint (formats.md §1). :func:`urdf_chain` builds the URDF with
+joint (docs/formats.md §1). :func:`urdf_chain` builds the URDF with
 :func:`pinocchio.buildModelFromXML`, locks every joint the tables do not name at
 zero (:func:`pinocchio.buildReducedModel`), checks that the six named joints are
 revolute and form a chain base to tip, and returns for each its placement in

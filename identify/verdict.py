@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-#: verdict rule of cli.md
+#: verdict rule of docs/cli.md
 VERDICT_P = 0.01
 VERDICT_DELTA_BIC = -10.0
 

@@ -7,7 +7,7 @@ an external wrench at the load point, and switchable effects that elastocal's
 joint-only model does not know about: link compliance, tracker thermal drift,
 static friction that absorbs part of a load change, backlash.
 
-Conventions (formats.md): ``xi i`` is the load torque a joint carries,
+Conventions (docs/formats.md): ``xi i`` is the load torque a joint carries,
 ``xi_j i_j = k_j (theta_j - q_j - offset_j)`` at rest. Friction during motion
 opposes the motion: ``xi i = tau_load - f(dq)`` with
 ``f = fc sign(dq) + fv dq + fl |tau_load| sign(dq)``.
@@ -99,7 +99,7 @@ class CellTruth:
         raise ValueError(f"unknown hidden effect {effect!r}; one of {', '.join(HIDDEN_EFFECTS)}")
 
     def parameters(self, robot: Robot) -> dict[str, dict[str, float | str]]:
-        """True parameters under the names of formats.md §4 (truth.json)."""
+        """True parameters under the names of docs/formats.md §4 (truth.json)."""
         out: dict[str, dict[str, float | str]] = {}
         for j, k in enumerate(self.stiffness, start=1):
             out[f"k{j}"] = {"value": float(k), "unit": "N*m/rad"}

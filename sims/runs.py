@@ -1,4 +1,4 @@
-"""Slow motions on the simulated cell: joint-2 sweeps and UV/VU friction runs (formats.md §3).
+"""Slow motions on the simulated cell: joint-2 sweeps and UV/VU friction runs (docs/formats.md §3).
 
 * Joint-2 sweeps (Y §5, Table 7): joint 2 moves at constant speed through a
   range, forward (``+``) and backward (``-``), the other joints held, at one or
@@ -175,7 +175,7 @@ def simulate_friction_runs(robot: Robot, truth: CellTruth, plan: FrictionPlan, r
 
 def simulate_runs(robot: Robot, truth: CellTruth, *, seed: int, sweeps: SweepPlan | None = SweepPlan(),
                   friction: FrictionPlan | None = FrictionPlan(), source: str = "<simulated runs>") -> RunTable:
-    """Run table (formats.md §3) of joint-2 sweeps then UV/VU runs on the simulated cell."""
+    """Run table (docs/formats.md §3) of joint-2 sweeps then UV/VU runs on the simulated cell."""
     rng = np.random.default_rng(seed)
     cols = _Columns.empty()
     t = 0.0
@@ -190,7 +190,7 @@ def simulate_runs(robot: Robot, truth: CellTruth, *, seed: int, sweeps: SweepPla
 
 
 def write_runs_csv(path: str | pathlib.Path, table: RunTable) -> None:
-    """Write a simulated run table (formats.md §3)."""
+    """Write a simulated run table (docs/formats.md §3)."""
     write_run_table(path, table)
 
 
@@ -214,7 +214,7 @@ def hide_in_runs(truth: CellTruth, effect: str) -> CellTruth:
     """``truth`` with only the named friction switched on (sizes of
     :func:`default_run_truth`); ``none`` switches friction off, ``friction``
     switches on all three terms. The compensator and the link masses are always
-    in the run physics: the run torque model always holds them (cli.md)."""
+    in the run physics: the run torque model always holds them (docs/cli.md)."""
     names = {e.strip() for e in effect.split(",")}     # "a,b": several
     for name in names:
         if name not in RUN_HIDDEN:

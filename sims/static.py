@@ -1,4 +1,4 @@
-"""Static before/after-load experiments on the simulated cell (formats.md §2)."""
+"""Static before/after-load experiments on the simulated cell (docs/formats.md §2)."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ class StaticPlan:
     load_change_s: float = 45.0
     move_s: float = 30.0
     #: one drive reading per repeat, copied to the rows of all its markers
-    #: (formats.md §2), instead of one reading per row
+    #: (docs/formats.md §2), instead of one reading per row
     shared_currents: bool = False
 
     def __post_init__(self) -> None:

@@ -1,4 +1,4 @@
-"""The command line of the core: sim static, identify (cli.md contract)."""
+"""The command line of the core: sim static, identify (docs/cli.md contract)."""
 
 import json
 import os

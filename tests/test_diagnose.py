@@ -1,7 +1,7 @@
 """Diagnose: the hidden-effect suite (the verdict names what the simulator hid,
 and adding it brings the residual to the noise floor), the null rate on
 complete data, residual structure no candidate explains, run data, and the
-``diagnose --json`` contract of cli.md."""
+``diagnose --json`` contract of docs/cli.md."""
 
 import json
 

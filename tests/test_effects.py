@@ -17,7 +17,7 @@ from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
 
 ROBOT = bundled_robot()
-#: the effect table of cli.md
+#: the effect table of docs/cli.md
 CLI_EFFECTS = ("joint_stiffness", "compensator", "gravity", "coulomb_friction", "viscous_friction",
                "load_dependent_friction", "complementary_stiffness", "link_compliance", "thermal_drift",
                "backlash", "tracker_frame", "kinematic_errors")

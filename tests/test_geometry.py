@@ -23,7 +23,7 @@ DATA = pathlib.Path(__file__).parent / "data" / "klimchik_kr270_compensator_mark
 
 def klimchik_run_table(path: pathlib.Path) -> pathlib.Path:
     """Klimchik Table I (q2 in degrees, x/y in mm, tracker z along axis 2) as a
-    run table (formats.md §3): radians, metres, one row per marker and sample.
+    run table (docs/formats.md §3): radians, metres, one row per marker and sample.
     The table gives no z: the planar model ignores it, so z = 0."""
     d = np.loadtxt(DATA, delimiter=",", skiprows=1)
     rows = {k: [] for k in ("run", "direction", "load", "t", "q", "marker", "xyz")}

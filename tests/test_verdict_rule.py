@@ -1,4 +1,4 @@
-"""The verdict rule of cli.md: a candidate is the verdict only when its own test
+"""The verdict rule of docs/cli.md: a candidate is the verdict only when its own test
 gives p < 0.01 AND adding it lowers BIC by more than 10 — either alone is not enough."""
 
 from dataclasses import replace

@@ -1,4 +1,4 @@
-"""Inputs shared by identify, diagnose and report (cli.md): a log, or tables."""
+"""Inputs shared by identify, diagnose and report (docs/cli.md): a log, or tables."""
 
 from __future__ import annotations
 
@@ -22,9 +22,9 @@ class Inputs:
 
 def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = True) -> None:
     parser.add_argument("log", nargs="?", help="an MCAP log written by `elastocal calibrate` (instead of tables)")
-    parser.add_argument("--robot", help="robot.toml (formats.md §1)")
-    parser.add_argument("--static", help="static deflection table, CSV (formats.md §2)")
-    parser.add_argument("--runs", help="run table, CSV (formats.md §3)")
+    parser.add_argument("--robot", help="robot.toml (docs/formats.md §1)")
+    parser.add_argument("--static", help="static deflection table, CSV (docs/formats.md §2)")
+    parser.add_argument("--runs", help="run table, CSV (docs/formats.md §3)")
     if model_flags:
         parser.add_argument("--model", default="joint_stiffness",
                             help="comma-separated effects to include (default joint_stiffness)")

@@ -1,4 +1,4 @@
-"""`elastocal calibrate`: the guided calibration procedure (cli.md, docs/calibrate.md)."""
+"""`elastocal calibrate`: the guided calibration procedure (docs/cli.md, docs/calibrate.md)."""
 
 from __future__ import annotations
 

@@ -27,8 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cell", required=True, help="cell.toml: robot, devices and the history database")
     parser.add_argument("--calibration", help="the calibration to check (default: the current one of the history)")
     data = parser.add_argument_group("check data (default: run the plan's [check] procedure on the cell)")
-    data.add_argument("--static", help="static table of the check, CSV (formats.md §2)")
-    data.add_argument("--runs", help="UV/VU runs of the check, CSV (formats.md §3)")
+    data.add_argument("--static", help="static table of the check, CSV (docs/formats.md §2)")
+    data.add_argument("--runs", help="UV/VU runs of the check, CSV (docs/formats.md §3)")
     data.add_argument("--log", help="an MCAP log of a check already run")
     proc = parser.add_argument_group("running the check procedure")
     proc.add_argument("--plan", help="plan.toml with a [check] section (default: the plan stored with the "

@@ -1,4 +1,4 @@
-"""`elastocal compensate`: compensated joint trajectory for a planned path (cli.md)."""
+"""`elastocal compensate`: compensated joint trajectory for a planned path (docs/cli.md)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from elastocal.errors import InputError
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--robot", required=True, help="robot description (robot.toml)")
-    parser.add_argument("--calibration", required=True, help="calibration JSON (formats.md §4)")
+    parser.add_argument("--calibration", required=True, help="calibration JSON (docs/formats.md §4)")
     parser.add_argument("--path", required=True, help="planned path CSV: t,q1..q6 and optionally fx..mz")
     parser.add_argument("--out", required=True, help="compensated path CSV to write")
     parser.add_argument("--wrench", help="constant process wrench fx,fy,fz,mx,my,mz on the load point "

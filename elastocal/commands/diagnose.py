@@ -1,4 +1,4 @@
-"""`elastocal diagnose`: where the model fails and which missing effect explains it (cli.md)."""
+"""`elastocal diagnose`: where the model fails and which missing effect explains it (docs/cli.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`elastocal export LOG.mcap --out DIR`: the log as robot.toml and the CSV tables (cli.md)."""
+"""`elastocal export LOG.mcap --out DIR`: the log as robot.toml and the CSV tables (docs/cli.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`elastocal geometry`: compensator geometry from a joint-2 marker sweep (cli.md, K §IV)."""
+"""`elastocal geometry`: compensator geometry from a joint-2 marker sweep (docs/cli.md, K §IV)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from elastocal.errors import InputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", required=True, help="run table (formats.md §3) of the joint-2 sweep")
+    parser.add_argument("--runs", required=True, help="run table (docs/formats.md §3) of the joint-2 sweep")
     parser.add_argument("--pivot", required=True, help="marker on the compensator pivot P1 (turns with joint 2)")
     parser.add_argument("--cylinder", required=True,
                         help="comma-separated markers on the compensator cylinder (turn about P0)")
@@ -18,7 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def geometry_json(geo) -> dict:
-    """The ``geometry --json`` object (cli.md) of a CompensatorGeometry; SI units."""
+    """The ``geometry --json`` object (docs/cli.md) of a CompensatorGeometry; SI units."""
     std = geo.std
     return {
         "L": geo.L, "a_x": geo.a_x, "a_y": geo.a_y,

@@ -1,4 +1,4 @@
-"""`elastocal identify`: fit the model to tables or a log (cli.md)."""
+"""`elastocal identify`: fit the model to tables or a log (docs/cli.md)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from elastocal.identify.pipeline import identify_data
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser)
     add_outlier_argument(parser)
-    parser.add_argument("--out", help="write the calibration JSON (formats.md §4) here")
+    parser.add_argument("--out", help="write the calibration JSON (docs/formats.md §4) here")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 
 

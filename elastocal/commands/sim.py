@@ -32,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            help="bad tracker readings (0.3-0.5 mm off) to put among the repeats (default 0); "
                                 "truth.json lists their lines")
             p.add_argument("--shared-currents", action="store_true",
-                           help="one drive reading per repeat for all its marker rows (formats.md §2)")
+                           help="one drive reading per repeat for all its marker rows (docs/formats.md §2)")
     serve = sub.add_parser("serve", help="serve simulated devices on loopback and a CAN bus",
                            description="serve simulated devices on 127.0.0.1 and a CAN bus on the loopback "
                                        "interface (udp_loopback on a port of its own, so other processes on this "

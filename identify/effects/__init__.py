@@ -1,4 +1,4 @@
-"""The physical effects a model can hold (cli.md, "Effects").
+"""The physical effects a model can hold (docs/cli.md, "Effects").
 
 Each effect is one module named after it (its parameters and units, how it
 enters the static and the run model, the data that can show it, and the
@@ -15,7 +15,7 @@ from elastocal.errors import InputError
 from elastocal.identify.effects.base import Effect
 
 _PACKAGE = "elastocal.identify.effects"
-#: effect name -> module that defines EFFECT (cli.md's table, then elastocal's extensions)
+#: effect name -> module that defines EFFECT (docs/cli.md's table, then elastocal's extensions)
 EFFECT_MODULES = {
     name: f"{_PACKAGE}.{name}"
     for name in (

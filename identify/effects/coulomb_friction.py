@@ -1,6 +1,6 @@
 """coulomb_friction: friction of constant size opposes every motion.
 
-Parameters fc1..fc6 [N*m]. Run model (physics.md, Y §6): during a slow
+Parameters fc1..fc6 [N*m]. Run model (docs/physics.md, Y §6): during a slow
 motion the motor current carries the load torque less the friction,
 ``xi i = tau_load - friction``, with this effect's part ``fc_j sign(dq_j)``.
 UV/VU runs (the same path forward and backward) show it: friction changes sign

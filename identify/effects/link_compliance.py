@@ -4,7 +4,7 @@ Parameters cl2x, cl2y, cl3x, cl3y [rad/(N·m)]: rotations about x and y of the
 frame at the distal end of link 2 (the joint-3 axis frame) and of link 3 (the
 wrist centre), proportional to the moment the load puts there. The moments come
 from the external wrench; with currents the wrench is recovered from the joint
-torques, W = J_f^{-T} Gamma (physics.md), so both torque sources can show it.
+torques, W = J_f^{-T} Gamma (docs/physics.md), so both torque sources can show it.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """load_dependent_friction: friction grows with the load the gear carries.
 
-Parameters fl1..fl6 [1]. Run model (physics.md, Y §6): during a slow
+Parameters fl1..fl6 [1]. Run model (docs/physics.md, Y §6): during a slow
 motion the motor current carries the load torque less the friction,
 ``xi i = tau_load - friction``, with this effect's part ``fl_j abs(tau_load_j) sign(dq_j)``.
 UV/VU runs (the same path forward and backward) show it: friction changes sign

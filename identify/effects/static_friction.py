@@ -1,6 +1,6 @@
 """static_friction: friction in a resting gear takes part of a load change.
 
-An elastocal extension of the effect table of cli.md (the simulator's
+An elastocal extension of the effect table of docs/cli.md (the simulator's
 ``--hidden static_friction``; Y Table 6 shows it as a force-based stiffness that
 comes out too high). When a load is hung on a robot at rest, friction in the
 gears and bearings holds up to ``fs_j`` of the change of each joint's torque;

@@ -1,6 +1,6 @@
 """viscous_friction: friction grows with speed.
 
-Parameters fv1..fv6 [N*m*s/rad]. Run model (physics.md, Y §6): during a slow
+Parameters fv1..fv6 [N*m*s/rad]. Run model (docs/physics.md, Y §6): during a slow
 motion the motor current carries the load torque less the friction,
 ``xi i = tau_load - friction``, with this effect's part ``fv_j dq_j``.
 UV/VU runs (the same path forward and backward) show it: friction changes sign
