@@ -8,6 +8,10 @@ register maps (:mod:`elastocal.drivers.registers`).
 so errors name the file and the key. Nothing in this module does I/O on a
 device. The ``[sim]`` section belongs to the simulated cell: it is kept as the
 raw table here and validated by :func:`elastocal.sims.config.sim_config`.
+
+Why one module over 500 lines: every section of cell.toml is read and written here
+(URLs and register maps are in drivers.urls and drivers.registers), so that a key is
+validated, named in its errors and written back in one place.
 """
 
 from __future__ import annotations

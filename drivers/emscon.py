@@ -40,6 +40,10 @@ Result codes (ES_ResultStatus) -> elastocal:
 ``ES_RS_ServerBusy`` (1)                           ``DeviceTimeout`` (retried)
 any other non-zero status, ``ErrorResponse``       ``DeviceFault`` naming the ES_RS_ code
 =================================================  ===================================
+
+Why one module over 500 lines: the emScon session (initialisation, units, reflectors,
+environment) and its stream share one connection and one packet loop; split, the
+stream would reach into the session's private state.
 """
 
 from __future__ import annotations

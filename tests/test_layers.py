@@ -28,12 +28,16 @@ BOTTOM = (
     "elastocal",                      # the package itself: __version__ only
     "elastocal.errors",
     "elastocal.textfiles",
+    "elastocal.units",                # units of the values in the user's files
     "elastocal.identify.robot",       # robot.toml, the immutable robot model (Pinocchio)
     "elastocal.identify.urdf",
     "elastocal.identify.tables",      # static.csv, runs.csv
     "elastocal.identify.calibration",  # calibration JSON
     "elastocal.acquisition.logformat",  # the MCAP log schema
 )
+#: bottom-layer packages: the effect table (names, parameters, units, words for users) that the
+#: calibration JSON is checked against; effect modules import only the bottom layer
+BOTTOM_PACKAGES = ("elastocal.identify.effects",)
 #: layer of each subpackage, bottom (0) to top (3), for every module not in BOTTOM
 LAYER = {
     "elastocal.drivers": 1, "elastocal.identify": 1, "elastocal.sims": 1,
@@ -88,7 +92,7 @@ def placement(name: str, known: dict[str, pathlib.Path]) -> tuple[int, str] | No
     """(layer, subpackage) of a module, or None for a name that is no module (an imported object)."""
     if name not in known:
         return None
-    if name in BOTTOM:
+    if name in BOTTOM or any(name == p or name.startswith(p + ".") for p in BOTTOM_PACKAGES):
         return 0, "bottom"
     for prefix, layer in sorted(LAYER.items(), key=lambda kv: -len(kv[0])):
         if name == prefix or name.startswith(prefix + "."):
