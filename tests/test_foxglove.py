@@ -16,7 +16,8 @@ from mcap.writer import Writer
 
 from elastocal.acquisition import logformat as lf
 from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
-from elastocal.acquisition.export import load_log, read_log
+from elastocal.acquisition.export import load_log
+from elastocal.acquisition.logreader import read_log
 from elastocal.acquisition.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.identify.robot import bundled_robot
