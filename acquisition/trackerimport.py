@@ -34,7 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from elastocal.acquisition.export import LogContents, StaticReading, static_readings
+from elastocal.acquisition.export import StaticReading, static_readings
+from elastocal.acquisition.logreader import LogContents
 from elastocal.acquisition.trackerexports import ExportPoint, parse_time
 from elastocal.errors import InputError
 from elastocal.identify.tables import I_COLS, Q_COLS, W_COLS, StaticTable, check_header, csv_records, \

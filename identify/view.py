@@ -19,7 +19,8 @@ from typing import Sequence
 import numpy as np
 import pinocchio as pin
 
-from elastocal.identify.diagnose import Diagnosis, where_it_fails
+from elastocal.identify.diagnose import Diagnosis
+from elastocal.identify.where import where_it_fails
 from elastocal.identify.robot import FLANGE_FRAME, Robot
 
 #: how much the deflections and their errors are magnified in the 3-D view

@@ -454,7 +454,7 @@ def _check_plan(friction: bool = True) -> str:
 
 def test_unattended_procedure_skips_what_needs_a_person(tmp_path):
     from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
-    from elastocal.acquisition.export import read_log
+    from elastocal.acquisition.logreader import read_log
     from elastocal.acquisition.plan import parse_plan
     from elastocal.acquisition.procedures import run_procedures
     from elastocal.errors import InputError

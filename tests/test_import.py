@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
-from elastocal.acquisition.export import read_log, static_readings, static_table_from_log
+from elastocal.acquisition.export import static_readings, static_table_from_log
+from elastocal.acquisition.logreader import read_log
 from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.cli import main

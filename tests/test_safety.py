@@ -626,7 +626,7 @@ def test_the_operator_rehearses_in_a_terminal_and_stray_keys_answer_nothing(tmp_
     import sys
     import time
 
-    from elastocal.acquisition.export import read_log
+    from elastocal.acquisition.logreader import read_log
 
     plan = tmp_path / "plan.toml"
     plan.write_text(plan_toml(poses=[(0.1, 0.3, -0.4, 0.2, 1.0, 0.1), (0.4, 0.5, -0.3, 0.4, 0.9, 0.3)],

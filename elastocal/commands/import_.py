@@ -74,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
 
         robot = load_robot(args.robot)
     if args.log is not None:
-        from elastocal.acquisition.export import read_log, robot_from_log
+        from elastocal.acquisition.export import robot_from_log
+        from elastocal.acquisition.logreader import read_log
 
         contents = read_log(args.log)
         if robot is None:
