@@ -5,8 +5,9 @@ rate times the streaming time, and what the stream accounts for itself:
 received + recorded gaps), what the lost samples were lost to, and the load of
 the simulated 1 Mbit/s CAN bus. Target: no sample lost.
 
-The simulated drives run in this process on python-can's ``virtual`` bus (no
-python-can transport reaches another process without leaving 127.0.0.1), so
+The simulated drives run in this process on python-can's ``virtual`` bus
+(across processes, ``udp_loopback`` encodes every frame as a UDP datagram in
+Python on both sides and loses far more at 1 kHz: docs/devices.md), so
 the drivers and the simulated drives share one interpreter lock: the figures
 are a lower bound of what the drivers do against real drives. The simulated
 tracker is a TCP server on 127.0.0.1 and runs, as a real tracker would, apart:

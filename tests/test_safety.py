@@ -566,6 +566,16 @@ def test_a_stiffness_the_data_do_not_determine_is_marked_never_a_finding(tmp_pat
     assert "k1 not determined by these data, marked" in captured.err
     cal = read_calibration(tmp_path / "cal.json")
     assert cal.parameters["k1"]["determined"] is False and "determined" not in cal.parameters["k2"]
+    # a compensation with it says so
+    from elastocal.compensation.files import write_path
+    from elastocal.compensation.ik import yang_path
+    from elastocal.identify.robot import load_robot
+
+    write_path(tmp_path / "path.csv", yang_path(load_robot(tmp_path / "robot.toml"), step_m=0.1))
+    assert main(["compensate", "--robot", str(tmp_path / "robot.toml"), "--calibration", str(tmp_path / "cal.json"),
+                 "--path", str(tmp_path / "path.csv"), "--wrench", "0,0,-1500,0,0,0", "--out",
+                 str(tmp_path / "out.csv")]) == 0
+    assert f"note: k1 in {tmp_path / 'cal.json'} not determined by the calibration's data" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -112,6 +112,13 @@ def run(args: argparse.Namespace) -> int:
     for effect, params in unmodelled.items():
         note(args, f"note: compensate does not model {effect} ({', '.join(params) or 'no parameters'} in "
                    f"{args.calibration}): the compensated path leaves its deflection uncorrected")
+    from elastocal.identify.evidence import undetermined
+
+    shaky = undetermined(cal.parameters)     # marked by identify: not a result (identify/evidence.py)
+    if shaky:
+        note(args, f"note: {', '.join(shaky)} in {args.calibration} not determined by the calibration's data "
+                   f"(\"determined\": false): the compensation of {'these joints' if len(shaky) > 1 else 'this joint'} "
+                   f"is not a result; recalibrate with loads that load {'them' if len(shaky) > 1 else 'it'}")
     obj = {"n": len(result), "form": result.form, "reference": result.reference, "out": args.out,
            "unmodelled": unmodelled,
            "deflection": _stats(result.tcp_deflection), "residual": _stats(residual),
