@@ -83,6 +83,11 @@ class StaticDataset:
     #: tracker readings far off their repeats (identify/outliers.py): left out of
     #: sigma_tracker; in the means unless the table was refitted without them
     outliers: tuple = ()
+    #: (D,) variance per coordinate of each deflection from the readings' U95 (the optional
+    #: ``u95`` column, docs/import.md; sigma = U95 / 1.96), None without it: the fit's weights
+    defl_u95_var: np.ndarray | None = None
+    #: (D,) the part of it from the reference state's readings (shared by the deflections of a marker)
+    defl_u95_var_ref: np.ndarray | None = None
 
     @property
     def n_states(self) -> int:
@@ -128,6 +133,11 @@ def build_dataset(table: StaticTable) -> StaticDataset:
     defl = {k: [] for k in ("state", "ref", "marker", "dP", "n", "n_ref", "dt", "t")}
     dev_sq_p, dof_p = 0.0, 0
     dev_sq_i, dof_i = np.zeros(6), 0
+    u95 = table.optional("u95")
+    if u95 is not None and not (np.all(np.isfinite(u95)) and np.all(u95 > 0)):
+        u95 = None                  # weights only when every reading has its uncertainty
+    var_of: dict[tuple[str, str], float] = {}
+    u95_var, u95_var_ref = [], []
     for pi, p in enumerate(pose_ids):
         rows_p = table.pose == p
         loads = ["0"] + [ld for ld in dict.fromkeys(table.load[rows_p]) if ld != "0"]
@@ -156,12 +166,17 @@ def build_dataset(table: StaticTable) -> StaticDataset:
                     dev_sq_p += float(((good - good.mean(axis=0)) ** 2).sum())
                     dof_p += 3 * (len(good) - 1)
                 means[(ld, m)] = (x.mean(axis=0), len(x), float(np.mean(table.t[rm])))
+                if u95 is not None:       # variance of the mean of the state's readings
+                    var_of[(ld, m)] = float(np.sum((u95[rm] / 1.96) ** 2)) / int(rm.sum()) ** 2
         for li, ld in enumerate(loads[1:], start=1):
             for mi, m in enumerate(markers):
                 x1, n1, t1 = means[(ld, m)]
                 x0, n0, t0 = means[("0", m)]
                 defl["state"].append(ref_index + li)
                 defl["ref"].append(ref_index)
+                if u95 is not None:
+                    u95_var.append(var_of[(ld, m)] + var_of[("0", m)])
+                    u95_var_ref.append(var_of[("0", m)])
                 defl["marker"].append(mi)
                 defl["dP"].append(x1 - x0)
                 defl["n"].append(n1)
@@ -178,6 +193,8 @@ def build_dataset(table: StaticTable) -> StaticDataset:
         defl_marker=np.array(defl["marker"]), dP=np.array(defl["dP"]).reshape(-1, 3),
         defl_n=np.array(defl["n"]), defl_n_ref=np.array(defl["n_ref"]), defl_dt=np.array(defl["dt"]),
         defl_t=np.array(defl["t"]), sigma_tracker=sigma_tracker, sigma_current=sigma_current,
+        defl_u95_var=np.array(u95_var) if u95 is not None else None,
+        defl_u95_var_ref=np.array(u95_var_ref) if u95 is not None else None,
         outliers=outliers,
     )
 
@@ -372,7 +389,7 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
     when the data hold no repeated readings. ``sensitivity`` (S, 6): d dtheta /
     d tau of each state (default: the joint compliances)."""
     robot, ds = pr.robot, pr.ds
-    if ds.sigma_tracker is None:
+    if ds.sigma_tracker is None and ds.defl_u95_var is None:
         return None
     blocks = []
     sig_i = ds.sigma_current if (pr.torque == "current" and ds.sigma_current is not None) else None
@@ -392,9 +409,14 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
             for b_, db in enumerate(dl):
                 if ds.defl_marker[da] != ds.defl_marker[db]:
                     continue
-                v = ds.sigma_tracker**2 / ds.defl_n_ref[da]
-                if da == db:
-                    v += ds.sigma_tracker**2 / ds.defl_n[da]
+                if ds.defl_u95_var is not None:       # the readings' own U95 (docs/import.md)
+                    v = ds.defl_u95_var_ref[da]
+                    if da == db:
+                        v = ds.defl_u95_var[da]
+                else:
+                    v = ds.sigma_tracker**2 / ds.defl_n_ref[da]
+                    if da == db:
+                        v += ds.sigma_tracker**2 / ds.defl_n[da]
                 cov[3 * a_:3 * a_ + 3, 3 * b_:3 * b_ + 3] += v * np.eye(3)
         if sig_i is not None:
             states = np.flatnonzero(ds.state_pose == pi)
@@ -431,6 +453,13 @@ def _select_columns(a: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np
     else:
         mask = np.zeros(len(names), dtype=bool)
     return np.where(scale > 0, scale, 1.0), mask
+
+
+def _lstsq(a: np.ndarray, y: np.ndarray, w: np.ndarray | None) -> np.ndarray:
+    """Least squares, with rows weighted by ``w`` when given."""
+    if w is None:
+        return np.linalg.lstsq(a, y, rcond=None)[0]
+    return np.linalg.lstsq(a * w[:, None], y * w, rcond=None)[0]
 
 
 def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
@@ -479,7 +508,11 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     _, a = _evaluate(pr, np.zeros(len(beta_names)), bases, exact=False)
     scale, mask = _select_columns(a, beta_names)
     beta = np.zeros(len(beta_names))
-    beta[mask] = np.linalg.lstsq(a[:, mask] / scale[mask], y, rcond=None)[0] / scale[mask]
+    # rows weighted by the readings' U95 when the table has them (1 / sigma, mean weight 1)
+    w = None if ds.defl_u95_var is None else np.repeat(1.0 / np.sqrt(ds.defl_u95_var), 3)
+    if w is not None:
+        w = w / np.sqrt(np.mean(w ** 2))
+    beta[mask] = _lstsq(a[:, mask] / scale[mask], y, w) / scale[mask]
     iterations = 1
     if exact or tau_dependent or iterative:
         for iterations in range(2, max_iter + 2):
@@ -493,7 +526,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
             pred, a = _evaluate(pr, beta, bases, exact=exact)
             r = y - pred.reshape(-1)
             step = np.zeros_like(beta)
-            step[mask] = np.linalg.lstsq(a[:, mask] / scale[mask], r, rcond=None)[0] / scale[mask]
+            step[mask] = _lstsq(a[:, mask] / scale[mask], r, w) / scale[mask]
             beta = beta + step
             if np.max(np.abs(step[mask] * scale[mask])) < tol * max(1.0, float(np.max(np.abs(y)))):
                 break
@@ -507,7 +540,8 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     scaled = a_k / scale[mask]
     sv = np.linalg.svd(scaled, compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv.size and sv[-1] > 0 else float("inf")
-    m_inv = np.linalg.pinv(a_k.T @ a_k)
+    w2 = np.ones(n) if w is None else w ** 2
+    m_inv = np.linalg.pinv(a_k.T @ a_k if w is None else a_k.T @ (w2[:, None] * a_k))
     sensitivity = np.tile(beta[:6], (ds.n_states, 1))
     offset = 0
     for eff in effects:
@@ -519,17 +553,24 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     if blocks is not None:
         meat = np.zeros((p, p))
         trace_sigma = 0.0
+        cross = 0.0             # trace(H Sigma), H = A M A^T W the weighted hat matrix
         for rows, cov in blocks:
             ab = a_k[rows]
-            meat += ab.T @ cov @ ab
+            wab = ab if w is None else w2[rows][:, None] * ab
+            meat += wab.T @ cov @ wab
             trace_sigma += float(np.trace(cov))
-        expected = trace_sigma - float(np.trace(m_inv @ meat))
+            if w is not None:
+                cross += float(np.trace(m_inv @ (wab.T @ cov @ ab)))
+        if w is None:
+            expected = trace_sigma - float(np.trace(m_inv @ meat))
+        else:   # E[r^T r] = tr(Sigma) - 2 tr(H Sigma) + tr(H Sigma H^T); unweighted: tr(Sigma) - tr(M meat)
+            expected = trace_sigma - 2.0 * cross + float(np.trace(m_inv @ meat @ m_inv @ (a_k.T @ a_k)))
         inflation = max(1.0, rss / expected) if expected > 0 else 1.0
         cov_k = m_inv @ meat @ m_inv * inflation
         noise_floor = float(np.sqrt(max(expected, 0.0) / n))
     else:
         expected = None
-        s2 = rss / max(n - p, 1)
+        s2 = (rss if w is None else float(r @ (w2 * r))) / max(n - p, 1)
         cov_k = m_inv * s2
         noise_floor = None
     cov = np.zeros((len(beta_names), len(beta_names)))
