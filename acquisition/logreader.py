@@ -421,7 +421,10 @@ def _monotonic(log_times: list[int], values: list) -> list[int]:
 
 
 def _keys(times: list[int], offset: int, source: str) -> np.ndarray:
-    t = np.array(times, dtype=np.int64)
+    try:
+        t = np.array(times, dtype=np.int64)
+    except (TypeError, ValueError, OverflowError):       # a monotonic_ns that is no integer time
+        raise InputError("a sample's monotonic_ns is not a time in integer nanoseconds", source=source) from None
     if len(t) and (t.max() >= SEGMENT_NS or t.min() < 0):
         raise InputError(f"sample times beyond {SEGMENT_NS} ns (3 years) of the log clock", source=source)
     if offset >= MAX_SEGMENTS * SEGMENT_NS:
