@@ -199,7 +199,8 @@ class VirtualCellIO(CellIO):
             hit = self._cache[key] = (eq, currents, {})
         eq, currents, positions = hit
         if markers not in positions:
-            positions[markers] = self.cell.marker_positions(eq, markers) if markers else np.zeros((0, 3))
+            positions[markers] = (self.cell.to_tracker(self.cell.marker_positions(eq, markers)) if markers
+                                  else np.zeros((0, 3)))
         return currents, positions[markers]
 
     def _state(self, t_ns: int, markers: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -241,7 +242,7 @@ class VirtualCellIO(CellIO):
                 _, positions = self._state(t, markers)
                 ring = self.timing.ring_amplitude_m * self._ring(t)
                 t_s = (t - self.timing.start_ns) * 1e-9
-                noisy = (positions + truth.drift_velocity * t_s + ring
+                noisy = (positions + self.cell.tracker_drift * t_s + ring
                          + self._rng.normal(0.0, truth.tracker_noise_m, positions.shape))
                 for m, p in zip(markers, noisy):
                     self._tracker_seq += 1

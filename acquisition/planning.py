@@ -46,12 +46,15 @@ class PlannedExperiment:
     text: str                           # plan.toml
     plan: Plan
     planning_s: float                   # time of the search alone
+    #: the exchange that makes the kinematic set observable too (identify/design_kinematic.py); None: stiffness only
+    geometry: object | None = None
 
 
 def plan_calibration(robot: Robot, test: TestPose, workspace: Workspace, noise: NoiseModel, *,
                      markers: Sequence[str], n_poses: int, loads_per_pose: int, n_candidates: int, n_check: int,
                      prior_stiffness: Sequence[float], friction: Sequence[FrictionSpec] = (), name: str | None = None,
-                     repeats: int = 3, seed: int = 0, source: str = "<plan.toml>") -> PlannedExperiment:
+                     repeats: int = 3, seed: int = 0, source: str = "<plan.toml>",
+                     geometry: bool = True) -> PlannedExperiment:
     """Plan a calibration (K §V.C): ``n_poses`` of ``n_candidates`` sampled poses and the
     load forces, a random baseline, the check subset, and the plan.toml text (parsed back
     and validated for ``robot``; an error names ``source``)."""
@@ -60,6 +63,13 @@ def plan_calibration(robot: Robot, test: TestPose, workspace: Workspace, noise: 
     t_plan = time.monotonic()
     design = plan_experiment(robot, candidates, test, n_poses=n_poses, loads_per_pose=loads_per_pose,
                              workspace=workspace, markers=markers, prior_stiffness=prior_stiffness, noise=noise)
+    geo = None
+    if geometry and robot.urdf is None:     # poses that observe the kinematic set too (docs/absolute.md)
+        from elastocal.identify.design_kinematic import plan_for_geometry
+
+        geo = plan_for_geometry(robot, candidates, design, test, workspace=workspace, markers=markers,
+                                prior_stiffness=prior_stiffness, noise=noise, rng=np.random.default_rng(seed + 1))
+        design = geo.design
     planning_s = time.monotonic() - t_plan
     baseline = random_design_k40(robot, candidates, design.forces, test, n_poses=n_poses, markers=markers, rng=rng)
     random_quality = evaluate_design(robot, candidates.q[rng.choice(len(candidates.q), n_poses, replace=False)],
@@ -79,4 +89,4 @@ def plan_calibration(robot: Robot, test: TestPose, workspace: Workspace, noise: 
     plan.validate_for(robot)
     return PlannedExperiment(design=design, candidates=candidates, baseline_k40=baseline,
                              random_quality=random_quality, check=check, loads=loads, pose_ids=pose_ids,
-                             check_spec=check_spec, text=text, plan=plan, planning_s=planning_s)
+                             check_spec=check_spec, text=text, plan=plan, planning_s=planning_s, geometry=geo)

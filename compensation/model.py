@@ -37,6 +37,11 @@ class CompensationModel:
     robot: Robot
     stiffness: np.ndarray                          # (6,) k [N·m/rad]
     compensator: tuple[float, float] | None = None  # (C, l_c) or (K_c, s0)
+    #: the drawing's robot when ``robot`` carries a geometric calibration (kinematic_errors):
+    #: a path planned on the drawing means the pose the drawing gives (reference "nominal")
+    nominal: Robot | None = None
+    #: the frame the path positions: the load point, or a marker (a tool the tracker sees)
+    tool: str = LOAD_FRAME
 
     def __post_init__(self) -> None:
         k = np.asarray(self.stiffness, dtype=float).reshape(-1)
@@ -94,12 +99,23 @@ class CompensationModel:
             if any(n in params for n in other):
                 raise InputError(f"compensator parameters {', '.join(other)} do not fit the robot's "
                                  f"{spec.kind} compensator", source=source, column="parameters")
+        if "kinematic_errors" in cal.model:        # the real geometry (issue 12, part 7)
+            from elastocal.identify.accuracy import calibrated_robot
+
+            return cls(robot=calibrated_robot(robot, cal), stiffness=k, compensator=comp, nominal=robot)
         return cls(robot=robot, stiffness=k, compensator=comp)
+
+    def with_tool(self, tool: str) -> "CompensationModel":
+        """The same model positioning ``tool`` (the load point or a marker name)."""
+        from dataclasses import replace
+
+        self.robot.frame_id(tool)
+        return replace(self, tool=tool)
 
 
 #: calibration effects compensation models, and those that move no tool point of a planned path
 #: (measurement-side session effects, and friction: a torque, not a deflection at rest)
-MODELLED_EFFECTS = ("joint_stiffness", "compensator", "gravity")
+MODELLED_EFFECTS = ("joint_stiffness", "compensator", "gravity", "kinematic_errors")
 NO_PATH_DEFLECTION = ("thermal_drift", "tracker_frame", "coulomb_friction", "viscous_friction",
                       "load_dependent_friction")
 
@@ -128,6 +144,7 @@ class StaticKernel:
         self.pmodel = model.robot.model
         self.data = self.pmodel.createData()
         self.fid = model.robot.frame_id(LOAD_FRAME)
+        self.tool_fid = model.robot.frame_id(model.tool)
         self.offsets = model.robot.offsets
         self.offset2 = float(model.robot.joints[1].offset)
         self.c = model.compliance
@@ -143,11 +160,37 @@ class StaticKernel:
         return out
 
     def positions(self, theta: np.ndarray) -> np.ndarray:
-        """Load-point positions (n, 3) in the base frame."""
+        """Tool-point positions (n, 3) in the base frame (the load point unless the model names a tool)."""
         out = np.empty((len(theta), 3))
         for i, th in enumerate(theta):
             pin.forwardKinematics(self.pmodel, self.data, th)
-            out[i] = pin.updateFramePlacement(self.pmodel, self.data, self.fid).translation
+            out[i] = pin.updateFramePlacement(self.pmodel, self.data, self.tool_fid).translation
+        return out
+
+    def nominal_targets(self, q: np.ndarray, *, tol: float = 1e-12, max_iter: int = 50) -> np.ndarray:
+        """Link angles (n, 6) at which the calibrated robot's tool frame has the
+        pose the drawing's robot gives it at ``q`` (Newton on the SE(3) error)."""
+        nominal = self.m.nominal if self.m.nominal is not None else self.m.robot
+        nmodel = nominal.model
+        ndata = nmodel.createData()
+        nfid = nominal.frame_id(self.m.tool)
+        out = np.empty((len(q), 6))
+        theta = q[0] + self.offsets if len(q) else None
+        for i, qi in enumerate(q):
+            pin.framesForwardKinematics(nmodel, ndata, qi + nominal.offsets)
+            target = ndata.oMf[nfid].copy()
+            theta = qi + self.offsets if i == 0 else theta
+            for _ in range(max_iter):
+                pin.framesForwardKinematics(self.pmodel, self.data, theta)
+                err = pin.log6(self.data.oMf[self.tool_fid].actInv(target)).vector
+                if np.max(np.abs(err)) < tol:
+                    break
+                jac = pin.computeFrameJacobian(self.pmodel, self.data, theta, self.tool_fid, pin.LOCAL)
+                theta = theta + np.linalg.solve(jac, err)
+            else:
+                raise InputError(f"no configuration of the calibrated robot reaches point {i + 1} of the path "
+                                 "as the drawing does (singular or out of reach)")
+            out[i] = theta
         return out
 
     def passive_torque(self, theta: np.ndarray) -> np.ndarray:

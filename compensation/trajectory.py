@@ -27,6 +27,13 @@ Forms:
   when the link angles do, so the command is explicit once ``theta*`` is known:
   ``q_c = theta* - offset - c ⊙ tau(theta*, W)``.
 
+* ``"nominal"`` (a calibration with ``kinematic_errors``, RoboDK's "filter
+  program"): the pose the drawing's robot gives the tool at ``q + offset``; the
+  target is the configuration at which the *calibrated* robot's tool frame has
+  that pose (Newton on SE(3)), and the command puts the loaded, calibrated
+  robot there: geometry, gravity sag and process load all compensated. The
+  default when the model carries a geometric calibration.
+
 With the rigid reference both forms coincide for a joint-spring model.
 :func:`predicted_residual` solves the loaded equilibrium at the commands to
 check what is left.
@@ -42,7 +49,7 @@ from elastocal.compensation.model import CompensationModel, StaticKernel
 from elastocal.errors import InputError
 
 FORMS = ("exact", "first-order")
-REFERENCES = ("unloaded", "rigid")
+REFERENCES = ("unloaded", "rigid", "nominal")
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,15 +93,29 @@ def _check_inputs(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, f
     return q, w
 
 
+def default_reference(model: CompensationModel) -> str:
+    """``nominal`` for a geometrically calibrated model, else ``unloaded``."""
+    return "nominal" if model.nominal is not None else "unloaded"
+
+
 def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, *, form: str = "exact",
-                    reference: str = "unloaded") -> CompensatedPath:
+                    reference: str | None = None) -> CompensatedPath:
     """Compensated commands for the planned path ``q`` (n, 6) under ``wrench``
     ((6,) constant or (n, 6) per sample). The predicted deflection is the exact
     one (loaded equilibrium) for ``form="exact"`` and ``J dtheta`` for
     ``form="first-order"``."""
+    reference = default_reference(model) if reference is None else reference
     q, w = _check_inputs(model, q, wrench, form, reference)
     k = StaticKernel(model)
     plan = q + k.offsets
+    if reference == "nominal":
+        target = k.nominal_targets(q)
+        # first order: the torques at the planned configuration (Yang); exact: at the target
+        cmd = target - k.offsets - k.c * k.torque(plan if form == "first-order" else target, w)
+        theta_loaded = k.equilibrium(q, w, start=target + (q - cmd))
+        deflection = k.positions(theta_loaded) - k.positions(target)
+        return CompensatedPath(form=form, reference=reference, q_planned=q, wrench=w, q_command=cmd,
+                               theta_target=target, tcp_deflection=deflection)
     target = k.equilibrium(q, np.zeros_like(w)) if reference == "unloaded" else plan
     if form == "first-order":
         jac = k.jacobians(plan)

@@ -40,6 +40,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "schedule": ("elastocal.commands.schedule", "install a periodic calibration check"),
     "view": ("elastocal.commands.view", "show the cell in 3-D: poses, markers, errors magnified (local page)"),
     "fleet": ("elastocal.commands.fleet", "identify, diagnose or check many logs at once (Dask), record, drift"),
+    "validate": ("elastocal.commands.validate", "a calibration against data it was not fitted on"),
+    "robot": ("elastocal.commands.robot", "write the calibrated robot description (robot.toml, URDF)"),
 }
 
 

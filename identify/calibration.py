@@ -37,6 +37,12 @@ class Calibration:
     data: tuple[Mapping[str, str], ...] = ()
     #: the file it was read from, for errors (not part of the calibration)
     source: str = field(default="", compare=False)
+    #: optional (elastocal extension of formats.md §4): the absolute comparison of
+    #: the fit, rms/max/n/noise_floor [m] of the marker positions after the registration
+    absolute_residual: Mapping[str, float] | None = None
+    #: optional (elastocal extension): the robot.toml text the calibration was
+    #: identified against, so that `elastocal robot` can write the calibrated one
+    robot_description: str | None = None
 
     def value(self, name: str) -> float:
         try:
@@ -50,20 +56,28 @@ class Calibration:
     def to_json(self) -> dict:
         return {"format": FORMAT, "robot": self.robot, "created": self.created, "model": list(self.model),
                 "torque": self.torque, "parameters": {k: dict(v) for k, v in self.parameters.items()},
-                "residual": dict(self.residual), "data": [dict(d) for d in self.data]}
+                "residual": dict(self.residual), "data": [dict(d) for d in self.data],
+                **({} if self.absolute_residual is None else {"absolute_residual": dict(self.absolute_residual)}),
+                **({} if self.robot_description is None else {"robot_description": self.robot_description})}
 
 
 def calibration_from_fit(robot_name: str, fit_json: dict, data_paths: Sequence[str | pathlib.Path] = (),
-                         created: str | None = None) -> Calibration:
+                         created: str | None = None, robot_description: str | None = None) -> Calibration:
     """A Calibration from an ``identify --json`` object and the files it used."""
     created = created or _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
     residual = {k: v for k, v in fit_json["residual"].items() if k in ("rms", "max", "n")}
     if fit_json.get("noise_floor") is not None:  # optional extension: what noise alone leaves [m]
         residual["noise_floor"] = fit_json["noise_floor"]
+    absolute = None
+    if fit_json.get("absolute_residual"):        # optional extension: the absolute comparison [m]
+        absolute = {k: v for k, v in fit_json["absolute_residual"].items() if k in ("rms", "max", "n")}
+        if fit_json.get("absolute_noise_floor") is not None:
+            absolute["noise_floor"] = fit_json["absolute_noise_floor"]
     data = tuple({"path": str(p), "sha256": file_sha256(p)} for p in data_paths)
     return Calibration(robot=robot_name, created=created, model=tuple(fit_json["model"]),
                        torque=fit_json.get("torque", "current"), parameters=fit_json["parameters"],
-                       residual=residual, data=data)
+                       residual=residual, data=data, absolute_residual=absolute,
+                       robot_description=robot_description)
 
 
 def write_calibration(path: str | pathlib.Path, cal: Calibration) -> None:
@@ -86,6 +100,11 @@ def parameter_unit(name: str) -> str | None:
         return "N*m/rad"
     if name in HYDRO_UNITS or name in SPRING_UNITS:
         return {**HYDRO_UNITS, **SPRING_UNITS}[name]
+    kind = name.rstrip("0123456789")        # kinematic_errors (identify/kinematics.py)
+    if kind != name and kind in ("dq", "dalpha", "dbeta"):
+        return "rad"
+    if kind != name and kind in ("da", "dd") or name.startswith(("dx_", "dy_", "dz_")):
+        return "m"
     for effect in ALL_EFFECTS:
         e = get_effect(effect)
         if name in e.parameters:
@@ -201,5 +220,12 @@ def read_calibration(path: str | pathlib.Path) -> Calibration:
     data = doc.get("data", [])
     if not isinstance(data, list) or not all(isinstance(d, dict) for d in data):
         raise InputError("expected a list of objects with path and sha256", source=src, column="data")
+    absolute = doc.get("absolute_residual")
+    if absolute is not None and not isinstance(absolute, dict):
+        raise InputError(f"expected an object, got {absolute!r}", source=src, column="absolute_residual")
+    description = doc.get("robot_description")
+    if description is not None and not isinstance(description, str):
+        raise InputError("expected the robot.toml text", source=src, column="robot_description")
     return Calibration(robot=robot, created=created, model=tuple(model), torque=torque,
-                       parameters=params, residual=residual, data=tuple(data), source=src)
+                       parameters=params, residual=residual, data=tuple(data), source=src,
+                       absolute_residual=absolute, robot_description=description)

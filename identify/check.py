@@ -180,11 +180,14 @@ class CheckResult:
     alpha: float
     deflection: DeflectionCheck | None
     friction: FrictionCheck | None
+    #: absolute accuracy (identify/accuracy.py), when the calibration holds kinematic_errors
+    absolute: object | None = None
 
     def to_json(self) -> dict:
         return {"verdict": self.verdict, "reasons": list(self.reasons), "alpha": self.alpha,
                 "deflection": None if self.deflection is None else self.deflection.to_json(),
-                "friction": None if self.friction is None else self.friction.to_json()}
+                "friction": None if self.friction is None else self.friction.to_json(),
+                **({} if self.absolute is None else {"absolute": self.absolute.to_json()})}
 
 
 # ================================================================ deflections
@@ -230,7 +233,10 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
     if len(missing) == 6:
         raise InputError("the calibration holds no joint stiffness (k1..k6); a static check needs one",
                          source=calibration.source or "--calibration")
-    model = tuple(name for name in calibration.model if "static" in get_effect(name).seen_in)
+    from elastocal.identify.absolute import ABSOLUTE_EFFECTS
+
+    model = tuple(name for name in calibration.model
+                  if "static" in get_effect(name).seen_in and name not in ABSOLUTE_EFFECTS)
     fit = identify_static(robot, table, model=model or ("joint_stiffness",), torque=calibration.torque, form=form)
     if fit.noise_blocks is None:
         raise InputError("the check data hold no repeated readings: the check needs repeats >= 2 per marker and "
@@ -367,6 +373,11 @@ def check_calibration(robot: Robot, calibration: Calibration, *, static: StaticT
     deflection = check_static(robot, calibration, static, alpha=share, form=form) if static is not None else None
     if deflection is not None:
         reasons.append((not deflection.passed, deflection.reason()))
+    from elastocal.identify.accuracy import absolute_check
+
+    absolute = absolute_check(robot, calibration, static) if static is not None else None
+    if absolute is not None:             # the validate comparison (identify/accuracy.py)
+        reasons.append((not absolute.passed, absolute.reason()))
     friction = None
     if runs is not None:
         friction = check_friction(robot, calibration, runs, alpha=share, tolerance=friction_tolerance)
@@ -377,4 +388,4 @@ def check_calibration(robot: Robot, calibration: Calibration, *, static: StaticT
     failed = any(f for f, _ in reasons)
     ordered = [text for f, text in reasons if f] + [text for f, text in reasons if not f]
     return CheckResult(verdict="recalibrate" if failed else "holds", reasons=tuple(ordered), alpha=alpha,
-                       deflection=deflection, friction=friction)
+                       deflection=deflection, friction=friction, absolute=absolute)

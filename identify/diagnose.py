@@ -158,6 +158,8 @@ class Diagnosis:
     unexplained_detail: Unexplained | None = None
     #: readings far off their repeats (identify/outliers.py), left out of the noise floor
     outliers: tuple = ()
+    #: the comparison with the absolute positions (identify/absolute_diagnose.py); None without them
+    absolute: object | None = None
 
     @property
     def noise_floor(self) -> float | None:
@@ -193,7 +195,15 @@ class Diagnosis:
                 **self.unexplained_detail.to_json(), "sentences": list(self.unexplained)},
             "outliers": [o.to_json() for o in self.outliers],
             "where": self.where.to_json(),
+            **self._absolute_json(),
         }
+
+    def _absolute_json(self) -> dict:
+        """absolute_residual, absolute_noise_floor and the absolute candidates (cli.md)."""
+        if self.absolute is None:
+            return {}
+        return {**self.absolute.to_json(),
+                "absolute_candidates": [c.to_json() for c in self.absolute.candidates]}
 
 
 def _finite(x: float | None) -> float | None:
@@ -324,12 +334,24 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     excluded: tuple = ()
     if exclude_outliers and isinstance(data, StaticTable):
         data, excluded = without_outliers(data)
+    from elastocal.identify.absolute import ABSOLUTE_EFFECTS, has_absolute_positions, split_model
+    from elastocal.identify.absolute_diagnose import (
+        TRACKER_FRAME_NOTE,
+        absolute_unexplained,
+        combined_verdict,
+        diagnose_absolute,
+    )
+
     ds = data if isinstance(data, StaticDataset) else build_dataset(data)
+    absolute = has_absolute_positions(robot, ds)     # absolute effects are tested on absolute positions
+    model, absolute_model = split_model(model)
     noise_known = ds.sigma_tracker is not None
     if not noise_known:
         ds = _assumed_noise(robot, ds, model, torque, form)
     base = identify_static(robot, ds, model=model, torque=torque, form=form)
     pool = ALL_EFFECTS if effects is None else tuple(effects)
+    absolute_pool = tuple(e for e in pool if e in (*ABSOLUTE_EFFECTS, "thermal_drift")) if absolute else ()
+    pool = tuple(e for e in pool if e not in ABSOLUTE_EFFECTS or not absolute)
     skipped_first: list[NotTestable] = []
 
     def test(fit: StaticFit, added: Sequence[str]) -> list[Candidate]:
@@ -359,9 +381,20 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
                                f"{', '.join(str(o.line) for o in kept)}) are in the fit: diagnose again with "
                                "--exclude-outliers", *unexplained)
             detail = replace(detail, follows=unexplained)
-    return Diagnosis(model=base.model, torque=torque, form=form, fit=base, candidates=tuple(candidates),
+    abs_diag = None
+    if absolute:     # the deflection model's final form against the absolute positions
+        abs_diag = diagnose_absolute(robot, ds, (*final.model, *absolute_model), torque=torque, form=form,
+                                     pool=absolute_pool)
+        verdict = combined_verdict(verdict, len(steps), detail is not None, abs_diag)
+        if "tracker_frame" in absolute_pool and "tracker_frame" not in absolute_model:
+            skipped_first.append(NotTestable("tracker_frame", TRACKER_FRAME_NOTE))
+        extra = absolute_unexplained(abs_diag) if noise_known else None
+        if extra:
+            unexplained = (*unexplained, extra)
+    return Diagnosis(model=(*base.model, *absolute_model), torque=torque, form=form, fit=base,
+                     candidates=tuple(candidates),
                      not_testable=tuple(skipped_first), verdict=verdict, final=final, excess_p_value=excess,
                      unexplained=unexplained, where=where, where_final=where_final, noise_known=noise_known,
-                     steps=steps, unexplained_detail=detail, outliers=(*excluded, *ds.outliers))
+                     steps=steps, unexplained_detail=detail, outliers=(*excluded, *ds.outliers), absolute=abs_diag)
 
 

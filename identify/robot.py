@@ -87,7 +87,7 @@ def _vec3(value, *, source: str, column: str) -> tuple[float, float, float]:
 
 #: the keys robot.toml knows (docs/formats.md §1 plus elastocal's optional URDF keys)
 TOP_KEYS = ("name", "convention", "gravity", "urdf", "urdf_xml", "joint", "tool", "compensator")
-JOINT_KEYS = ("name", "a", "alpha", "d", "offset", "lower", "upper", "torque_constant", "mass", "com")
+JOINT_KEYS = ("name", "a", "alpha", "d", "beta", "offset", "lower", "upper", "torque_constant", "mass", "com")
 TOOL_KEYS = ("load_point", "markers", "flange")
 COMPENSATOR_KEYS = {"hydropneumatic": ("kind", "joint", "a", "b", "h", "C", "l_c"),
                     "spring": ("kind", "joint", "a", "L", "alpha", "K_c", "s0")}
@@ -125,6 +125,9 @@ class JointSpec:
     mass: float = 0.0
     com: tuple[float, float, float] = (0.0, 0.0, 0.0)
     name: str = ""
+    #: Hayati's rotation about y [rad] (elastocal extension of formats.md §1, for
+    #: calibrated robots whose axes i-1 and i are parallel): Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)
+    beta: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.lower < self.upper:
@@ -263,10 +266,14 @@ def _normal_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _dh_placement(joint: JointSpec) -> pin.SE3:
-    """Rx(alpha_{i-1}) Tx(a_{i-1}) Tz(d_i): the parts of the modified-DH transform
-    that do not depend on theta (Rz(theta) and Tz(d) commute)."""
+    """Rx(alpha_{i-1}) Tx(a_{i-1}) Ry(beta) Tz(d_i): the parts of the modified-DH transform
+    that do not depend on theta (Rz(theta) and Tz(d) commute); beta is Hayati's
+    rotation for parallel consecutive axes (0 in a drawing's table)."""
     ca, sa = math.cos(joint.alpha), math.sin(joint.alpha)
     rot = np.array([[1.0, 0.0, 0.0], [0.0, ca, -sa], [0.0, sa, ca]])
+    if joint.beta:
+        cb, sb = math.cos(joint.beta), math.sin(joint.beta)
+        rot = rot @ np.array([[cb, 0.0, sb], [0.0, 1.0, 0.0], [-sb, 0.0, cb]])
     trans = np.array([joint.a, 0.0, 0.0]) + rot @ np.array([0.0, 0.0, joint.d])
     return pin.SE3(rot, trans)
 
@@ -450,6 +457,8 @@ class Robot:
                 lines.append(f'name = "{j.name}"')
             if self.urdf is None:
                 lines += [f"a = {num(j.a)}", f"alpha = {num(j.alpha)}", f"d = {num(j.d)}"]
+                if j.beta:
+                    lines.append(f"beta = {num(j.beta)}")
             lines += [f"offset = {num(j.offset)}", f"lower = {num(j.lower)}", f"upper = {num(j.upper)}",
                       f"torque_constant = {num(j.torque_constant)}", f"mass = {num(j.mass)}",
                       f"com = {vec(j.com)}", ""]
@@ -517,7 +526,7 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
             if not isinstance(t.get("name"), str) or not t["name"]:
                 raise InputError("a URDF robot's joint needs the name of its URDF joint", source=source,
                                  column=f"joint[{i}].name")
-            for key in ("a", "alpha", "d"):
+            for key in ("a", "alpha", "d", "beta"):
                 if key in t:
                     raise InputError("a URDF robot takes its geometry from the URDF, not from DH parameters",
                                      source=source, column=f"joint[{i}].{key}")
@@ -555,6 +564,8 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
             _plausible_length(geometry["a"], source=source, column=f"{where}.a")
             _plausible_length(geometry["d"], source=source, column=f"{where}.d")
             _plausible_angle(geometry["alpha"], source=source, column=f"{where}.alpha")
+            geometry["beta"] = _number(t, "beta", source=source, where=where, default=0.0)
+            _plausible_angle(geometry["beta"], source=source, column=f"{where}.beta")
         else:
             geometry = {key: math.nan for key in ("a", "alpha", "d")}
         com = _vec3(t.get("com", urdf_com), source=source, column=f"{where}.com")

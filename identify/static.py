@@ -42,6 +42,7 @@ from elastocal.identify.robot import (
     Robot,
 )
 from elastocal.identify.evidence import check_loads_changed, mark_stiffness
+from elastocal.identify.registration import in_base_axes, refine_registration
 from elastocal.identify.tables import StaticTable
 
 TORQUE_SOURCES = ("current", "force")
@@ -88,6 +89,11 @@ class StaticDataset:
     defl_u95_var: np.ndarray | None = None
     #: (D,) the part of it from the reference state's readings (shared by the deflections of a marker)
     defl_u95_var_ref: np.ndarray | None = None
+    abs_xyz: np.ndarray | None = None  # (S, M, 3) mean absolute position per state and marker, tracker frame [m]
+    abs_n: np.ndarray | None = None    # (S, M) readings averaged
+    abs_t: np.ndarray | None = None    # (S, M) mean time of those readings [s], NaN if unknown
+    #: rotation tracker <- base that dP was turned back by (identify/registration.py); None: dP as measured
+    tracker_rotation: np.ndarray | None = None
 
     @property
     def n_states(self) -> int:
@@ -131,6 +137,7 @@ def build_dataset(table: StaticTable) -> StaticDataset:
     q = np.array([table.q[table.pose == p][0] for p in pose_ids])
     state_pose, state_load, state_ref, cur, ncur, wrench = [], [], [], [], [], []
     defl = {k: [] for k in ("state", "ref", "marker", "dP", "n", "n_ref", "dt", "t")}
+    abs_xyz, abs_n, abs_t = [], [], []
     dev_sq_p, dof_p = 0.0, 0
     dev_sq_i, dof_i = np.zeros(6), 0
     u95 = table.optional("u95")
@@ -168,6 +175,9 @@ def build_dataset(table: StaticTable) -> StaticDataset:
                 means[(ld, m)] = (x.mean(axis=0), len(x), float(np.mean(table.t[rm])))
                 if u95 is not None:       # variance of the mean of the state's readings
                     var_of[(ld, m)] = float(np.sum((u95[rm] / 1.96) ** 2)) / int(rm.sum()) ** 2
+            abs_xyz.append([means[(ld, m)][0] for m in markers])
+            abs_n.append([means[(ld, m)][1] for m in markers])
+            abs_t.append([means[(ld, m)][2] for m in markers])
         for li, ld in enumerate(loads[1:], start=1):
             for mi, m in enumerate(markers):
                 x1, n1, t1 = means[(ld, m)]
@@ -196,6 +206,8 @@ def build_dataset(table: StaticTable) -> StaticDataset:
         defl_u95_var=np.array(u95_var) if u95 is not None else None,
         defl_u95_var_ref=np.array(u95_var_ref) if u95 is not None else None,
         outliers=outliers,
+        abs_xyz=np.array(abs_xyz).reshape(len(state_pose), len(markers), 3), abs_n=np.array(abs_n),
+        abs_t=np.array(abs_t, dtype=float),
     )
 
 
@@ -237,6 +249,8 @@ class StaticFit:
     design: np.ndarray | None = field(default=None, repr=False)
     #: per-pose (row indices, covariance) of the deflection noise; None without repeats
     noise_blocks: tuple[tuple[np.ndarray, np.ndarray], ...] | None = field(default=None, repr=False)
+    #: (S, M, 3) the model's absolute marker positions of every state, base frame
+    absolute_base: np.ndarray | None = field(default=None, repr=False)
 
     def parameter(self, name: str) -> Parameter:
         for p in self.parameters:
@@ -383,6 +397,20 @@ def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.nd
     return pred, a.reshape(-1, a.shape[2])
 
 
+def _absolute_base(pr: _Problem, beta: np.ndarray, bases) -> np.ndarray:
+    """Base positions (S, M, 3) of every state's markers under the fitted model
+    (the joint angles carry the absolute torques; additive terms on the loaded states)."""
+    robot, ds = pr.robot, pr.ds
+    b_theta, b_links, b_add = bases
+    dtheta, dlink = b_theta @ beta, b_links @ beta
+    out = np.empty((ds.n_states, len(pr.frames), 3))
+    for s in range(ds.n_states):
+        th10 = robot.theta_links(robot.theta(ds.q[ds.state_pose[s]]) + dtheta[s], dlink[s])
+        out[s] = _kinematics(robot, th10, pr.frames)[0]
+    out[ds.defl_state, ds.defl_marker] += b_add @ beta
+    return out
+
+
 def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
                   sensitivity: np.ndarray | None = None) -> list[tuple[np.ndarray, np.ndarray]] | None:
     """Per-pose (row indices, covariance) of the deflection noise, or None
@@ -471,6 +499,15 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     if form not in FORMS:
         raise InputError(f"must be exact or first-order, got {form!r}", source="--form")
     ds = data if isinstance(data, StaticDataset) else build_dataset(data)
+    if ds.tracker_rotation is None:
+        # a tracker placed anywhere: the deflections turned back to base axes by the
+        # registration of the nominal model, then by that of this model's fit
+        first = identify_static(robot, in_base_axes(robot, ds), model=model, torque=torque, form=form,
+                                max_iter=max_iter, tol=tol)
+        refined = refine_registration(robot, ds, first.absolute_base)
+        if refined is None:
+            return first
+        return identify_static(robot, refined, model=model, torque=torque, form=form, max_iter=max_iter, tol=tol)
     if torque == "current" and not ds.has_currents:
         raise InputError("current-based identification needs the currents i1..i6 in every row; "
                          "use --torque force", source=ds.source)
@@ -595,6 +632,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
                 continue
             params.append(Parameter(names_out[i], float(values[i]), float(abs(deriv[i]) * std[sl][i]), units[i]))
     return StaticFit(model=names, torque=torque, form=form, parameters=tuple(params),
+                     absolute_base=_absolute_base(pr, beta, bases),
                      unidentifiable=tuple(unident), beta_names=beta_names, beta=beta, beta_cov=cov,
                      predicted=pred, residuals=resid, rms=float(np.sqrt(rss / n)),
                      max=float(np.max(np.abs(r))), n=n, rss=rss, n_params=p, noise_floor=noise_floor,

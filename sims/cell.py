@@ -18,6 +18,7 @@ Every function is pure given its arguments; noise comes from a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Sequence
 
@@ -30,11 +31,51 @@ from elastocal.identify.robot import (
     SPRINGS_IN_LINK_MODEL,
     Robot,
 )
+from elastocal.identify.kinematics import corrected_robot
 
 #: HH-150 joint stiffness, Yang Table 6 (current-based) [N·m/rad]
 HH150_STIFFNESS = (0.559e6, 1.435e6, 1.829e6, 0.184e6, 0.171e6, 0.070e6)
 #: effects the simulator can hide in a dataset (``--hidden``)
-HIDDEN_EFFECTS = ("none", "link_compliance", "thermal_drift", "static_friction", "backlash")
+HIDDEN_EFFECTS = ("none", "link_compliance", "thermal_drift", "static_friction", "backlash",
+                  "kinematic_errors", "tracker_frame")
+
+
+def _rot(axis: int, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    i, j = [k for k in range(3) if k != axis]
+    out = np.eye(3)
+    out[i, i], out[i, j], out[j, i], out[j, j] = c, -s, s, c
+    return out
+
+
+def tracker_placement(base_p_tracker, yaw: float, tilt_x: float, tilt_y: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of ``p_tracker = R p_base + t`` for a tracker standing at
+    ``base_p_tracker`` [m], turned by ``yaw`` about the vertical and tilted by
+    ``tilt_x``, ``tilt_y`` (a tripod that is not level) [rad]."""
+    rot = _rot(0, tilt_x) @ _rot(1, tilt_y) @ _rot(2, yaw)
+    return rot, -rot @ np.asarray(base_p_tracker, dtype=float)
+
+
+#: the default simulated tracker: on a tripod 3.7 m from the robot, turned
+#: 2.4 rad about the vertical, 4 and 3 mrad off level (formats.md §2: any rigid placement)
+DEFAULT_TRACKER = tracker_placement((3.2, -1.8, 0.6), 2.4, 0.004, -0.003)
+#: ``--hidden tracker_frame``: the tracker moved to another stand, behind and
+#: above the robot, facing it from the other side
+MOVED_TRACKER = tracker_placement((-2.6, 2.9, 1.9), -0.9, -0.006, 0.008)
+
+#: ``--hidden kinematic_errors``: the real DH table differs from the drawing by
+#: 0.02-0.05 deg in joint zeros and twists, 0.1-0.5 mm in lengths and offsets,
+#: 0.03 deg of Hayati tilt on the parallel axes 2-3, markers 0.1-0.3 mm off
+#: (typical of a heavy robot after assembly; RoboDK and FIGAROH report errors
+#: of this size before calibration)
+KINEMATIC_ERRORS = tuple(
+    [(f"dq{i}", math.radians(v)) for i, v in enumerate((0.03, -0.04, 0.05, -0.02, 0.035, -0.045), start=1)]
+    + [(f"da{i}", v * 1e-3) for i, v in enumerate((0.2, -0.3, 0.45, -0.15, 0.25, 0.1), start=1)]
+    + [(f"dd{i}", v * 1e-3) for i, v in enumerate((0.3, -0.2, 0.25, -0.4, 0.12, 0.3), start=1)]
+    + [(f"dalpha{i}", math.radians(v)) for i, v in enumerate((0.02, -0.03, 0.04, -0.025, 0.03, -0.035), start=1)]
+    + [("dbeta3", math.radians(0.03))]
+    + [("dx_R1", 0.2e-3), ("dy_R1", -0.1e-3), ("dz_R1", 0.3e-3), ("dx_R2", -0.15e-3), ("dy_R2", 0.25e-3),
+       ("dz_R2", 0.1e-3), ("dx_R3", 0.1e-3), ("dy_R3", -0.2e-3), ("dz_R3", -0.15e-3)])
 
 
 def _arr(value, n: int, name: str) -> np.ndarray:
@@ -69,12 +110,23 @@ class CellTruth:
     #: measurement noise (one standard deviation per reading)
     tracker_noise_m: float = 10e-6
     current_noise_a: float = 0.02
+    #: the real robot's DH and marker errors, (name, value) under the names of
+    #: identify/kinematics.py; () for a robot built exactly to its drawing
+    kinematic_errors: tuple[tuple[str, float], ...] = ()
+    #: where the tracker stands: p_tracker = tracker_rotation @ p_base + tracker_translation
+    tracker_rotation: np.ndarray = field(default_factory=lambda: DEFAULT_TRACKER[0].copy())
+    tracker_translation: np.ndarray = field(default_factory=lambda: DEFAULT_TRACKER[1].copy())
 
     def __post_init__(self) -> None:
         for name, n in (("stiffness", 6), ("link_compliance", 4), ("drift_velocity", 3),
                         ("static_friction", 6), ("backlash", 6), ("coulomb", 6), ("viscous", 6),
                         ("load_friction", 6)):
             object.__setattr__(self, name, _arr(getattr(self, name), n, name))
+        object.__setattr__(self, "tracker_translation", _arr(self.tracker_translation, 3, "tracker_translation"))
+        rot = np.asarray(self.tracker_rotation, dtype=float)
+        if rot.shape != (3, 3) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-9) or np.linalg.det(rot) < 0:
+            raise ValueError("tracker_rotation must be a rotation matrix")
+        object.__setattr__(self, "tracker_rotation", rot)
         if np.any(self.stiffness <= 0):
             raise ValueError("stiffness must be positive")
 
@@ -96,6 +148,11 @@ class CellTruth:
             return replace(self, static_friction=np.array([60.0, 250.0, 200.0, 25.0, 20.0, 12.0]))
         if effect == "backlash":
             return replace(self, backlash=np.array([6e-5, 5e-5, 5e-5, 1.2e-4, 1.2e-4, 1.5e-4]))
+        if effect == "kinematic_errors":
+            return replace(self, kinematic_errors=KINEMATIC_ERRORS)
+        if effect == "tracker_frame":
+            return replace(self, tracker_rotation=MOVED_TRACKER[0].copy(),
+                           tracker_translation=MOVED_TRACKER[1].copy())
         raise ValueError(f"unknown hidden effect {effect!r}; one of {', '.join(HIDDEN_EFFECTS)}")
 
     def parameters(self, robot: Robot) -> dict[str, dict[str, float | str]]:
@@ -124,7 +181,21 @@ class CellTruth:
             if np.any(arr):
                 for j, v in enumerate(arr, start=1):
                     out[f"{prefix}{j}"] = {"value": float(v), "unit": unit}
+        from elastocal.identify.kinematics import unit_of
+
+        for name, v in self.kinematic_errors:
+            out[name] = {"value": float(v), "unit": unit_of(name)}
+        rvec = _rotation_vector(self.tracker_rotation)
+        for name, v, unit in zip(("rx", "ry", "rz", "tx", "ty", "tz"), (*rvec, *self.tracker_translation),
+                                 ("rad",) * 3 + ("m",) * 3):
+            out[name] = {"value": float(v), "unit": unit}
         return out
+
+
+def _rotation_vector(rot: np.ndarray) -> np.ndarray:
+    import pinocchio as pin
+
+    return np.asarray(pin.log3(np.asarray(rot, dtype=float)))
 
 
 @dataclass(frozen=True)
@@ -147,10 +218,15 @@ class SimCell:
         self.truth = truth if truth is not None else CellTruth()
         if robot.compensator is None:
             self.truth = replace(self.truth, compensator=None)
+        #: the robot as built: the drawing's table with the truth's kinematic errors
+        #: (the physics runs on it; ``robot`` is the description users have)
+        errors = tuple((n, v) for n, v in self.truth.kinematic_errors
+                       if not n.startswith(("dx_", "dy_", "dz_")) or n[3:] in robot.marker_names)
+        self.physical = corrected_robot(robot, *zip(*errors)) if errors else robot
 
     # --------------------------------------------------------------- statics
     def _full_load(self, theta10: np.ndarray, wrench: np.ndarray) -> np.ndarray:
-        r = self.robot
+        r = self.physical
         q2 = theta10[ACTUATED_IN_LINK_MODEL[1]] - r.joints[1].offset
         return r.load_torque(theta10, wrench, self.truth.compensator, links=True, q2=q2)
 
@@ -164,7 +240,7 @@ class SimCell:
         of the change of each joint's load torque (the gears, motors and springs
         see only the rest).
         """
-        r = self.robot
+        r = self.physical
         t = self.truth
         q = np.asarray(q, dtype=float)
         w = np.zeros(6) if wrench is None else np.asarray(wrench, dtype=float)
@@ -201,8 +277,21 @@ class SimCell:
 
     def marker_positions(self, eq: Equilibrium, markers: Sequence[str]) -> np.ndarray:
         """Noise-free base-frame positions (len(markers), 3) at an equilibrium."""
-        th10 = self.robot.theta_links(eq.theta, eq.link_angles)
-        return self.robot.positions(th10, list(markers), links=True)
+        th10 = self.physical.theta_links(eq.theta, eq.link_angles)
+        return self.physical.positions(th10, list(markers), links=True)
+
+    def tracker_positions(self, eq: Equilibrium, markers: Sequence[str]) -> np.ndarray:
+        """Noise-free positions (len(markers), 3) in the tracker's frame, without drift."""
+        return self.to_tracker(self.marker_positions(eq, markers))
+
+    def to_tracker(self, base_p: np.ndarray) -> np.ndarray:
+        """Base-frame positions (N, 3) in the tracker's measurement frame."""
+        return np.asarray(base_p) @ self.truth.tracker_rotation.T + self.truth.tracker_translation
+
+    @property
+    def tracker_drift(self) -> np.ndarray:
+        """The drift velocity in the tracker's frame [m/s] (the truth gives it in base axes)."""
+        return self.truth.tracker_rotation @ self.truth.drift_velocity
 
     def currents(self, eq: Equilibrium) -> np.ndarray:
         """Noise-free motor currents [A] (signed: xi i = gear torque)."""
@@ -211,10 +300,13 @@ class SimCell:
     # ----------------------------------------------------------- measuring
     def read_tracker(self, eq: Equilibrium, markers: Sequence[str], t_s: float,
                      rng: np.random.Generator) -> np.ndarray:
-        """Tracker readings of the markers at time ``t_s``: drift and noise added."""
-        p = self.marker_positions(eq, markers)
-        p = p + self.truth.drift_velocity * t_s
-        return p + rng.normal(0.0, self.truth.tracker_noise_m, size=p.shape)
+        """Tracker readings of the markers at time ``t_s``, in the tracker's frame: drift and noise added.
+
+        The noise is isotropic; it is drawn in base axes and turned with the
+        reading, so that the same seed gives the same data, rigidly moved, from
+        wherever the tracker stands."""
+        p = self.marker_positions(eq, markers) + self.truth.drift_velocity * t_s
+        return self.to_tracker(p + rng.normal(0.0, self.truth.tracker_noise_m, size=p.shape))
 
     def read_currents(self, eq: Equilibrium, rng: np.random.Generator) -> np.ndarray:
         return self.currents(eq) + rng.normal(0.0, self.truth.current_noise_a, size=6)
@@ -233,5 +325,5 @@ class SimCell:
         return (tau - friction) / self.robot.torque_constants
 
     def load_point(self, eq: Equilibrium) -> np.ndarray:
-        th10 = self.robot.theta_links(eq.theta, eq.link_angles)
-        return self.robot.positions(th10, [LOAD_FRAME], links=True)[0]
+        th10 = self.physical.theta_links(eq.theta, eq.link_angles)
+        return self.physical.positions(th10, [LOAD_FRAME], links=True)[0]

@@ -45,9 +45,9 @@ def _sim(t: Mapping, *, source: str) -> SimConfig:
     d = SimConfig()
     check_known_keys(t, tuple(SimConfig.__dataclass_fields__), source=source, where=where)
     hidden = t.get("hidden", d.hidden)
-    if hidden not in HIDDEN_EFFECTS:
-        raise InputError(f"hidden must be one of {', '.join(HIDDEN_EFFECTS)}, got {hidden!r}",
-                         source=source, column="sim.hidden")
+    if not isinstance(hidden, str) or not all(h.strip() in HIDDEN_EFFECTS for h in hidden.split(",")):
+        raise InputError(f"hidden must be one of {', '.join(HIDDEN_EFFECTS)} (or several, comma-separated), "
+                         f"got {hidden!r}", source=source, column="sim.hidden")
     kw = dict(
         seed=_int(t, "seed", d.seed, source=source, where=where),
         hidden=hidden,

@@ -339,7 +339,7 @@ class SimWorld:
                                wrench=seg.wrench, friction_torque=np.zeros(6))
 
     def read_tracker(self, marker: str, t_ns: int | None = None) -> np.ndarray:
-        """A tracker reading of ``marker`` at ``t_ns`` [m], base (= tracker) frame."""
+        """A tracker reading of ``marker`` at ``t_ns`` [m], in the tracker's frame (``CellTruth.tracker_rotation``)."""
         if marker not in self.markers:
             raise InputError(f"unknown marker {marker!r}; the cell has {', '.join(self.markers)}")
         t = self._clock_ns() if t_ns is None else t_ns
@@ -351,7 +351,7 @@ class SimWorld:
                     self._rest_markers = {m: p[i:i + 1] for i, m in enumerate(self.markers)}
                 truth = self.cell.truth
                 p = self._rest_markers[marker] + truth.drift_velocity * self.t_s(t)
-                return (p + self._rng.normal(0.0, truth.tracker_noise_m, size=p.shape))[0]
+                return self.cell.to_tracker(p + self._rng.normal(0.0, truth.tracker_noise_m, size=p.shape))[0]
         eq = self.equilibrium_at(t)
         with self._lock:
             return self.cell.read_tracker(eq, [marker], self.t_s(t), self._rng)[0]

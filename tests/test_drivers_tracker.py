@@ -153,7 +153,7 @@ def test_measure_gives_the_marker_in_metres(tracker, world, backend):
         tracker.select(m)
         s = tracker.measure()
         assert s.marker == m
-        truth = world.cell.marker_positions(eq, [m])[0]
+        truth = world.cell.tracker_positions(eq, [m])[0]
         np.testing.assert_allclose(s.tracker_p_marker, truth, atol=1e-9)
     with pytest.raises(InputError, match="unknown marker"):
         tracker.select("R9")
@@ -200,7 +200,7 @@ def test_serial_tracker_on_a_pty(world):
         t = tracker_for(f"tracker+serial://{path}?baud=115200")
         try:
             s = t.measure()
-            truth = world.cell.marker_positions(world.equilibrium_at(), ["R1"])[0]
+            truth = world.cell.tracker_positions(world.equilibrium_at(), ["R1"])[0]
             np.testing.assert_allclose(s.tracker_p_marker, truth, atol=1e-9)
             with pytest.raises(InputError, match="115200 baud"):
                 t.stream(1000.0)

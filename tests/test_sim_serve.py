@@ -64,7 +64,7 @@ def test_simulated_cell_resolves_urls_and_stops_everything():
             sim.world.set_load([0.0, 0.0, -2000.0, 0.0, 0.0, 0.0])
             eq = sim.world.equilibrium_at()
             p = cell.tracker.measure().tracker_p_marker
-            np.testing.assert_allclose(p, sim.world.cell.marker_positions(eq, ["R1"])[0], atol=1e-4)
+            np.testing.assert_allclose(p, sim.world.cell.tracker_positions(eq, ["R1"])[0], atol=1e-4)
             with cell.drives[1].stream(500.0) as s:
                 assert s.read_for(0.2).samples
         assert sim.can_stats()[f"virtual/{sim.config.drives[0].url.can_channel}"].frames > 0
@@ -84,7 +84,7 @@ def test_serial_devices_get_pty_paths():
             assert cell.drives[3].read().position_rad == pytest.approx(-0.4, abs=1e-7)
             eq = sim.world.equilibrium_at()
             np.testing.assert_allclose(cell.tracker.measure().tracker_p_marker,
-                                       sim.world.cell.marker_positions(eq, ["R1"])[0], atol=1e-9)
+                                       sim.world.cell.tracker_positions(eq, ["R1"])[0], atol=1e-9)
 
 
 def test_devices_command_identifies_and_streams(tmp_path, capsys):

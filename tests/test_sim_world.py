@@ -70,7 +70,7 @@ def test_currents_at_rest_and_under_load_match_simcell(robot):
     eq = cell.equilibrium(START, w)
     np.testing.assert_allclose(world.sample().currents_a, cell.currents(eq), atol=1e-12)
     p = world.read_tracker("R2")
-    np.testing.assert_allclose(p, cell.marker_positions(eq, ["R2"])[0], atol=1e-12)
+    np.testing.assert_allclose(p, cell.tracker_positions(eq, ["R2"])[0], atol=1e-12)
     world.remove_load()
     np.testing.assert_allclose(world.sample().currents_a, cell.currents(cell.equilibrium(START)), atol=1e-12)
 
@@ -122,7 +122,7 @@ def test_run_currents_include_friction_from_motion_currents(robot):
         exact = world.cell.motion_currents(s.q, s.dq, w)
         np.testing.assert_allclose(s.currents_a, exact, atol=2e-3)      # interpolated between grid points
         np.testing.assert_allclose(world.read_tracker("R1"),
-                                   world.cell.marker_positions(world.cell.equilibrium(s.q, w), ["R1"])[0],
+                                   world.cell.tracker_positions(world.cell.equilibrium(s.q, w), ["R1"])[0],
                                    atol=2e-6)
     # forward and backward runs: friction flips sign, the load part does not
     clock.advance(duration)

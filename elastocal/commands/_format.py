@@ -57,7 +57,21 @@ def format_fit(obj: Mapping, title: str, truth: Mapping[str, Mapping] | None = N
     if "torque_residual" in obj:
         tr = obj["torque_residual"]
         lines.append(f"torque residual {tr['rms']:.4g} {tr['unit']} rms over {tr['n']} samples")
+    if obj.get("absolute_residual"):
+        lines.append("absolute positions (after the registration): " + absolute_line(
+            obj["absolute_residual"], obj.get("absolute_noise_floor")))
     if obj.get("unidentifiable"):
         lines.append("unidentifiable from these data (left out): " + ", ".join(obj["unidentifiable"])
                      + f"; condition number {obj.get('condition_number', float('nan')):.3g}")
+        for words in obj.get("absorbed_by", {}).values():
+            lines.append(f"  {words}")
     return "\n".join(lines)
+
+
+def absolute_line(res: Mapping, floor: float | None) -> str:
+    """``653.0 µm rms, max 1.67 mm, floor 8.0 µm (81.6x)``."""
+    mx = res["max"]
+    text = f"{_um(res['rms'])} rms, max " + (f"{mx * 1e3:.2f} mm" if mx >= 1e-3 else _um(mx))
+    if floor:
+        text += f", floor {_um(floor)} ({res['rms'] / floor:.2f}x)"
+    return text

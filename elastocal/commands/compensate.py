@@ -20,9 +20,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                          "[N, N*m, base axes]")
     parser.add_argument("--form", default="exact", choices=("exact", "first-order"),
                         help="exact (default): the loaded robot reaches the plan; first-order: q - dtheta (Yang)")
-    parser.add_argument("--reference", default="unloaded", choices=("unloaded", "rigid"),
+    parser.add_argument("--reference", default=None, choices=("unloaded", "rigid", "nominal"),
                         help="what the plan means: the pose the robot reaches without the process load "
-                             "(default) or the rigid kinematic pose (removes gravity sag too)")
+                             "(default without a geometric calibration), the rigid kinematic pose (removes "
+                             "gravity sag too), or the pose the drawing's robot gives the tool (default with "
+                             "kinematic_errors in the calibration: geometry, sag and load compensated)")
+    parser.add_argument("--tool", default=None, metavar="MARKER",
+                        help="the point the path positions: the load point (default) or a marker of the tool "
+                             "(a point the calibration measured)")
     parser.add_argument("--krl", metavar="FILE", help="also write a KUKA KRL program (.src)")
     parser.add_argument("--rapid", metavar="FILE", help="also write an ABB RAPID module (.mod)")
     parser.add_argument("--validate", action="store_true",
@@ -83,6 +88,13 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     cal = read_calibration(args.calibration)
     model = CompensationModel.from_calibration(robot, cal, source=args.calibration)
+    if args.tool:
+        if args.tool not in robot.marker_names:
+            raise InputError(f"unknown marker {args.tool!r}; the robot has {', '.join(robot.marker_names)}",
+                             source="--tool")
+        model = model.with_tool(args.tool)
+    if args.reference == "nominal" and model.nominal is None:
+        raise InputError("the nominal reference needs a calibration with kinematic_errors", source="--reference")
     planned = read_path(args.path, robot)
     if args.wrench is not None and planned.wrench is not None:
         raise InputError("the path has wrench columns fx..mz; give the wrench there or with --wrench, not both",
@@ -91,8 +103,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("no process wrench: add fx..mz columns to the path or give --wrench "
                          "(0,0,0,0,0,0 for none)", source=args.path)
     wrench = planned.wrench if planned.wrench is not None else np.tile(fixed, (len(planned), 1))
+    from elastocal.compensation.trajectory import default_reference
+
+    reference = args.reference or default_reference(model)
     try:
-        result = compensate_path(model, planned.q, wrench, form=args.form, reference=args.reference)
+        result = compensate_path(model, planned.q, wrench, form=args.form, reference=reference)
         residual = predicted_residual(model, result)
     except NotConverged as exc:
         raise _not_converged(exc, planned, wrench, args) from None
@@ -137,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("--validate simulates the HH-150 cell (hydro-pneumatic compensator); this robot's "
                              "compensator is a spring", source="--validate")
         cell = SimCell(robot, CellTruth())
-        check = validate_on_sim(cell, model, PlannedPath(t=planned.t, q=planned.q), wrench, reference=args.reference)
+        check = validate_on_sim(cell, model, PlannedPath(t=planned.t, q=planned.q), wrench, reference=reference)
         obj["validation"] = check.summary()
     if args.json:
         print(json.dumps(obj))

@@ -57,7 +57,7 @@ def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str
     floor = diag.noise_floor
     if floor is None:
         lines.append(f"  residual {_um(fit.rms)} rms; no repeated readings, so the noise floor is unknown")
-    elif diag.verdict is not None:
+    elif diag.verdict is not None and diag.steps and diag.steps[0].effect == diag.verdict:
         lines.append(f"  residual {_um(fit.rms)} rms, noise floor {_um(floor)}: the model misses something.")
     elif diag.unexplained_detail is not None:
         lines.append(f"  residual {_um(fit.rms)} rms, noise floor {_um(floor)}: above the floor, "
@@ -93,13 +93,45 @@ def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str
         lines.append("  not testable from these data:")
         for n in diag.not_testable:
             lines.append(f"    {n.effect}: {n.reason}")
+    lines += format_absolute(diag.absolute)
     if diag.verdict is not None:
-        w = diag.where
-        pose = w.group("pose")
-        worst = sorted(range(len(pose.labels)), key=lambda i: -pose.rms[i])[:3]
-        lines.append("  where it fails: poses " + ", ".join(f"{pose.labels[i]} ({_um(pose.rms[i])})" for i in worst))
-        lines.append(f"  add it: {identify_command(args, (*model, diag.verdict))}")
+        if diag.absolute is not None and diag.verdict in {c.effect for c in diag.absolute.steps}:
+            step = next(c for c in diag.absolute.steps if c.effect == diag.verdict)
+            lines.append("  where it fails: poses " + ", ".join(
+                f"{p['pose']} ({_um(p['rms'])})" for p in sorted(diag.absolute.base.per_pose(),
+                                                               key=lambda p: -p["rms"])[:3]))
+            added = (diag.verdict, *step.fitted_with)
+        else:
+            w = diag.where
+            pose = w.group("pose")
+            worst = sorted(range(len(pose.labels)), key=lambda i: -pose.rms[i])[:3]
+            lines.append("  where it fails: poses " + ", ".join(f"{pose.labels[i]} ({_um(pose.rms[i])})"
+                                                                for i in worst))
+            added = (diag.verdict,)
+        lines.append(f"  add it: {identify_command(args, tuple(dict.fromkeys((*model, *added))))}")
     return "\n".join(lines)
+
+
+def format_absolute(absolute) -> list[str]:
+    """The absolute comparison beside the deflection one (identify/absolute_diagnose.py)."""
+    if absolute is None:
+        return []
+    from elastocal.commands._format import absolute_line
+
+    b = absolute.base
+    lines = ["  absolute positions (after the best rigid registration): "
+             + absolute_line({"rms": b.rms, "max": b.max}, b.noise_floor)]
+    for k, c in enumerate(absolute.candidates, start=1):
+        with_ = f" (with {', '.join(c.fitted_with)})" if c.fitted_with else ""
+        change = f"{c.rms_before * 1e6:.1f} → {c.rms_after * 1e6:.1f} µm{with_}"
+        if c.significant:
+            words = f"ΔBIC {c.delta_bic:.0f}   {_p(c.p_value)}   {c.explanation}"
+        else:
+            words = f"not significant (ΔBIC {c.delta_bic:+.0f}, {_p(c.p_value)})"
+        lines.append(f"  {k}. {c.effect}  {change}  {words}")
+    if not absolute.steps and absolute.base_at_floor:
+        lines.append("  absolute positions at their noise floor: the geometry and the registration hold.")
+    return lines
 
 
 def format_runs(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:

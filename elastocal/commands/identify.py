@@ -40,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("the log holds neither a static experiment nor runs", source=args.log or "--static")
     obj, fit = identify_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers)
     if args.out:
-        calibration = calibration_from_fit(inputs.robot.name, obj, inputs.files)
+        calibration = calibration_from_fit(inputs.robot.name, obj, inputs.files,
+                                           robot_description=inputs.robot.to_toml())
         bad = undetermined(obj["parameters"])
         if bad:   # a stiffness the data do not determine is written marked, never as a finding
             args.notes.append(f"elastocal identify: note: {', '.join(bad)} not determined by these data, marked "

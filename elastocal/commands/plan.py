@@ -57,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     exp.add_argument("--friction-speeds", default="0.05,0.15", help="speeds of the friction path [rad/s]")
     exp.add_argument("--name", default="calibration", help="the plan's name")
     exp.add_argument("--seed", type=int, default=0, help="seed of the candidate sampling (default 0)")
+    exp.add_argument("--stiffness-only", action="store_true",
+                     help="choose the poses for the stiffness alone (K40); by default they are exchanged so that "
+                          "the kinematic set and the tracker registration are observable too (docs/absolute.md)")
     prior = parser.add_argument_group("prior stiffness (noise model and map)")
     prior.add_argument("--calibration", help="a calibration JSON whose k1..k6 serve as the prior")
     prior.add_argument("--stiffness", metavar="K1,...,K6", help="prior joint stiffness [N*m/rad]")
@@ -207,7 +210,8 @@ def run(args: argparse.Namespace) -> int:
         planned = plan_calibration(robot, test, workspace, noise, markers=markers, n_poses=args.poses,
                                    loads_per_pose=args.loads_per_pose, n_candidates=args.candidates,
                                    n_check=args.check_poses, prior_stiffness=prior, friction=friction,
-                                   name=args.name, repeats=args.repeats, seed=args.seed, source=str(out))
+                                   name=args.name, repeats=args.repeats, seed=args.seed, source=str(out),
+                                   geometry=not args.stiffness_only)
     except InputError as exc:
         # the plan text is made from the flags: name the flag the bad value came from
         if exc.column and exc.column.startswith("friction"):
@@ -218,6 +222,7 @@ def run(args: argparse.Namespace) -> int:
     check, loads, pose_ids, check_spec, text = (planned.check, planned.loads, planned.pose_ids, planned.check_spec,
                                                 planned.text)
     plan_s = planned.planning_s
+    geometry = planned.geometry
     fmap = None
     if args.map:
         map_load = (_wrench(args.map_load, "--map-load") if args.map_load
@@ -251,6 +256,7 @@ def run(args: argparse.Namespace) -> int:
         "prior": {"stiffness": list(prior), "source": prior_source},
         "map": None if fmap is None else {"path": args.map, "good_fraction": fmap.good_fraction,
                                           "torque": fmap.torque, "load": list(fmap.wrench)},
+        "kinematic": None if geometry is None else geometry.to_json(),
         "planning_s": plan_s,
         "time_s": time.monotonic() - started,
     }
@@ -263,6 +269,12 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"  load {s.id}: {s.description}")
     lines.append(f"industry measure K40 = {q.k40:.4g} ({args.poses} random candidate poses, same loads: median "
                  f"{np.median(baseline):.4g})")
+    if geometry is not None:
+        g = obj["kinematic"]
+        lines.append(f"kinematic set ({len(g['identifiable']) - 6} parameters and the registration): observability "
+                     f"index O1 = {g['o1']:.4g} (stiffness-only plan {g['o1_stiffness_only']:.4g}, random median "
+                     f"{g['o1_random_median']:.4g}); largest predicted std {g['max_std']['value'] * 1e6:.1f} µm; "
+                     f"K40 {g['k40_stiffness_only']:.4g} for the stiffness alone")
     rel = 100.0 * q.accuracy_m / q.test_deflection_m if q.test_deflection_m > 0 else math.nan
     lines.append(f"predicted accuracy at the test pose: {q.accuracy_m * 1e6:.2f} µm rms after compensation "
                  f"(deflection there {q.test_deflection_m * 1e3:.3f} mm under the process load, {rel:.3f} %; "

@@ -17,8 +17,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p = sub.add_parser(name, help=text, description=text)
         p.add_argument("--hidden", default="none",
                        help="effect the simulated cell has and the default model lacks (none for none); static: "
-                            "link_compliance, thermal_drift, static_friction, backlash; runs: coulomb_friction, "
-                            "viscous_friction, load_dependent_friction, or friction for all three")
+                            "link_compliance, thermal_drift, static_friction, backlash, kinematic_errors (the real "
+                            "DH table off by 0.02-0.05 deg and 0.1-0.5 mm), tracker_frame (the tracker on another "
+                            "stand); runs: coulomb_friction, viscous_friction, load_dependent_friction, or friction "
+                            "for all three")
         p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
         p.add_argument("--out", required=True, help="output directory")
         p.add_argument("--robot", help="robot.toml to simulate (default: the bundled HH-150)")

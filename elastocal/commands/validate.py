@@ -1,0 +1,55 @@
+"""`elastocal validate`: a calibration against data it was not fitted on (cli.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from elastocal.errors import InputError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--robot", required=True, help="robot.toml (formats.md §1): the nominal description")
+    parser.add_argument("--calibration", required=True, help="calibration JSON (formats.md §4)")
+    parser.add_argument("--static", required=True, help="static table (formats.md §2) not used in the fit")
+    parser.add_argument("--keep-frame", action="store_true",
+                        help="keep the calibration's tracker registration (tracker_frame) instead of "
+                             "registering the tracker afresh on these data")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+
+
+def _row(name: str, stats) -> str:
+    def um(x: float) -> str:
+        return f"{x * 1e3:.3f} mm" if x >= 1e-3 else f"{x * 1e6:.1f} µm"
+
+    return (f"  {name:<11} rms {um(stats.rms):>10}  mean {um(stats.mean):>10}  p95 {um(stats.p95):>10}  "
+            f"max {um(stats.max):>10}  ({stats.n} components)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from elastocal.identify.accuracy import validate
+    from elastocal.identify.calibration import read_calibration
+    from elastocal.identify.robot import load_robot
+    from elastocal.identify.tables import read_static_table
+
+    robot = load_robot(args.robot)
+    calibration = read_calibration(args.calibration)
+    table = read_static_table(args.static, robot)
+    if not len(table):
+        raise InputError("the table holds no readings", source=args.static)
+    result = validate(robot, calibration, table, keep_frame=args.keep_frame, calibration_name=args.calibration)
+    if args.json:
+        print(json.dumps(result.to_json()))
+        return 0
+    frame = "kept from the calibration" if args.keep_frame else "registered afresh on these data"
+    print(f"{robot.name}: {args.calibration} against {args.static} ({result.poses} poses; tracker {frame})")
+    print("absolute positions:")
+    print(_row("nominal", result.absolute_nominal))
+    print(_row("calibrated", result.absolute_calibrated))
+    print("deflections:")
+    print(_row("nominal", result.deflection_nominal))
+    print(_row("calibrated", result.deflection_calibrated))
+    a_n, a_c = result.absolute_nominal, result.absolute_calibrated
+    print(f"absolute error on {result.poses} poses not used in the fit: nominal {a_n.rms * 1e6:.0f} µm rms "
+          f"(max {a_n.max * 1e3:.2f} mm) → calibrated {a_c.rms * 1e6:.1f} µm (max {a_c.max * 1e6:.0f} µm)")
+    return 0

@@ -1,0 +1,488 @@
+"""The absolute fit: geometry, tracker registration and elasticity together.
+
+Every static table holds the absolute marker positions in the tracker's frame
+(formats.md §2). The model of each state's mean reading (architecture.md,
+"Absolute and relative"; physics.md, "Absolute positions") is
+
+    p_tracker = R · FK(θ) · p_marker + t,   θ = q + offset + Δθ_kin + Δθ_elastic
+
+with FK from Pinocchio on the robot rebuilt from the corrected DH table
+(identify/kinematics.py), ``Δθ_elastic`` from the static effects' bases (the
+joint springs carry the absolute torques ``ξ i``, so the gravity sag is in the
+model) and ``R, t`` the registration (identify/registration.py). A loaded
+state's reading is its reference's plus the deflection, so fitting the absolute
+positions of all states fits the absolute positions and the deflections
+together; the readings are weighted by their noise (the tracker's repeatability
+per marker, the currents' propagated through ``c`` into each state's joint
+angles), block by block (one block per state: its markers share its currents).
+
+* Without ``tracker_frame`` or ``kinematic_errors`` in the model, the elastic
+  parameters are those of the deflection fit and the registration is the
+  closed-form rigid fit (Kabsch) of the model's predictions: the "absolute
+  comparison" of every identification.
+* With them, everything is refined by Levenberg-Marquardt (scipy) from that
+  start: the elastic parameters, the 6 DoF of the registration and the
+  identifiable set of kinematic parameters, which a QR of the stacked, whitened
+  regressor chooses (elastic parameters first, then the frame, the markers, the
+  DH errors joint by joint); what it drops is reported as absorbed, with what
+  absorbs it.
+
+Standard deviations come from the covariance of the weighted fit; the
+absolute noise floor is what the noise alone would leave, ``trace((I - H) Σ)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import pinocchio as pin
+import scipy.linalg
+
+from elastocal.errors import InputError
+from elastocal.identify import kinematics as kin
+from elastocal.identify.effects import get_effect
+from elastocal.identify.registration import Registration, kabsch, register
+from elastocal.identify.robot import ACTUATED_IN_LINK_MODEL, MARKER_PREFIX, SPRINGS_IN_LINK_MODEL, Robot
+from elastocal.identify.static import (
+    Parameter,
+    StaticDataset,
+    StaticFit,
+    _bases,
+    _context,
+    _kinematics,
+    _Problem,
+    _torques,
+    build_dataset,
+    identify_static,
+)
+from elastocal.identify.tables import StaticTable
+
+#: effects only absolute positions show (cli.md, effect table)
+ABSOLUTE_EFFECTS = ("kinematic_errors", "tracker_frame")
+FRAME_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
+#: the tracker noise assumed for weights when the table holds no repeated readings [m]
+UNIT_NOISE_M = 1e-5
+
+
+def has_absolute_positions(robot: Robot, ds: StaticDataset) -> bool:
+    """Whether the dataset's x, y, z are absolute positions of this robot's markers
+    (a rigid fit of the nominal model leaves less than registration.PLAUSIBLE_RMS_M)."""
+    return ds.abs_xyz is not None and register(robot, ds) is not None
+
+
+def split_model(model: Sequence[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(static effects, absolute effects) of a model."""
+    return (tuple(m for m in model if m not in ABSOLUTE_EFFECTS),
+            tuple(m for m in model if m in ABSOLUTE_EFFECTS))
+
+
+@dataclass(frozen=True, eq=False)
+class AbsoluteFit:
+    """Result of an absolute fit (see the module docstring)."""
+
+    model: tuple[str, ...]
+    static: StaticFit                       # the deflection fit the absolute fit starts from
+    parameters: tuple[Parameter, ...]       # reported: elastic, then tracker_frame and kinematic_errors ones
+    unidentifiable: tuple[str, ...]
+    absorbed_by: Mapping[str, tuple[tuple[str, float], ...]]
+    identifiable: kin.IdentifiableSet | None
+    registration: Registration
+    kinematic_names: tuple[str, ...]
+    kinematic_values: np.ndarray            # every kinematic parameter (0 where absorbed)
+    elastic_beta: np.ndarray                # the static model's parameters (static.beta_names)
+    measured: np.ndarray = field(repr=False)    # (S, M, 3) tracker frame
+    predicted: np.ndarray = field(repr=False)   # (S, M, 3)
+    rms: float = 0.0
+    max: float = 0.0
+    n: int = 0
+    noise_floor: float | None = None
+    deflection_residuals: np.ndarray = field(default=None, repr=False)   # (D, 3) tracker frame
+    deflection_rms: float = 0.0
+    deflection_max: float = 0.0
+    rss_whitened: float = 0.0
+    n_params: int = 0
+    iterations: int = 0
+
+    @property
+    def residuals(self) -> np.ndarray:
+        return self.measured - self.predicted
+
+    @property
+    def dataset(self) -> StaticDataset:
+        """The deflection fit's dataset (deflections in base axes)."""
+        return self.static.dataset
+
+    def parameter(self, name: str) -> Parameter:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+    def calibrated_robot(self, robot: Robot) -> Robot:
+        """The robot with the identified kinematic corrections (the nominal one without them)."""
+        if not np.any(self.kinematic_values):
+            return robot
+        return kin.corrected_robot(robot, self.kinematic_names, self.kinematic_values)
+
+    def per_pose(self) -> list[dict]:
+        """Absolute error per pose (unloaded reference): rms and max over its markers [m]."""
+        ds = self.static.dataset
+        out = []
+        refs = np.flatnonzero(ds.state_ref == np.arange(ds.n_states))
+        for s in refs:
+            e = np.linalg.norm(self.residuals[s], axis=1)
+            out.append({"pose": ds.pose_ids[ds.state_pose[s]], "rms": float(np.sqrt(np.mean(e ** 2))),
+                        "max": float(e.max())})
+        return out
+
+    def json_fields(self) -> dict:
+        """What the absolute fit adds to ``identify --json`` (cli.md)."""
+        reg = self.registration
+        out = {"absolute_residual": {"rms": self.rms, "max": self.max, "n": self.n, "unit": "m"},
+               "absolute_noise_floor": self.noise_floor,
+               "registration": {"rotation": reg.rotation.tolist(), "translation": reg.translation.tolist(),
+                                "base_p_tracker": reg.base_p_tracker.tolist()}}
+        if self.absorbed_by:
+            out["absorbed_by"] = {name: kin.absorbed_words(name, combo) for name, combo in self.absorbed_by.items()}
+        return out
+
+    def to_json(self) -> dict:
+        """The ``identify --json`` object (cli.md), deflection residual included."""
+        out = self.static.to_json()
+        out["model"] = list(self.model)
+        out["parameters"] = {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in self.parameters}
+        if any(m in ABSOLUTE_EFFECTS for m in self.model):
+            out["residual"] = {"rms": self.deflection_rms, "max": self.deflection_max,
+                               "n": int(self.deflection_residuals.size), "unit": "m"}
+        if self.unidentifiable:
+            out["unidentifiable"] = list(self.unidentifiable)
+        out.update(self.json_fields())
+        return out
+
+
+# ===================================================================== model
+@dataclass(frozen=True, eq=False)
+class _Setup:
+    robot: Robot
+    ds: StaticDataset          # deflections in base axes (the static fit's)
+    bases: tuple[np.ndarray, np.ndarray, np.ndarray]
+    frames: tuple[str, ...]
+    kin_names: tuple[str, ...]
+    rot0: np.ndarray
+    t0: np.ndarray
+    whiten: tuple[np.ndarray, ...]      # per state: inverse Cholesky factor of its (3M, 3M) covariance
+    chol: tuple[np.ndarray, ...]
+    y: np.ndarray                       # (S, M, 3) measured, tracker frame
+    #: thermal drift's parameter columns and each reading's time from the first [s]: drift moves
+    #: every absolute reading (the deflection model has it between loaded and reference only)
+    drift_cols: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    drift_t: np.ndarray | None = None
+    kin_columns: kin.Columns | None = None
+
+
+def _unpack(st: _Setup, x: np.ndarray, n_el: int):
+    beta = x[:n_el]
+    dr = x[n_el:n_el + 3]
+    t = x[n_el + 3:n_el + 6]
+    kv = x[n_el + 6:]
+    return beta, dr, t, kv
+
+
+def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.ndarray, *, jacobian: bool):
+    """Predicted tracker positions (S, M, 3) and their Jacobian (S, M, 3, n_el + 6 + n_kin).
+
+    The registration is ``p_tracker = R0 (exp(dr) p + dt) + t0``: ``dr`` and
+    ``dt`` are a rotation about and a translation along the base axes (so that
+    "dq1 is absorbed by the rotation about z" reads as it is)."""
+    ds = st.ds
+    robot = kin.corrected_robot(st.robot, st.kin_names, kv) if st.kin_names and np.any(kv) else st.robot
+    b_theta, b_links, b_add = st.bases
+    n_el, n_k = len(beta), len(st.kin_names)
+    turn = pin.exp3(dr)
+    dtheta = b_theta @ beta
+    dlink = b_links @ beta
+    markers = list(ds.markers)
+    nm = len(markers)
+    pos = np.empty((ds.n_states, nm, 3))
+    jac = np.zeros((ds.n_states, nm, 3, n_el + 6 + n_k)) if jacobian else None
+    for s in range(ds.n_states):
+        theta = robot.theta(ds.q[ds.state_pose[s]]) + dtheta[s]
+        if not jacobian:
+            pos[s] = robot.positions(robot.theta_links(theta, dlink[s]), markers, links=True)
+            continue
+        p, j10 = _kinematics(robot, robot.theta_links(theta, dlink[s]), st.frames)
+        pos[s] = p
+        j_el = j10[:, :, ACTUATED_IN_LINK_MODEL] @ b_theta[s] + j10[:, :, SPRINGS_IN_LINK_MODEL] @ b_links[s]
+        jac[s, :, :, :n_el] = j_el
+        if n_k:
+            _, jk = kin.position_jacobian(robot, theta, markers, st.kin_names, st.kin_columns,
+                                          dlink[s] if np.any(dlink[s]) else None)
+            jac[s, :, :, n_el + 6:] = jk
+    for d in range(ds.n_deflections):
+        s, m = ds.defl_state[d], ds.defl_marker[d]
+        pos[s, m] += b_add[d] @ beta
+        if jacobian:
+            jac[s, m, :, :n_el] += b_add[d]
+    if st.drift_cols.size:
+        pos += st.drift_t[:, :, None] * beta[st.drift_cols]
+        if jacobian:
+            for k, col in enumerate(st.drift_cols):
+                jac[:, :, k, col] += st.drift_t
+    turned = pos @ turn.T
+    out = (turned + dt) @ st.rot0.T + st.t0
+    if jacobian:
+        jac[..., :n_el] = np.einsum("ij,smjk->smik", turn, jac[..., :n_el])
+        jac[..., n_el + 6:] = np.einsum("ij,smjk->smik", turn, jac[..., n_el + 6:])
+        jl = pin.Jexp3(-dr)                       # left Jacobian of exp at dr
+        skew = np.zeros((ds.n_states, nm, 3, 3))
+        skew[..., 0, 1], skew[..., 0, 2] = -turned[..., 2], turned[..., 1]
+        skew[..., 1, 0], skew[..., 1, 2] = turned[..., 2], -turned[..., 0]
+        skew[..., 2, 0], skew[..., 2, 1] = -turned[..., 1], turned[..., 0]
+        jac[..., n_el:n_el + 3] = -skew @ jl
+        jac[..., n_el + 3:n_el + 6] = np.eye(3)
+        jac = np.einsum("ij,smjk->smik", st.rot0, jac)
+    return out, jac
+
+
+def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray, rot: np.ndarray,
+           frames: Sequence[str]) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], bool]:
+    """Per-state Cholesky factors of the covariance of the mean readings (tracker
+    frame), and whether the noise level is known (repeated readings)."""
+    known = ds.sigma_tracker is not None
+    sig_t = ds.sigma_tracker if known else UNIT_NOISE_M
+    nm = len(ds.markers)
+    sig_i = ds.sigma_current if (known and torque == "current" and ds.sigma_current is not None) else None
+    covs = np.zeros((ds.n_states, 3 * nm, 3 * nm))
+    jac_pose: dict[int, np.ndarray] = {}
+    for s in range(ds.n_states):
+        cov = np.zeros((3 * nm, 3 * nm))
+        for m in range(nm):
+            cov[3 * m:3 * m + 3, 3 * m:3 * m + 3] += sig_t ** 2 / ds.abs_n[s, m] * np.eye(3)
+        if sig_i is not None:
+            pi = int(ds.state_pose[s])
+            if pi not in jac_pose:
+                _, j10 = _kinematics(robot, robot.theta_links(robot.theta(ds.q[pi])), frames)
+                jac_pose[pi] = np.einsum("ij,mjk->mik", rot, j10[:, :, ACTUATED_IN_LINK_MODEL]).reshape(3 * nm, 6)
+            g = jac_pose[pi] * (compliance * robot.torque_constants)
+            cov += (g * (sig_i ** 2 / ds.state_n_currents[s])) @ g.T
+        covs[s] = cov
+    chols = np.linalg.cholesky(covs)          # one batched call: small LAPACK calls are slow on a busy machine
+    whitens = np.linalg.inv(chols)
+    return tuple(chols), tuple(whitens), known
+
+
+def _whitened(st: _Setup, r: np.ndarray, jac: np.ndarray | None):
+    """Whitened residual (n,) and Jacobian (n, p) from (S, M, 3) and (S, M, 3, p)."""
+    ns, nm = r.shape[0], r.shape[1]
+    w = np.asarray(st.whiten)
+    rw = np.einsum("sij,sj->si", w, r.reshape(ns, 3 * nm)).reshape(-1)
+    if jac is None:
+        return rw, None
+    jw = np.einsum("sij,sjp->sip", w, jac.reshape(ns, 3 * nm, -1)).reshape(ns * 3 * nm, -1)
+    return rw, jw
+
+
+def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
+                      model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
+                      form: str = "exact", max_iter: int = 30) -> AbsoluteFit:
+    """Compare the model with the absolute positions (and fit the absolute
+    effects of ``model`` jointly with the rest); see the module docstring."""
+    ds0 = data if isinstance(data, StaticDataset) else build_dataset(data)
+    names = tuple(dict.fromkeys(["joint_stiffness", *model]))
+    static_model, absolute = split_model(names)
+    reg = register(robot, ds0) if ds0.abs_xyz is not None else None
+    if reg is None:
+        raise InputError("this table holds no absolute positions of the robot's markers (a rigid fit of the "
+                         "model leaves more than 5 cm, or too few points to fix a rotation); "
+                         f"{' and '.join(absolute) or 'an absolute comparison'} needs them", source=ds0.source)
+    if "kinematic_errors" in absolute:
+        kin_names = kin.parameter_names(robot, ds0.markers)
+    else:
+        kin_names = ()
+    fit = identify_static(robot, ds0, model=static_model, torque=torque, form=form)
+    ds = fit.dataset
+    effects = tuple(get_effect(n) for n in static_model)
+    frames = tuple(MARKER_PREFIX + m for m in ds.markers)
+    pr = _Problem(robot, ds, effects, torque, form, "complementary_stiffness" in static_model, frames)
+    tau = _torques(pr, None)
+    iterative = any(e.iterative for e in effects)
+    bases = _bases(pr, _context(pr, tau, fit.beta if iterative else None))
+    n_el = len(fit.beta_names)
+    drift_cols = np.zeros(0, dtype=int)
+    drift_t = None
+    if "thermal_drift" in static_model:     # drift moves every reading, not only the loaded ones
+        first = fit.beta_names.index(get_effect("thermal_drift").parameters[0])
+        drift_cols = np.arange(first, first + 3)
+        b_add = bases[2].copy()
+        b_add[:, :, drift_cols] = 0.0
+        bases = (bases[0], bases[1], b_add)
+        drift_t = ds0.abs_t - np.nanmin(ds0.abs_t)
+    el_mask = _elastic_mask(fit, effects)
+    y = ds0.abs_xyz
+
+    # start: the deflection fit's elasticity, registered in closed form
+    st0 = _Setup(robot, ds, bases, frames, (), np.eye(3), np.zeros(3), (), (), y, drift_cols, drift_t)
+    base_p, _ = _model(st0, fit.beta, np.zeros(3), np.zeros(3), np.zeros(0), jacobian=False)
+    start = kabsch(base_p.reshape(-1, 3), y.reshape(-1, 3), ds0.abs_n.reshape(-1)) or reg
+    chols, whitens, known = _noise(robot, ds, torque, fit.beta[:6], start.rotation, frames)
+    st = _Setup(robot, ds, bases, frames, kin_names, start.rotation, start.translation, whitens, chols, y,
+                drift_cols, drift_t, kin.columns(kin_names, ds.markers))
+    x_full = np.concatenate([fit.beta, np.zeros(6), np.zeros(len(kin_names))])
+    all_names = (*fit.beta_names, *FRAME_NAMES, *kin_names)
+    pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True)
+    _, jw = _whitened(st, y - pred, jac)
+    if absolute:
+        free = np.concatenate([el_mask, np.ones(6, dtype=bool), np.zeros(len(kin_names), dtype=bool)])
+        ident = None
+        if kin_names:
+            markers_first = [n for n in kin_names if n.startswith(("dx_", "dy_", "dz_"))]
+            priority = [n for n, k in zip(fit.beta_names, el_mask) if k] + list(FRAME_NAMES) + markers_first
+            ident = kin.identifiable_set(jw[:, np.concatenate([el_mask, np.ones(6 + len(kin_names), dtype=bool)])],
+                                         [n for n, k in zip(all_names, np.concatenate(
+                                             [el_mask, np.ones(6 + len(kin_names), dtype=bool)])) if k], priority)
+            kept = dict(zip([n for n, k in zip(all_names, np.concatenate(
+                [el_mask, np.ones(6 + len(kin_names), dtype=bool)])) if k], ident.keep))
+            free = np.array([kept.get(n, False) for n in all_names])
+        idx = np.flatnonzero(free)
+
+        def evaluate(xf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            xx = x_full.copy()
+            xx[idx] = xf
+            p, j = _model(st, *_unpack(st, xx, n_el), jacobian=True)
+            rw, jw_ = _whitened(st, y - p, j)
+            return rw, -jw_[:, idx]
+
+        x_free, iterations = _gauss_newton(evaluate, x_full[idx], max_iter=max_iter)
+        x_full = x_full.copy()
+        x_full[idx] = x_free
+    else:
+        free = np.concatenate([np.zeros(n_el, dtype=bool), np.ones(6, dtype=bool)])
+        idx = np.flatnonzero(free)
+        ident = None
+        iterations = 0
+    pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True)
+    resid = y - pred
+    rw, jw = _whitened(st, resid, jac)
+    a_w = jw[:, idx]
+    p = len(idx)
+    n = rw.size
+    m_inv = np.linalg.pinv(a_w.T @ a_w)
+    rss_w = float(rw @ rw)
+    inflation = max(1.0, rss_w / max(n - p, 1)) if known else rss_w / max(n - p, 1)
+    cov_free = m_inv * inflation
+    # what noise alone leaves: trace(Σ) - trace(A (A^T Σ^-1 A)^-1 A^T), A the unwhitened Jacobian
+    nm = len(ds.markers)
+    a_raw = np.einsum("sij,sjp->sip", np.asarray(st.chol), jw[:, idx].reshape(ds.n_states, 3 * nm, -1))
+    a_raw = a_raw.reshape(-1, len(idx))
+    trace_sigma = float(np.sum(np.asarray(st.chol) ** 2))
+    expected = trace_sigma - float(np.trace(m_inv @ (a_raw.T @ a_raw)))
+    if not known:
+        expected *= rss_w / max(n - p, 1)
+    floor = float(np.sqrt(max(expected, 0.0) / n)) if known else None
+    r_flat = resid.reshape(-1)
+
+    beta, dr, dt, kv = _unpack(st, x_full, n_el)
+    rot = st.rot0 @ pin.exp3(dr)
+    t = st.rot0 @ dt + st.t0
+    registration = Registration(rotation=rot, translation=t, rms=float(np.sqrt(np.mean(r_flat ** 2))))
+    # deflections predicted by the same model, in the tracker frame
+    d_pred = pred[ds.defl_state, ds.defl_marker] - pred[ds.defl_ref, ds.defl_marker]
+    d_meas = ds0.dP
+    d_res = d_meas - d_pred
+
+    std_full = np.zeros(len(all_names))
+    std_full[idx] = np.sqrt(np.clip(np.diag(cov_free), 0.0, None))
+    if not absolute:
+        std_full[:n_el] = np.sqrt(np.clip(np.diag(fit.beta_cov), 0.0, None))
+    params, unident = _report(fit, effects, beta, std_full[:n_el], el_mask)
+    absorbed: dict[str, tuple[tuple[str, float], ...]] = {}
+    if "tracker_frame" in absolute:
+        # reported: rotation vector of R and t (p_tracker = R p_base + t); their
+        # covariance from the base-axes perturbations through d log3 and R0
+        rvec = pin.log3(rot)
+        pos_free = {c: k for k, c in enumerate(idx)}
+        cols = [pos_free[n_el + k] for k in range(6)]
+        cov6 = cov_free[np.ix_(cols, cols)]
+        jmap = scipy.linalg.block_diag(pin.Jlog3(rot), st.rot0)
+        std6 = np.sqrt(np.clip(np.diag(jmap @ cov6 @ jmap.T), 0.0, None))
+        for k, name in enumerate(FRAME_NAMES):
+            value = float(rvec[k]) if k < 3 else float(t[k - 3])
+            params.append(Parameter(name, value, float(std6[k]), "rad" if k < 3 else "m"))
+    if kin_names:
+        for k, name in enumerate(kin_names):
+            col = n_el + 6 + k
+            if free[col]:
+                params.append(Parameter(name, float(kv[k]), float(std_full[col]), kin.unit_of(name)))
+            else:
+                unident.append(name)
+        absorbed = dict(ident.absorbed_by) if ident is not None else {}
+    return AbsoluteFit(
+        model=names, static=fit, parameters=tuple(params), unidentifiable=tuple(unident), absorbed_by=absorbed,
+        identifiable=ident, registration=registration, kinematic_names=kin_names,
+        kinematic_values=np.where(free[n_el + 6:], kv, 0.0) if kin_names else np.zeros(0),
+        elastic_beta=beta.copy(), measured=y, predicted=pred, rms=float(np.sqrt(np.mean(r_flat ** 2))),
+        max=float(np.max(np.abs(r_flat))), n=int(r_flat.size), noise_floor=floor, deflection_residuals=d_res,
+        deflection_rms=float(np.sqrt(np.mean(d_res ** 2))), deflection_max=float(np.max(np.abs(d_res))),
+        rss_whitened=rss_w, n_params=p, iterations=iterations)
+
+
+def _gauss_newton(evaluate, x0: np.ndarray, *, max_iter: int, rel_tol: float = 1e-10) -> tuple[np.ndarray, int]:
+    """Minimise ``|r(x)|^2`` by Gauss-Newton steps (scipy's least-squares solve of the
+    column-scaled Jacobian, so that near-dependent columns cost nothing), a step
+    halved until the cost falls (Levenberg-Marquardt's safeguard); ``evaluate(x)``
+    returns ``(r, dr/dx)``. Converged when a step lowers the cost by less than
+    ``rel_tol`` of itself: far below one standard deviation of any parameter."""
+    x = np.array(x0, dtype=float)
+    r, jac = evaluate(x)
+    cost = float(r @ r)
+    for iteration in range(1, max_iter + 1):
+        scale = np.linalg.norm(jac, axis=0)
+        scale = np.where(scale > 0, scale, 1.0)
+        step = scipy.linalg.lstsq(jac / scale, -r, lapack_driver="gelsd")[0] / scale
+        for _ in range(8):
+            r_new, jac_new = evaluate(x + step)
+            cost_new = float(r_new @ r_new)
+            if cost_new <= cost:
+                break
+            step = step / 2.0
+        else:
+            return x, iteration
+        x, r, jac = x + step, r_new, jac_new
+        done = cost - cost_new <= rel_tol * cost
+        cost = cost_new
+        if done:
+            return x, iteration
+    return x, max_iter
+
+
+def _elastic_mask(fit: StaticFit, effects) -> np.ndarray:
+    """Which static-model parameters the deflection fit identified."""
+    mask = []
+    for eff in effects:
+        outs = [f"k{j}" for j in range(1, 7)] if eff.name == "joint_stiffness" else list(eff.parameters)
+        mask += [o not in fit.unidentifiable for o in outs]
+    return np.array(mask, dtype=bool)
+
+
+def _report(fit: StaticFit, effects, beta: np.ndarray, std: np.ndarray,
+            mask: np.ndarray) -> tuple[list[Parameter], list[str]]:
+    params: list[Parameter] = []
+    unident: list[str] = []
+    offset = 0
+    for eff in effects:
+        k = len(eff.parameters)
+        sl = slice(offset, offset + k)
+        offset += k
+        if k == 0:
+            continue
+        values, deriv = eff.reported(np.where(mask[sl], beta[sl], 1.0))
+        units = eff.report_units or eff.units
+        outs = [f"k{j}" for j in range(1, 7)] if eff.name == "joint_stiffness" else list(eff.parameters)
+        for i in range(k):
+            if not mask[sl][i]:
+                unident.append(outs[i])
+                continue
+            params.append(Parameter(outs[i], float(values[i]), float(abs(deriv[i]) * std[sl][i]), units[i]))
+    return params, unident

@@ -1,0 +1,238 @@
+"""A calibration against data it was not fitted on (cli.md, ``elastocal validate``).
+
+Two models predict the same static table:
+
+* ``nominal``: robot.toml's rigid model (the drawing's DH table, no
+  elasticity): absolute positions ``FK(q + offset)``, deflections zero;
+* ``calibrated``: the calibration's full model: the robot rebuilt with its
+  kinematic errors (identify/kinematics.py), the joint springs ``c = 1/k`` on
+  the absolute torques (currents ``ξ i``, or the model's gravity plus the wrench
+  with a force-based calibration), and every other static effect it holds
+  (the elastic part exactly as the absolute fit has it, identify/absolute.py).
+
+Both are registered to the tracker afresh on the validation data (closed-form
+rigid fit: the tracker may have moved), or the calibrated one keeps the
+calibration's registration (``keep_frame``, which needs ``tracker_frame`` in
+the calibration). Errors are over the x, y, z components (each counts once, as
+in cli.md's residuals): rms, mean of their magnitudes, max, 95th percentile.
+Session effects (thermal drift) are not carried from one day to another.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from elastocal.errors import InputError
+from elastocal.identify import kinematics as kin
+from elastocal.identify.calibration import Calibration
+from elastocal.identify.effects import get_effect
+from elastocal.identify.registration import Registration, kabsch, nominal_positions
+from elastocal.identify.robot import MARKER_PREFIX, Robot
+from elastocal.identify.static import StaticDataset, _bases, _context, _Problem, _torques, build_dataset
+from elastocal.identify.tables import StaticTable
+
+#: effects of a measuring session: not carried to other data
+SESSION_EFFECTS = ("thermal_drift",)
+ABSOLUTE_EFFECTS = ("kinematic_errors", "tracker_frame")
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    rms: float
+    mean: float
+    max: float
+    p95: float
+    n: int
+
+    @classmethod
+    def of(cls, residual: np.ndarray) -> "ErrorStats":
+        a = np.abs(np.asarray(residual, dtype=float).reshape(-1))
+        return cls(rms=float(np.sqrt(np.mean(a ** 2))), mean=float(a.mean()), max=float(a.max()),
+                   p95=float(np.percentile(a, 95)), n=int(a.size))
+
+    def to_json(self) -> dict:
+        return {"rms": self.rms, "mean": self.mean, "max": self.max, "p95": self.p95, "n": self.n, "unit": "m"}
+
+
+@dataclass(frozen=True, eq=False)
+class Validation:
+    calibration: str
+    poses: int
+    absolute_nominal: ErrorStats
+    absolute_calibrated: ErrorStats
+    deflection_nominal: ErrorStats
+    deflection_calibrated: ErrorStats
+    keep_frame: bool
+    registration: Registration           # the calibrated model's
+    #: rms that the noise of these data alone would leave in the absolute comparison
+    #: (tracker and current repeatability; None without repeated readings) [m]
+    noise_floor: float | None
+    absolute_residual: np.ndarray        # (S, M, 3) calibrated, tracker frame
+    nominal_residual: np.ndarray         # (S, M, 3)
+    pose_ids: tuple[str, ...]
+    reference_states: np.ndarray
+
+    def per_pose(self) -> list[dict]:
+        """Absolute error per pose (unloaded reference), nominal and calibrated [m]."""
+        out = []
+        for s in self.reference_states:
+            en = np.linalg.norm(self.nominal_residual[s], axis=1)
+            ec = np.linalg.norm(self.absolute_residual[s], axis=1)
+            out.append({"pose": self.pose_ids[len(out)], "nominal_max": float(en.max()),
+                        "calibrated_max": float(ec.max())})
+        return out
+
+    def to_json(self) -> dict:
+        return {"calibration": self.calibration, "poses": self.poses, "keep_frame": self.keep_frame,
+                "absolute": {"nominal": self.absolute_nominal.to_json(),
+                             "calibrated": self.absolute_calibrated.to_json(), "noise_floor": self.noise_floor},
+                "deflection": {"nominal": self.deflection_nominal.to_json(),
+                               "calibrated": self.deflection_calibrated.to_json()},
+                "registration": {"rotation": self.registration.rotation.tolist(),
+                                 "translation": self.registration.translation.tolist(),
+                                 "base_p_tracker": self.registration.base_p_tracker.tolist()}}
+
+
+def _value(cal: Calibration, name: str) -> float | None:
+    p = cal.parameters.get(name)
+    return None if p is None else float(p["value"])
+
+
+def calibrated_robot(robot: Robot, calibration: Calibration) -> Robot:
+    """The robot with the calibration's kinematic errors (robot itself without them)."""
+    if "kinematic_errors" not in calibration.model:
+        return robot
+    names = kin.parameter_names(robot, robot.marker_names)
+    values = [_value(calibration, n) or 0.0 for n in names]
+    return kin.corrected_robot(robot, names, values)
+
+
+def calibration_frame(calibration: Calibration) -> Registration:
+    """The calibration's registration (``tracker_frame`` parameters rx..tz)."""
+    values = [_value(calibration, n) for n in ("rx", "ry", "rz", "tx", "ty", "tz")]
+    if any(v is None for v in values):
+        raise InputError("--keep-frame needs a calibration with tracker_frame (rx..tz); identify with "
+                         "--model ...,tracker_frame", source="--calibration")
+    return Registration(rotation=pin.exp3(np.array(values[:3])), translation=np.array(values[3:]), rms=float("nan"))
+
+
+def predicted_base_positions(robot: Robot, calibration: Calibration, ds: StaticDataset) -> np.ndarray:
+    """Base positions (S, M, 3) of every state's markers under the calibration's full model."""
+    model = tuple(m for m in ("joint_stiffness", *calibration.model)
+                  if m not in ABSOLUTE_EFFECTS and m not in SESSION_EFFECTS)
+    model = tuple(dict.fromkeys(m for m in model if "static" in get_effect(m).seen_in))
+    effects = tuple(get_effect(n) for n in model)
+    beta = []
+    for eff in effects:
+        if eff.name == "joint_stiffness":
+            for j in range(1, 7):
+                k = _value(calibration, f"k{j}")
+                if k is None or not k > 0:
+                    raise InputError(f"the calibration holds no positive k{j}", source="--calibration")
+                beta.append(1.0 / k)
+        else:
+            beta += [_value(calibration, n) or 0.0 for n in eff.parameters]
+    beta = np.array(beta)
+    rob = calibrated_robot(robot, calibration)
+    frames = tuple(MARKER_PREFIX + m for m in ds.markers)
+    pr = _Problem(rob, ds, effects, calibration.torque, "exact", "complementary_stiffness" in model, frames)
+    tau = _torques(pr, None)
+    iterative = any(e.iterative for e in effects)
+    b_theta, b_links, b_add = _bases(pr, _context(pr, tau, beta if iterative else None))
+    dtheta, dlink = b_theta @ beta, b_links @ beta
+    out = np.empty((ds.n_states, len(ds.markers), 3))
+    for s in range(ds.n_states):
+        th10 = rob.theta_links(rob.theta(ds.q[ds.state_pose[s]]) + dtheta[s], dlink[s])
+        out[s] = rob.positions(th10, list(ds.markers), links=True)
+    out[ds.defl_state, ds.defl_marker] += b_add @ beta
+    return out
+
+
+def _noise_floor(robot: Robot, calibration: Calibration, ds: StaticDataset, rotation: np.ndarray) -> float | None:
+    """sqrt(trace(Σ)/n) of the mean readings (identify/absolute.py's noise model)."""
+    from elastocal.identify.absolute import _noise
+
+    if ds.sigma_tracker is None:
+        return None
+    compliance = np.array([1.0 / (_value(calibration, f"k{j}") or np.inf) for j in range(1, 7)])
+    frames = tuple(MARKER_PREFIX + m for m in ds.markers)
+    chols, _, _ = _noise(calibrated_robot(robot, calibration), ds, calibration.torque, compliance, rotation, frames)
+    return float(np.sqrt(sum(np.sum(c ** 2) for c in chols) / ds.abs_xyz.size))
+
+
+def validate(robot: Robot, calibration: Calibration, data: StaticTable | StaticDataset, *,
+             keep_frame: bool = False, calibration_name: str = "") -> Validation:
+    """Nominal and calibrated model against the data (module docstring)."""
+    if calibration.robot != robot.name:
+        raise InputError(f"the calibration is of robot {calibration.robot!r}, the description of {robot.name!r}",
+                         source="--calibration")
+    ds = data if isinstance(data, StaticDataset) else build_dataset(data)
+    if calibration.torque == "current" and not ds.has_currents:
+        raise InputError("a current-based calibration needs the currents i1..i6 in every row", source=ds.source)
+    weights = ds.abs_n.reshape(-1)
+    y = ds.abs_xyz
+    nominal = nominal_positions(robot, ds)
+    reg_nominal = kabsch(nominal.reshape(-1, 3), y.reshape(-1, 3), weights)
+    if reg_nominal is None or not reg_nominal.rms < 0.05:
+        raise InputError("the table's x, y, z are not absolute positions of this robot's markers (a rigid fit "
+                         "leaves more than 5 cm or cannot fix a rotation)", source=ds.source)
+    predicted = predicted_base_positions(robot, calibration, ds)
+    if keep_frame:
+        reg = calibration_frame(calibration)
+    else:
+        reg = kabsch(predicted.reshape(-1, 3), y.reshape(-1, 3), weights)
+    nominal_res = y - reg_nominal.apply(nominal)
+    calibrated_res = y - reg.apply(predicted)
+    floor = _noise_floor(robot, calibration, ds, reg.rotation)
+    d_meas = ds.dP                 # the rigid model predicts no deflection
+    d_cal = calibrated_res[ds.defl_state, ds.defl_marker] - calibrated_res[ds.defl_ref, ds.defl_marker]
+    refs = np.flatnonzero(ds.state_ref == np.arange(ds.n_states))
+    return Validation(
+        calibration=calibration_name, poses=len(ds.pose_ids),
+        absolute_nominal=ErrorStats.of(nominal_res), absolute_calibrated=ErrorStats.of(calibrated_res),
+        deflection_nominal=ErrorStats.of(d_meas), deflection_calibrated=ErrorStats.of(d_cal),
+        keep_frame=keep_frame, registration=reg, noise_floor=floor, absolute_residual=calibrated_res, nominal_residual=nominal_res,
+        pose_ids=ds.pose_ids, reference_states=refs)
+
+
+#: a check's absolute accuracy holds while the calibrated rms stays within this many noise floors
+#: (the validation criterion of issue 12)
+CHECK_FLOOR_RATIO = 2.0
+
+
+@dataclass(frozen=True, eq=False)
+class AbsoluteCheck:
+    """The absolute comparison of ``elastocal validate`` inside a calibration check."""
+
+    validation: Validation
+
+    @property
+    def passed(self) -> bool:
+        return self.validation.absolute_calibrated.rms <= CHECK_FLOOR_RATIO * self.validation.noise_floor
+
+    def reason(self) -> str:
+        v = self.validation
+        ratio = v.absolute_calibrated.rms / v.noise_floor
+        words = "holds" if self.passed else f"lost (over {CHECK_FLOOR_RATIO:g}x the noise floor)"
+        return (f"absolute accuracy {words}: {v.absolute_calibrated.rms * 1e6:.1f} µm rms calibrated, "
+                f"{ratio:.2f}x the noise floor {v.noise_floor * 1e6:.1f} µm (nominal "
+                f"{v.absolute_nominal.rms * 1e6:.0f} µm)")
+
+    def to_json(self) -> dict:
+        return {**self.validation.to_json(), "passed": self.passed, "limit_ratio": CHECK_FLOOR_RATIO}
+
+
+def absolute_check(robot: Robot, calibration: Calibration, table: StaticTable) -> AbsoluteCheck | None:
+    """The check's absolute comparison, when the calibration holds the geometry
+    (kinematic_errors) and the check's table holds repeated absolute readings; else None."""
+    from elastocal.identify.absolute import has_absolute_positions
+
+    if "kinematic_errors" not in calibration.model:
+        return None
+    ds = build_dataset(table)
+    if ds.sigma_tracker is None or not has_absolute_positions(robot, ds):
+        return None
+    return AbsoluteCheck(validate(robot, calibration, ds))
