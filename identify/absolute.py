@@ -152,7 +152,10 @@ class AbsoluteFit:
         """The ``identify --json`` object (cli.md), deflection residual included."""
         out = self.static.to_json()
         out["model"] = list(self.model)
-        out["parameters"] = {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in self.parameters}
+        from elastocal.identify.evidence import mark_stiffness
+
+        out["parameters"] = mark_stiffness({p.name: {"value": p.value, "std": p.std, "unit": p.unit}
+                                            for p in self.parameters})
         if any(m in ABSOLUTE_EFFECTS for m in self.model):
             out["residual"] = {"rms": self.deflection_rms, "max": self.deflection_max,
                                "n": int(self.deflection_residuals.size), "unit": "m"}
