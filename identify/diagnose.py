@@ -167,7 +167,9 @@ class Diagnosis:
 
     @property
     def verdict_candidate(self) -> Candidate | None:
-        return self.steps[0].candidate if self.verdict is not None else None
+        if self.verdict is None or not self.steps or self.steps[0].effect != self.verdict:
+            return None        # no verdict, or one of the absolute positions (``absolute.steps``)
+        return self.steps[0].candidate
 
     def to_json(self) -> dict:
         f = self.fit

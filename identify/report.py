@@ -243,6 +243,13 @@ def _fmt(x: float) -> str:
 
 def _verdict_html(diag: Diagnosis) -> str:
     fit = diag.fit
+    if diag.verdict is not None and diag.verdict_candidate is None:      # found in the absolute positions
+        a = diag.absolute
+        step = next(s for s in a.steps if s.effect == diag.verdict)
+        return (f'<div class="verdict found" id="verdict">Deflections: residual {_um(fit.rms)} rms, noise floor '
+                f'{_um(diag.noise_floor)}. Absolute positions: {_um(a.base.rms)} rms, noise floor '
+                f'{_um(a.base.noise_floor)}: the model misses something. Missing effect: <b>{_e(diag.verdict)}</b> '
+                f'— {_e(step.evidence)}.</div>')
     if diag.verdict is not None:
         c = diag.verdict_candidate
         return (f'<div class="verdict found" id="verdict">Residual {_um(fit.rms)} rms, noise floor '

@@ -375,3 +375,21 @@ def test_plan_makes_the_kinematic_set_observable_and_beats_random_poses():
     assert obj["a_optimal"]["value"] < obj["a_optimal_stiffness_only"]["value"]
     # the stiffness keeps most of what its own plan gave it
     assert geo.design.quality.k40 < 1.5 * design.quality.k40
+
+
+def test_report_shows_absolute_errors_per_pose_and_their_vectors(kinematic_data):
+    from elastocal.identify.diagnose import diagnose_static
+    from elastocal.identify.report import render_report
+
+    truth, tables = kinematic_data
+    diag = diagnose_static(ROBOT, tables[1])
+    page = render_report(ROBOT, diag)
+    assert "Missing effect: <b>kinematic_errors</b>" in page
+    section = page[page.index("<h2>Absolute positions</h2>"):]
+    assert "Absolute error per pose" in section and "Error vectors (top view" in section
+    assert section.count("<svg") == 2
+    table = section[section.index("<table>"):section.index("</table>")]
+    assert table.count("<tr>") == 1 + 12                  # header and one row per pose
+    before = [p["rms"] for p in diag.absolute.base.per_pose()]
+    after = [p["rms"] for p in diag.absolute.final.per_pose()]
+    assert min(before) > 20 * max(after)                  # every pose: millimetres to the floor

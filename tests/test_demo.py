@@ -25,3 +25,8 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
     for name in ("report.html", "cal.json", "compensated.csv", "compensated.src", "compensated.mod", "plan.toml"):
         assert (out / name).stat().st_size > 0, name
     assert "verdict: link_compliance" in text and "Errors before and after" in text
+    # the robot's real geometry: absolute accuracy from millimetres to the noise floor
+    absolute = summary["absolute"]
+    assert absolute["rms_before"] > 0.2e-3 and absolute["max_before"] > 0.5e-3
+    assert absolute["rms_after"] <= 1.3 * absolute["noise_floor"]
+    assert "absolute position error, nominal geometry" in text

@@ -148,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
         sig = f"ΔBIC {c.delta_bic:+.0f}" if c.significant else "not significant"
         print(f"  {i}. {c.effect:<18} {_um(diag.fit.rms)} → {_um(c.rms_after)}   {sig}   {c.evidence}")
     final = diag.final
-    if diag.verdict:
+    if diag.verdict and diag.verdict_candidate is not None:
         print(f"  verdict: {diag.verdict} — adding it: residual {_um(diag.fit.rms)} → {_um(final.rms)} "
               f"(noise floor {_um(final.noise_floor)})")
         added = {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in diag.verdict_candidate.parameters}
