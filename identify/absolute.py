@@ -392,7 +392,8 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     registration = Registration(rotation=rot, translation=t, rms=float(np.sqrt(np.mean(r_flat ** 2))))
     # deflections predicted by the same model, in the tracker frame
     d_pred = pred[ds.defl_state, ds.defl_marker] - pred[ds.defl_ref, ds.defl_marker]
-    d_meas = ds0.dP
+    # measured deflections in the tracker frame (a dataset already turned to base axes is turned back)
+    d_meas = ds0.dP if ds0.tracker_rotation is None else ds0.dP @ ds0.tracker_rotation.T
     d_res = d_meas - d_pred
 
     std_full = np.zeros(len(all_names))

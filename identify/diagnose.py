@@ -351,6 +351,8 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     if not noise_known:
         ds = _assumed_noise(robot, ds, model, torque, form)
     base = identify_static(robot, ds, model=model, torque=torque, form=form)
+    ds_abs = ds
+    ds = base.dataset          # the deflections turned to base axes once: every candidate sees the same data
     pool = ALL_EFFECTS if effects is None else tuple(effects)
     absolute_pool = tuple(e for e in pool if e in (*ABSOLUTE_EFFECTS, "thermal_drift")) if absolute else ()
     pool = tuple(e for e in pool if e not in ABSOLUTE_EFFECTS or not absolute)
@@ -385,7 +387,7 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
             detail = replace(detail, follows=unexplained)
     abs_diag = None
     if absolute:     # the deflection model's final form against the absolute positions
-        abs_diag = diagnose_absolute(robot, ds, (*final.model, *absolute_model), torque=torque, form=form,
+        abs_diag = diagnose_absolute(robot, ds_abs, (*final.model, *absolute_model), torque=torque, form=form,
                                      pool=absolute_pool)
         verdict = combined_verdict(verdict, len(steps), detail is not None, abs_diag)
         if "tracker_frame" in absolute_pool and "tracker_frame" not in absolute_model:

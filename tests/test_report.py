@@ -115,7 +115,7 @@ def test_page_names_the_verdict_and_holds_the_plots_before_and_after(hidden_page
                   "Residual against q2", "Residual against time", "Residual against the load",
                   "Residual by marker", "Residual by load state"):
         assert title in page.h3
-    assert page.svgs == 7
+    assert page.svgs == 7 + 2          # and the absolute section's two (identify/report_absolute.py)
     # every plot has the model and the model with the effect side by side
     assert text.count(">model: joint_stiffness</text>") == 7
     assert text.count(">model + link_compliance</text>") == 7
@@ -129,7 +129,7 @@ def test_page_on_complete_data_says_no_missing_effect():
     page = _parse(text)
     assert page.errors == []
     assert "no missing effect found" in page.text_by_id["verdict"]
-    assert "model +" not in text and page.svgs == 7
+    assert "model +" not in text and page.svgs == 7 + 2   # and the absolute section's two
 
 
 def test_page_with_run_data_shows_the_uv_vu_current_differences():
@@ -141,7 +141,7 @@ def test_page_with_run_data_shows_the_uv_vu_current_differences():
     page = _parse(text)
     assert page.errors == []
     assert "UV/VU current differences (friction torque) and the model" in page.h3
-    assert page.svgs == 8
+    assert page.svgs == 8 + 2          # and the absolute section's two
     assert f"+ {rdiag.verdict}" in text and rdiag.verdict == "load_dependent_friction"
 
 
@@ -156,7 +156,7 @@ def test_report_command_writes_the_page(tmp_path, capsys):
     obj = json.loads(capsys.readouterr().out)
     assert obj == {"out": str(out), "verdict": "thermal_drift", "bytes": len(out.read_bytes())}
     page = _parse(out.read_text(encoding="utf-8"))
-    assert "thermal_drift" in page.text_by_id["verdict"] and page.svgs == 7
+    assert "thermal_drift" in page.text_by_id["verdict"] and page.svgs == 7 + 2
     # --add shows another candidate beside the model; an effect the data cannot show is refused
     rc = main(["report", "--robot", str(d / "robot.toml"), "--static", str(d / "static.csv"),
                "--out", str(out), "--add", "backlash", "--force"])
