@@ -45,6 +45,17 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: where each command is documented (shown at the end of its --help)
+COMMAND_DOCS: dict[str, str] = {
+    "demo": "README.md (What the demo shows)", "sim": "README.md (Simulated data), docs/devices.md",
+    "identify": "docs/identification.md", "diagnose": "docs/diagnose.md", "report": "docs/diagnose.md",
+    "devices": "docs/devices.md", "calibrate": "docs/calibrate.md", "export": "docs/log-format.md",
+    "geometry": "docs/compensator.md", "compensate": "docs/compensation.md", "plan": "docs/plan.md",
+    "check": "docs/check.md", "history": "docs/history.md", "schedule": "docs/check.md",
+    "view": "docs/view.md", "import": "docs/import.md",
+}
+
+
 #: commands that stream from devices (real or simulated in this process): they run with a short
 #: interpreter switch interval, so that the SYNC producer and the receive threads get the
 #: interpreter lock within a fraction of a 1 ms cycle (Python's default lets a busy thread
@@ -94,7 +105,10 @@ def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     modules: dict[str, object] = {}
     for name, (module_name, text) in _available().items():
-        p = sub.add_parser(name, help=text, description=text)
+        docs = COMMAND_DOCS.get(name, "README.md (Workflows)")
+        p = sub.add_parser(name, help=text, description=text,
+                           epilog=f"Documentation: {docs} in the elastocal repository; words like noise floor "
+                                  "or ΔBIC: README.md, Glossary.")
         if only is None or name == only:
             module = importlib.import_module(module_name)
             module.add_arguments(p)

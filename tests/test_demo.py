@@ -30,3 +30,9 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
     assert absolute["rms_before"] > 0.2e-3 and absolute["max_before"] > 0.5e-3
     assert absolute["rms_after"] <= 1.3 * absolute["noise_floor"]
     assert "absolute position error, nominal geometry" in text
+    # plain words first, the numbers after, no jargon in the words
+    found = text.index("What the demo found")
+    words = text[found:text.index("The numbers", found)]
+    assert "link_compliance" in words and "the arm links bend" in words and "%" in words
+    assert not any(j in words for j in ("ΔBIC", "rms", "TPDO", "exact form", "p ="))
+    assert "true" in text[text.index("The numbers", found):]

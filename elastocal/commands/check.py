@@ -10,6 +10,8 @@ input; 1 device fault. The verdict is recorded in the cell's history.
 
 from __future__ import annotations
 
+from elastocal.commands._flags import add_aliased
+
 import argparse
 import dataclasses
 import json
@@ -45,7 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="false-alarm probability of the whole check when nothing changed (default 0.001)")
     test.add_argument("--friction-tolerance", type=float, default=0.2,
                       help="relative friction change that counts, when significant (default 0.2)")
-    parser.add_argument("--history", help="the history database (default: [cell] history of cell.toml)")
+    add_aliased(parser, "--db", "--history", dest="history",
+                help="the history database (default: [cell] history of cell.toml)")
     parser.add_argument("--no-record", action="store_true", help="do not record the verdict in the history")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 

@@ -34,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run the planned and compensated paths on the simulated cell (default truth) and "
                              "report the tool-point errors")
     parser.add_argument("--force", action="store_true", help="overwrite --out, --krl and --rapid if they exist")
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
 def _parse_wrench(text: str) -> np.ndarray:

@@ -20,10 +20,12 @@ import dataclasses
 import json
 import pathlib
 import tempfile
+import textwrap
 import time
 
 import numpy as np
 
+from elastocal.commands._flags import add_seed
 from elastocal.commands._format import format_parameters, verdict_line
 
 DEMO_POSES = 12
@@ -32,7 +34,7 @@ DEMO_DRIVE_RATE_HZ = 200.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seed", type=int, default=1, help="random seed of the simulated cell (default 1)")
+    add_seed(parser, "random seed of the simulated cell")
     parser.add_argument("--out", help="directory for the files the demo writes (default: a temporary one); "
                                       "a second run into it replaces the files of the first")
     parser.add_argument("--hidden", default="link_compliance",
@@ -106,10 +108,11 @@ def run(args: argparse.Namespace) -> int:
     robot = config.load_robot()
     truth = CellTruth().with_hidden(cell_hidden)
     (out / "cell.toml").write_text(config.to_toml(), encoding="utf-8")
-    say(f"Simulated cell '{config.name}': {robot.name} (modified-DH model in Pinocchio), 6 CiA 402 drives on a "
-        f"virtual CAN bus (currents by TPDO on SYNC at {DEMO_DRIVE_RATE_HZ:.0f} Hz), a laser tracker over TCP, a Modbus cell controller. Hidden in its physics: "
-        f"{args.hidden}; the robot's real DH table differs from the drawing by 0.02-0.05 deg and 0.1-0.5 mm, "
-        "and the tracker stands 3.7 m away, turned.")
+    say(f"Simulated cell '{config.name}': a {robot.name} robot whose six servo drives report their motor "
+        f"currents {DEMO_DRIVE_RATE_HZ:.0f} times a second (CANopen, TPDO on SYNC), a laser tracker that measures "
+        f"3 markers on the tool, and the cell controller (Modbus). Hidden in its physics, for elastocal to find: "
+        f"{args.hidden}; and the robot as built differs from its drawing by 0.02-0.05 deg and 0.1-0.5 mm, "
+        "with the tracker standing 3.7 m away, turned.")
 
     # 2. the guided procedure
     poses = random_poses(robot, args.poses, np.random.default_rng(args.seed))
@@ -211,6 +214,23 @@ def run(args: argparse.Namespace) -> int:
     err = np.abs(k / truth.stiffness - 1) * 100
     print(f"\n  stiffness from currents, final model: worst error {err.max():.2f} % against the simulator's truth")
     print(f"  files in {out}")
+
+    # what it found: plain words first, then the stiffness against the truth
+    from elastocal.commands._plain import demo_findings
+
+    cand = diag.verdict_candidate
+    print("\nWhat the demo found")
+    for sentence in demo_findings(hidden=args.hidden, verdict=diag.verdict,
+                                  explanation=None if cand is None else cand.explanation,
+                                  rms_before=diag.fit.rms, rms_after=final.rms, floor=diag.noise_floor,
+                                  stiffness_error_percent=err, validation=validation):
+        print("  " + textwrap.fill(sentence, 96, subsequent_indent="  "))
+    print("\n  The numbers: joint stiffness identified (final model, from motor currents) against the truth")
+    final_k = {p.name: {"value": p.value, "std": p.std, "unit": p.unit}
+               for p in final.parameters if p.name in truth_k}
+    print(format_parameters(final_k, truth_k))
+    print(f"  Words like noise floor, ΔBIC, exact form, TPDO/SYNC and the effect names: README.md, Glossary. "
+          f"Look at it in 3-D: elastocal view {log}")
     (out / "demo.json").write_text(json.dumps({
         "hidden": args.hidden, "verdict": diag.verdict, "rms_before": diag.fit.rms, "rms_after": final.rms,
         "absolute": {"rms_before": absolute.base.rms, "max_before": absolute.base.max, "rms_after": geo.rms,

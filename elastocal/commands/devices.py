@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--every", type=float, default=1.0, metavar="S",
                         help="print the live readings every S seconds (default 1)")
     parser.add_argument("--json", action="store_true",
-                        help="print exactly one JSON object: the devices and their stream statistics")
+                        help="print exactly one JSON object on stdout")
 
 
 def _quiet_libraries() -> None:

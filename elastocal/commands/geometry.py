@@ -14,7 +14,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cylinder", required=True,
                         help="comma-separated markers on the compensator cylinder (turn about P0)")
     parser.add_argument("--joint", type=int, default=2, help="joint whose angle turns the pivot (default 2)")
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
 def geometry_json(geo) -> dict:

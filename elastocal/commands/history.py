@@ -12,19 +12,36 @@ import pathlib
 import time
 
 from elastocal.acquisition.history import clean, drift_summary  # clean: also check's
+from elastocal.commands._flags import JSON_HELP
 from elastocal.errors import InputError
 
 
+def _common(parser: argparse.ArgumentParser, default=None) -> None:
+    """Flags of both actions; on the subcommands their default is SUPPRESS, so a flag
+    given before the action (``history --cell C add``) is kept."""
+    parser.add_argument("--cell", default=default, help="cell.toml; its [cell] history names the database")
+    parser.add_argument("--db", default=default, help="the history database (instead of --cell's)")
+    parser.add_argument("--json", action="store_true", default=default if default is not None else False,
+                        help=JSON_HELP)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("action", nargs="?", choices=("show", "add"), default="show",
-                        help="show (default): the table and the drift; add: record a calibration")
-    parser.add_argument("--cell", help="cell.toml; its [cell] history names the database")
-    parser.add_argument("--db", help="the history database (instead of --cell's)")
-    parser.add_argument("--calibration", help="add: the calibration JSON to record")
-    parser.add_argument("--log", help="add: the MCAP log the calibration came from (its hash and plan are kept)")
-    parser.add_argument("--plan", help="add: the plan.toml it was measured with (default: the log's)")
+    _common(parser)
     parser.add_argument("--plot", help="show: write the drift plot here, .png or .svg")
-    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    for flag in ("--calibration", "--log", "--plan"):    # add's flags given without `add`: a clear error in run
+        parser.add_argument(flag, help=argparse.SUPPRESS)
+    sub = parser.add_subparsers(dest="action", metavar="{show,add}")
+    sub.default = "show"
+    show = sub.add_parser("show", help="the table of calibrations and checks, and the drift (the default)",
+                          description="the table of calibrations and checks of the cell, and the drift")
+    _common(show, argparse.SUPPRESS)
+    show.add_argument("--plot", default=argparse.SUPPRESS, help="write the drift plot here, .png or .svg")
+    add = sub.add_parser("add", help="record a calibration in the history",
+                         description="record a calibration (and the log it came from) in the cell's history")
+    _common(add, argparse.SUPPRESS)
+    add.add_argument("--calibration", help="the calibration JSON to record (required)")
+    add.add_argument("--log", help="the MCAP log the calibration came from (its hash and plan are kept)")
+    add.add_argument("--plan", help="the plan.toml it was measured with (default: the log's)")
 
 
 def history_path(cell_path: str | None, db: str | None) -> pathlib.Path | None:

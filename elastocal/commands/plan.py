@@ -9,6 +9,8 @@ model is good enough.
 
 from __future__ import annotations
 
+from elastocal.commands._flags import add_aliased, add_seed
+
 import argparse
 import json
 import math
@@ -30,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     use = parser.add_argument_group("where the robot works")
     use.add_argument("--test-pose", required=True, metavar="Q1,...,Q6",
                      help="the working pose [rad] (negative first value: --test-pose=-0.3,...)")
-    use.add_argument("--load", required=True, metavar="FX,FY,FZ[,MX,MY,MZ]",
+    add_aliased(use, "--wrench", "--load", dest="load", metavar="FX,FY,FZ[,MX,MY,MZ]",
                      help="the process load on the load point, base axes [N, N*m]")
     exp = parser.add_argument_group("the experiment")
     exp.add_argument("--poses", type=int, default=12, help="poses to measure (default 12)")
@@ -56,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="a UV/VU path for friction and the check: 6 joint values, ';', 6 joint values [rad]")
     exp.add_argument("--friction-speeds", default="0.05,0.15", help="speeds of the friction path [rad/s]")
     exp.add_argument("--name", default="calibration", help="the plan's name")
-    exp.add_argument("--seed", type=int, default=0, help="seed of the candidate sampling (default 0)")
+    add_seed(exp, "seed of the candidate sampling")
     exp.add_argument("--stiffness-only", action="store_true",
                      help="choose the poses for the stiffness alone (K40); by default they are exchanged so that "
                           "the kinematic set and the tracker registration are observable too (docs/absolute.md)")
@@ -67,7 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     out.add_argument("--out", required=True, help="plan.toml to write")
     out.add_argument("--map", help="write the first-order map (Y Fig. 4-6) here, .png or .svg")
     out.add_argument("--map-grid", type=int, default=25, help="grid points per axis of the map (default 25)")
-    out.add_argument("--map-load", metavar="FX,FY,FZ[,MX,MY,MZ]",
+    add_aliased(out, "--map-wrench", "--map-load", dest="map_load", metavar="FX,FY,FZ[,MX,MY,MZ]",
                      help="load of the map (default: F_max split equally over +x, +y, -z)")
     out.add_argument("--force", action="store_true", help="overwrite --out and --map if they exist")
     out.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
@@ -188,7 +190,9 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"unknown marker {m!r}; the robot has {', '.join(robot.marker_names)}", source="--markers")
     if not markers:
         raise InputError("no marker to read", source="--markers")
-    test = dz.TestPose(q=numbers(args.test_pose, (6,), "--test-pose"), wrench=_wrench(args.load, "--load"))
+    if args.load is None:
+        raise InputError("the process load is required: --wrench FX,FY,FZ[,MX,MY,MZ]", source="--wrench")
+    test = dz.TestPose(q=numbers(args.test_pose, (6,), "--test-pose"), wrench=_wrench(args.load, "--wrench"))
     for j, (v, lo, hi) in enumerate(zip(test.q, robot.lower, robot.upper), start=1):
         if not lo <= v <= hi:
             raise InputError(f"q{j} = {v} rad is outside the joint limits [{lo:.4g}, {hi:.4g}]", source="--test-pose")
@@ -225,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     geometry = planned.geometry
     fmap = None
     if args.map:
-        map_load = (_wrench(args.map_load, "--map-load") if args.map_load
+        map_load = (_wrench(args.map_load, "--map-wrench") if args.map_load
                     else tuple(f_max / math.sqrt(3.0) * np.array([1.0, 1.0, -1.0])) + (0.0, 0.0, 0.0))
         fmap = fom.first_order_map(robot, q_base=test.q, wrench=map_load, stiffness=prior, markers=markers,
                                   torque=args.torque, n_grid=args.map_grid)

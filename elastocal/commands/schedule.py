@@ -150,7 +150,11 @@ def timer_unit(name: str, cell_name: str, every: Every, calendar: str | None) ->
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("action", choices=("install",), help="install: write the units (or print a crontab line)")
+    sub = parser.add_subparsers(dest="action", metavar="{install}")
+    sub.required = True
+    parser = sub.add_parser("install", help="write the systemd units (or print a crontab line)",
+                            description="write a systemd service and timer (or print a crontab line) that run "
+                                        "`elastocal check --cell CELL` on a schedule")
     parser.add_argument("--every", required=True, help="period: 30m, 6h, 1d, 7d, 2w")
     parser.add_argument("--cell", required=True, help="cell.toml of the cell to check")
     parser.add_argument("--at", default="06:00", help="time of day for daily and weekly checks (default 06:00)")

@@ -6,6 +6,7 @@ import argparse
 import json
 import pathlib
 
+from elastocal.commands._flags import add_aliased, add_json, add_seed
 from elastocal.errors import InputError
 
 
@@ -15,20 +16,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for name, text in (("static", "a static before/after-load experiment: robot.toml, static.csv, truth.json"),
                        ("runs", "friction runs and joint-2 sweeps: robot.toml, runs.csv, truth.json")):
         p = sub.add_parser(name, help=text, description=text)
+        effects = ("link_compliance, thermal_drift, static_friction, backlash, kinematic_errors (the real DH "
+                   "table off by 0.02-0.05 deg and 0.1-0.5 mm), tracker_frame (the tracker on another stand)"
+                   if name == "static" else
+                   "coulomb_friction, viscous_friction, load_dependent_friction, or friction for all three")
         p.add_argument("--hidden", default="none",
-                       help="effect the simulated cell has and the default model lacks (none for none); static: "
-                            "link_compliance, thermal_drift, static_friction, backlash, kinematic_errors (the real "
-                            "DH table off by 0.02-0.05 deg and 0.1-0.5 mm), tracker_frame (the tracker on another "
-                            "stand); runs: coulomb_friction, viscous_friction, load_dependent_friction, or friction "
-                            "for all three")
-        p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+                       help=f"effect the simulated cell has and the default model lacks: none (default), {effects}")
+        add_seed(p)
         p.add_argument("--out", required=True, help="output directory")
         p.add_argument("--robot", help="robot.toml to simulate (default: the bundled HH-150)")
         p.add_argument("--force", action="store_true", help="overwrite the files of an earlier dataset in --out")
-        p.add_argument("--json", action="store_true", help="print the written files as one JSON object")
+        add_json(p)
         if name == "static":
             p.add_argument("--poses", type=int, default=12, help="number of poses (default 12)")
-            p.add_argument("--loads", type=int, default=3, help="loaded states per pose (default 3)")
+            add_aliased(p, "--loads-per-pose", "--loads", dest="loads", type=int, default=3,
+                        help="loaded states per pose (default 3)")
             p.add_argument("--repeats", type=int, default=3, help="readings per marker and state (default 3)")
             p.add_argument("--outliers", type=int, default=0,
                            help="bad tracker readings (0.3-0.5 mm off) to put among the repeats (default 0); "
@@ -56,7 +58,7 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="overwrite --write-cell if it exists")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop after S seconds (default: until interrupted)")
-    parser.add_argument("--json", action="store_true", help="print the device URLs as one JSON object")
+    add_json(parser)
 
 
 def _serve(args: argparse.Namespace) -> int:

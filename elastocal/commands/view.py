@@ -41,7 +41,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="magnification of the deflections (default 100; the page has a slider)")
     parser.add_argument("--magnify-errors", type=float, default=100.0,
                         help="magnification of the error vectors, measured - predicted (default 100)")
-    parser.epilog = "The page is described in docs/view.md; needs pip install 'elastocal[view]'."
 
 
 def build_view(args: argparse.Namespace):
