@@ -401,7 +401,7 @@ def drift_figure(drift: Drift):
                     ax.scatter(tk[~static], np.zeros(int(np.sum(~static))), marker="^",
                                c=[c for c, s_ in zip(colours, static) if not s_], zorder=3,
                                label="no static poses (runs only)")
-                ax.legend(fontsize=8, loc="upper left")
+                ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
             ax.set_ylabel("deflection [µm]")
             ax.set_title("checks: green holds, red recalibrate", fontsize=10)
             continue
@@ -421,7 +421,7 @@ def drift_figure(drift: Drift):
         ax.axhline(0.0, color="grey", lw=0.6)
         ax.set_ylabel("change from first [%]")
         ax.set_title(f"{title}: calibrations (filled, ±1 std) and checks (open)", fontsize=10)
-        ax.legend(fontsize=8, ncol=6, loc="upper left")
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # outside: hides no point
     axes[-1].set_xlabel("time (UTC)")
     fig.autofmt_xdate()
     return fig

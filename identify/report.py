@@ -217,7 +217,9 @@ h3{font-size:14px;margin:18px 0 6px}
 table{border-collapse:collapse;font-size:13px;margin:6px 0}
 td,th{border:1px solid #ddd;padding:3px 8px;text-align:right}td.l,th.l{text-align:left}
 tr.sig td{background:#fdf2f0;font-weight:600}
-.pair{display:flex;gap:12px;flex-wrap:wrap}.pair>div{flex:1;min-width:380px}
+.pair{display:flex;gap:12px;flex-wrap:wrap}.pair>div{flex:1 1 0;min-width:380px;overflow-x:auto}
+table.groups{width:100%;table-layout:fixed}table.groups th,table.groups td{overflow-wrap:anywhere;padding:3px 4px}
+table.groups th.l,table.groups td.l{width:6.5em}
 .plot svg{width:100%;height:auto}.plot.narrow{max-width:620px}.note{color:#555;font-size:13px}
 code{background:#f4f4f4;padding:1px 4px;border-radius:3px}
 """
@@ -325,7 +327,7 @@ def _groups_html(where: Where, title: str) -> str:
         row = f"<tr><th class=l>{_e(g.by)}</th>{cells}</tr><tr><td class=l>rms [µm]</td>{rms}</tr>"
         if g.floor is not None:
             row += "<tr><td class=l>floor [µm]</td>" + "".join(f"<td>{x * UM:.1f}</td>" for x in g.floor) + "</tr>"
-        parts.append(f"<table>{row}</table>")
+        parts.append(f'<table class="groups">{row}</table>')
     return "\n".join(parts)
 
 
