@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="write the calibrated robot.toml here")
     parser.add_argument("--urdf", help="also write the calibrated robot as URDF here")
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
-    parser.add_argument("--json", action="store_true", help="print the written files as one JSON object")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
 def run(args: argparse.Namespace) -> int:

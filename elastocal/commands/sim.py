@@ -27,6 +27,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--robot", help="robot.toml to simulate (default: the bundled HH-150)")
         p.add_argument("--force", action="store_true", help="overwrite the files of an earlier dataset in --out")
         add_json(p)
+        if name == "runs":
+            p.add_argument("--compensator-sweep", action="store_true",
+                           help="also write sweep.csv: a joint-2 sweep reading markers P1 (compensator pivot) and "
+                                "P01, P02 (its cylinder), for `elastocal geometry --runs sweep.csv --pivot P1 "
+                                "--cylinder P01,P02`; truth.json gets the compensator geometry")
         if name == "static":
             p.add_argument("--poses", type=int, default=12, help="number of poses (default 12)")
             add_aliased(p, "--loads-per-pose", "--loads", dest="loads", type=int, default=3,
@@ -151,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
     out = check_folder(args.out, "--out")
     outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot")])
     table_name = "static.csv" if static else "runs.csv"
-    for name in ("robot.toml", table_name, "log.mcap", "truth.json"):
+    sweep = not static and args.compensator_sweep
+    for name in ("robot.toml", table_name, "log.mcap", "truth.json") + (("sweep.csv",) if sweep else ()):
         outputs.add(out / name, "--out", in_folder=True)
     robot = _robot(args)
 
@@ -184,6 +190,18 @@ def run(args: argparse.Namespace) -> int:
                  "noise": {"tracker_m": truth.tracker_noise_m, "current_a": truth.current_noise_a}}
     if static:
         truth_doc["outliers"] = [int(x) for x in outlier_lines]
+    sweep_table = None
+    if sweep:
+        import numpy as np
+
+        from elastocal.sims.compensator_markers import compensator_sweep, compensator_truth
+
+        try:
+            truth_doc["compensator_geometry"] = {**compensator_truth(robot), "unit": "m"}
+        except ValueError as exc:
+            raise InputError(str(exc), source="--compensator-sweep") from None
+        sweep_table = compensator_sweep(robot, np.random.default_rng([args.seed, 2]),
+                                        noise_m=truth.tracker_noise_m, source=str(out / "sweep.csv"))
     outputs.make_folder(out)
     with outputs:
         outputs.temp(out / "robot.toml").write_text(robot.to_toml(), encoding="utf-8")
@@ -197,6 +215,9 @@ def run(args: argparse.Namespace) -> int:
             # the log holds what the CSV holds (read back: the same numbers as a user's table)
             back = read_run_table(outputs.temp(out / "runs.csv"), robot)
             write_log_from_tables(outputs.temp(out / "log.mcap"), robot, runs=back)
+            if sweep_table is not None:
+                write_runs_csv(outputs.temp(out / "sweep.csv"), sweep_table)
+                written["sweep"] = str(out / "sweep.csv")
         written["log"] = str(out / "log.mcap")
         outputs.temp(out / "truth.json").write_text(json.dumps(truth_doc, indent=2) + "\n", encoding="utf-8")
         written["truth"] = str(out / "truth.json")
