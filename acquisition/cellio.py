@@ -63,6 +63,10 @@ class CellIO(abc.ABC):
     robot: Robot
     #: monotonic clock of every timestamp [ns]
     clock: Callable[[], int]
+    #: False when the tracker is not read by elastocal but by its own software: the procedure
+    #: then settles on the drives, its readings are time windows without tracker samples, and the
+    #: software's export is paired with the log by ``elastocal import`` (docs/import.md)
+    reads_tracker: bool = True
 
     @abc.abstractmethod
     def start_move(self, q: Sequence[float], speed_rad_s: float) -> None:

@@ -114,6 +114,10 @@ def static_table_from_log(contents: LogContents, robot: Robot | None = None) -> 
     readings = static_readings(contents)
     if not readings:
         return None
+    if not contents.markers:
+        raise InputError("the log has readings but no tracker sample (its tracker was read by its own "
+                         "software): pair that software's export with the log by `elastocal import EXPORT "
+                         "--log LOG.mcap` (docs/import.md)", source=contents.path)
     pose, load, t, q, wrench, currents, marker, xyz = [], [], [], [], [], [], [], []
     for r in readings:
         start, end = r.window

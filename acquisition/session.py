@@ -288,7 +288,8 @@ class Session:
     def settle(self, markers: Sequence[str], **where) -> None:
         """Wait until the cell is at rest (``plan.settle``); DeviceTimeout otherwise."""
         spec = self.plan.settle
-        markers = list(markers[:1])  # the tracker follows one reflector: watch the first
+        # the tracker follows one reflector: watch the first (none when its own software reads it)
+        markers = list(markers[:1]) if self.io.reads_tracker else []
         t0 = self.io.clock()
         step_s = min(0.05, spec.window_s / 4)
         while True:
@@ -329,7 +330,8 @@ class Session:
                 t0 = self.io.clock()
                 samples = self.poll([m], reading_s)
                 t1 = self.io.clock()
-                if not any(s.marker == m and t0 <= s.t_ns <= t1 for s in samples.tracker):
+                if self.io.reads_tracker and not any(s.marker == m and t0 <= s.t_ns <= t1
+                                                     for s in samples.tracker):
                     raise DeviceTimeout(f"the tracker gave no reading of marker {m} in {reading_s:g} s at "
                                         f"pose {pose.id}, load {load_id}")
                 windows.append((r, m, t0, t1))

@@ -227,7 +227,9 @@ def pair_with_log(points: list[ExportPoint], contents: LogContents, *, names: Na
                 unpaired.append((p, "no timestamp"))
                 continue
             t = p.t_s + clock_offset_s
-            inside = np.flatnonzero((wall[:, 0] - tolerance_s <= t) & (t <= wall[:, 1] + tolerance_s))
+            inside = np.flatnonzero((wall[:, 0] <= t) & (t <= wall[:, 1]))      # a window that holds it
+            if inside.size == 0:                                                # else one within tolerance
+                inside = np.flatnonzero((wall[:, 0] - tolerance_s <= t) & (t <= wall[:, 1] + tolerance_s))
             if inside.size == 0:
                 unpaired.append((p, f"no reading within {tolerance_s:g} s of its time"))
                 continue

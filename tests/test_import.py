@@ -7,6 +7,8 @@ The hand-written exports in tests/data/ check the pairing row by row."""
 import datetime
 import json
 import pathlib
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -220,3 +222,66 @@ def test_u95_weights_the_fit(tmp_path):
     ew, eu = np.array(err_w)[:, :4], np.array(err_u)[:, :4]
     assert rms(ew) < 0.4 * rms(eu), (rms(ew), rms(eu))
     assert 0.6 < rms(z) < 1.6, rms(z)
+
+
+def test_a_procedure_whose_tracker_its_own_software_reads(tmp_path, capsys):
+    """No [tracker] in cell.toml: the guided procedure settles on the drives and logs its reading
+    windows; the tracker software's export (here: the simulated tracker read at the windows' times,
+    timestamped on the UTC clock) is paired with the log by time and identifies the stiffness."""
+    from dataclasses import replace
+
+    from elastocal.acquisition.procedures import run_calibration
+    from elastocal.identify.static import identify_static
+    from elastocal.sims.serve import SimulatedCell, example_cell_config
+
+    robot = bundled_robot()
+    poses = random_poses(robot, 4, np.random.default_rng(3))
+    plan = parse_plan(plan_toml(poses=poses, loads=(LoadSpec("L1", mass_kg=110.0),
+                                                   LoadSpec("L2", force_n=(650.0, -300.0, -400.0))),
+                                markers=("R1", "R2", "R3"), repeats=2, reading_s=0.05,
+                                settle=SettleSpec(spread_m=20e-6, window_s=0.15, timeout_s=10.0)), source="plan")
+    config = example_cell_config(can_channel="issue16-external", move_speed_rad_s=2.0, seed=5)
+    config = replace(config, tracker=None)
+    log = tmp_path / "log.mcap"
+    measured = []               # the tracker software: every marker every 10 ms, on the UTC clock
+    stop = threading.Event()
+    with SimulatedCell(config) as sim:
+        def software():
+            while not stop.is_set():
+                for m in ("R1", "R2", "R3"):
+                    measured.append((m, sim.world.read_tracker(m), time.time()))
+                stop.wait(0.01)
+
+        thread = threading.Thread(target=software, daemon=True)
+        thread.start()
+        try:
+            out = run_calibration(sim.config, plan, log, yes=True, world=sim.world)
+        finally:
+            stop.set()
+            thread.join()
+    assert out.status == "completed", out
+    contents = read_log(log)
+    assert not contents.markers                           # elastocal read no tracker
+    readings = static_readings(contents)
+    # the operator exports the points taken during the readings (and a stray one)
+    kept = [(m, p, t) for m, p, t in measured
+            if any(r.marker == m and r.wall_s[0] <= t <= r.wall_s[1] for r in readings)]
+    kept.insert(5, measured[0])
+    lines = ["Point,X [mm],Y [mm],Z [mm],Timestamp"]
+    lines += [f"{m},{float(p[0]) * 1e3!r},{float(p[1]) * 1e3!r},{float(p[2]) * 1e3!r},{iso(t)}" for m, p, t in kept]
+    (tmp_path / "sa.csv").write_text("\n".join(lines) + "\n")
+    rc = main(["export", str(log), "--out", str(tmp_path / "export")])
+    assert rc == 2 and "elastocal import EXPORT --log" in capsys.readouterr().err
+    rc = main(["import", str(tmp_path / "sa.csv"), "--log", str(log), "--out", str(tmp_path / "static.csv"),
+               "--tolerance", "0.005", "--json"])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    obj = json.loads(captured.out)
+    assert [u["line"] for u in obj["unpaired"]] == [7] and obj["rows"] == len(kept) - 1
+    table = read_static_table(tmp_path / "static.csv", robot)
+    assert len(readings) == 4 * 3 * 2 * 3 and set(zip(table.pose, table.load, table.marker)) == {
+        (r.pose, r.load, r.marker) for r in readings}
+    fit = identify_static(robot, table, torque="current", form="exact")
+    truth = np.array(CellTruth().stiffness)
+    err = np.abs(fit.values([f"k{j}" for j in range(1, 7)]) - truth) / truth
+    assert np.all(err[:3] < 0.02) and np.all(err[3:] < 0.05), err
