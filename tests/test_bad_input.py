@@ -72,7 +72,7 @@ def data(tmp_path_factory) -> pathlib.Path:
     assert main(["identify", "--robot", str(d / "robot.toml"), "--static", str(d / "static.csv"),
                  "--out", str(d / "cal.json")]) == 0
     doc = json.loads((d / "cal.json").read_text())
-    doc["parameters"]["k1"].update(value=5.6e5, std=5e3)   # these few random poses do not determine k1
+    doc["parameters"]["k1"].update(value=5.6e5, std=5e3, determined=True)   # these few random poses do not determine k1
     (d / "cal.json").write_text(json.dumps(doc))
     (d / "cell.toml").write_text('[cell]\nname = "c"\nrobot = "hh150"\n')
     return d

@@ -69,7 +69,7 @@ def _make_inputs(d: pathlib.Path) -> None:
     assert main(["identify", "--robot", str(d / "robot.toml"), "--static", str(d / "static.csv"),
                  "--out", str(d / "cal.json")]) == 0
     doc = json.loads((d / "cal.json").read_text())
-    doc["parameters"]["k1"].update(value=5.6e5, std=5e3)   # two random poses do not determine k1
+    doc["parameters"]["k1"].update(value=5.6e5, std=5e3, determined=True)   # two random poses do not determine k1
     (d / "cal.json").write_text(json.dumps(doc, indent=1))
 
 
