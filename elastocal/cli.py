@@ -85,6 +85,15 @@ def _restore_libraries(previous: dict[str, int]) -> None:
         logging.getLogger(name).setLevel(level)
 
 
+def one_line(value: object) -> str:
+    """An error message as one line: line breaks and other control characters a message
+    quotes from the input (a header cell with a newline in it) are shown escaped."""
+    text = str(value)
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # usage errors: one line, exit 2
         self.exit(2, f"elastocal: {message}\n")
@@ -135,13 +144,13 @@ def main(argv: list[str] | None = None) -> int:
             print(text, file=sys.stderr)
         return code
     except InputError as exc:
-        print(f"elastocal {args.command}: {exc}", file=sys.stderr)
+        print(f"elastocal {args.command}: {one_line(exc)}", file=sys.stderr)
         return 2
     except DeviceError as exc:
-        print(f"elastocal {args.command}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        print(f"elastocal {args.command}: {type(exc).__name__}: {one_line(exc)}", file=sys.stderr)
         return 1
     except ElastocalError as exc:
-        print(f"elastocal {args.command}: {exc}", file=sys.stderr)
+        print(f"elastocal {args.command}: {one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"elastocal {args.command}: interrupted", file=sys.stderr)
@@ -158,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         # files first; this catches what slips through) -- one line naming it, no traceback
         what = exc.strerror or str(exc) or type(exc).__name__
         if exc.filename is not None:
-            print(f"elastocal {args.command}: {exc.filename}: {what}", file=sys.stderr)
+            print(f"elastocal {args.command}: {one_line(exc.filename)}: {one_line(what)}", file=sys.stderr)
             return 2
         print(f"elastocal {args.command}: {type(exc).__name__}: {what}", file=sys.stderr)
         return 1

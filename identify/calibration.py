@@ -74,6 +74,13 @@ def calibration_from_fit(robot_name: str, fit_json: dict, data_paths: Sequence[s
         if fit_json.get("absolute_noise_floor") is not None:
             absolute["noise_floor"] = fit_json["absolute_noise_floor"]
     data = tuple({"path": str(p), "sha256": file_sha256(p)} for p in data_paths)
+    source = str(data_paths[0]) if data_paths else "the fit"
+    for name, p in fit_json["parameters"].items():   # what the reader would refuse is not written
+        try:
+            _parameter(name, p, source)
+        except InputError as exc:
+            raise InputError(f"the fit gives {name}: {exc.detail}; not a calibration (the robot description's "
+                             "torque constants and geometry, the data's units?)", source=source) from None
     return Calibration(robot=robot_name, created=created, model=tuple(fit_json["model"]),
                        torque=fit_json.get("torque", "current"), parameters=fit_json["parameters"],
                        residual=residual, data=data, absolute_residual=absolute,

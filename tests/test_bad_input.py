@@ -539,3 +539,26 @@ def test_history_shows_friction_drift_and_plots_every_check(tmp_path, capsys):
     checks_panel = fig.axes[-1]
     points = sum(len(c.get_offsets()) for c in checks_panel.collections)
     assert points == 2                     # the friction-only check too, on the axis
+
+
+# ------------------------------------------------- found by the fuzz suite
+def test_an_error_quoting_a_line_break_stays_one_line(data, tmp_path, capsys):
+    text = (data / "path.csv").read_text().replace(",fx,", ',"f\nx",', 1)
+    bad = tmp_path / "path.csv"
+    bad.write_text(text)
+    rc, _, err = run_cli(capsys, ["compensate", "--robot", data / "robot.toml", "--calibration", data / "cal.json",
+                                  "--path", bad, "--out", tmp_path / "out.csv"])
+    assert_refused(rc, err, f"{bad}, line 1: unknown column(s) f\\nx")
+
+
+def test_identify_writes_no_calibration_its_reader_would_refuse(data, tmp_path, capsys):
+    """A robot description whose torque constants are 1e6 times too large gives stiffness beyond
+    any joint's: refused naming the data, no cal.json."""
+    text = ROBOT.to_toml()
+    for xi in ("169.6355", "220.8436", "127.0724", "138.3101", "139.4627"):
+        text = text.replace(f"torque_constant = {xi}", f"torque_constant = {xi}e6")
+    (tmp_path / "robot.toml").write_text(text)
+    rc, _, err = run_cli(capsys, ["identify", "--robot", tmp_path / "robot.toml", "--static", data / "static.csv",
+                                  "--out", tmp_path / "cal.json"])
+    assert_refused(rc, err, f"{data / 'static.csv'}: the fit gives k", "is not a plausible joint stiffness")
+    assert not (tmp_path / "cal.json").exists()
