@@ -46,6 +46,8 @@ PARALLEL_TOL = 1e-6
 #: a column whose part independent of the columns kept before it is below this
 #: fraction of its norm is absorbed (relative to the scaled regressor)
 ABSORB_TOL = 1e-5
+#: a column this small next to the largest (both whitened, so in the same units) is zero
+ZERO_COLUMN = 1e-9
 
 WORDS = {
     "rx": "the frame rotation about x", "ry": "the frame rotation about y", "rz": "the frame rotation about z",
@@ -243,6 +245,8 @@ def identifiable_set(a: np.ndarray, names: Sequence[str], priority: Sequence[str
     order = [names.index(n) for n in priority if n in names]
     order += [k for k in range(len(names)) if k not in order]
     scale = np.linalg.norm(a, axis=0)
+    # a column that is rounding noise next to the others moves nothing (a marker on the axis it turns about)
+    scale = np.where(scale > ZERO_COLUMN * float(np.max(scale, initial=0.0)), scale, 0.0)
     scaled = a / np.where(scale > 0, scale, 1.0)
     keep = np.zeros(len(names), dtype=bool)
     basis = np.zeros((a.shape[0], 0))

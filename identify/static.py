@@ -50,6 +50,8 @@ FORMS = ("exact", "first-order")
 #: a pivoted-QR diagonal below this fraction of the largest marks a parameter
 #: the data cannot separate from the others
 RANK_TOL = 1e-7
+#: a regressor column this small next to the largest is zero
+ZERO_COLUMN = 1e-10
 
 
 # =================================================================== dataset
@@ -469,7 +471,9 @@ def _select_columns(a: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np
     """Column scales and the mask of identifiable columns (pivoted QR on the
     scaled regressor)."""
     scale = np.linalg.norm(a, axis=0)
-    keep = scale > 0
+    # a column that is rounding noise next to the largest moves nothing (the twist of joint 6
+    # seen by one marker on its axis): it is not identifiable, however the noise is scaled
+    keep = scale > ZERO_COLUMN * float(np.max(scale, initial=0.0))
     scaled = a[:, keep] / scale[keep]
     if scaled.shape[1]:
         _, r, piv = scipy.linalg.qr(scaled, mode="economic", pivoting=True)

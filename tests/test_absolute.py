@@ -14,7 +14,7 @@ from elastocal.identify.registration import kabsch
 from elastocal.identify.robot import bundled_robot, parse_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import DEFAULT_TRACKER, KINEMATIC_ERRORS, CellTruth
-from elastocal.sims.static import simulate_static
+from elastocal.sims.static import StaticPlan, simulate_static
 
 ROBOT = bundled_robot()
 FULL = ("joint_stiffness", "kinematic_errors", "tracker_frame")
@@ -393,3 +393,16 @@ def test_report_shows_absolute_errors_per_pose_and_their_vectors(kinematic_data)
     before = [p["rms"] for p in diag.absolute.base.per_pose()]
     after = [p["rms"] for p in diag.absolute.final.per_pose()]
     assert min(before) > 20 * max(after)                  # every pose: millimetres to the floor
+
+
+def test_one_marker_on_the_tool_axis():
+    """A single reflector on the axis of joint 6: neither the joint-6 zero nor its
+    twist moves it, so k6, dq6 (and what the flange's tilt trades with the wrist)
+    are reported unidentifiable, and the rest still reaches the floor."""
+    truth = CellTruth().with_hidden("kinematic_errors")
+    table = simulate_static(ROBOT, truth, seed=4, plan=StaticPlan(markers=("R1",)))
+    fit = identify_absolute(ROBOT, table, model=FULL)
+    assert {"k6", "dq6", "dd6"} <= set(fit.unidentifiable)
+    assert fit.absorbed_by["dq6"] == ()                  # moves nothing at all
+    assert fit.rms < 1.25 * fit.noise_floor
+    assert all(abs(p.value) < 0.01 for p in fit.parameters if p.name in fit.kinematic_names)
