@@ -27,14 +27,21 @@ BOXES = """() => {
 }"""
 
 
-@pytest.mark.parametrize("width", [1280, 900])
-def test_group_tables_stay_in_their_column(tmp_path, width):
-    data = tmp_path / "d"
+@pytest.fixture(scope="module")
+def report_page(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("report")
+    data = tmp / "d"
     assert main(["sim", "static", "--hidden", "link_compliance", "--seed", "3", "--poses", "8", "--out",
                  str(data)]) == 0
-    page = tmp_path / "report.html"
+    page = tmp / "report.html"
     assert main(["report", "--robot", str(data / "robot.toml"), "--static", str(data / "static.csv"),
                  "--out", str(page)]) == 0
+    return page
+
+
+@pytest.mark.parametrize("width", [1280, 900])
+def test_group_tables_stay_in_their_column(report_page, tmp_path, width):
+    page = report_page
     with playwright.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
         try:

@@ -27,7 +27,8 @@ CHROMIUM_ARGS = ["--no-sandbox", "--no-first-run", "--disable-background-network
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("view") / "d"
-    assert main(["sim", "static", "--hidden", "link_compliance", "--seed", "1", "--out", str(out)]) == 0
+    assert main(["sim", "static", "--hidden", "link_compliance", "--seed", "1", "--poses", "8", "--out",
+                 str(out)]) == 0
     return out
 
 
