@@ -1,19 +1,28 @@
 """Diagnose run data: friction terms on the UV/VU half-differences, compensator and
 gravity on the joint-2 sweep means, each a likelihood-ratio test with the noise variance
-estimated per joint (split out of :mod:`elastocal.identify.diagnose`)."""
+estimated per joint (split out of :mod:`elastocal.identify.diagnose`).
+
+The effects are strategies, as in the static diagnosis: the friction candidates are
+the effects whose module declares ``run_part = "uv/vu"`` and a ``run_column`` (the
+regression of each joint's half-differences is the sum of the columns of the model's
+friction effects), and the sweep candidates are :class:`SweepTest` objects, one per
+effect with ``run_part = "sweep"`` (:data:`SWEEP_TESTS`). :func:`diagnose_runs`
+takes both as arguments and never branches on an effect's name.
+"""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 import scipy.sparse
 import scipy.stats
 
 from elastocal.errors import InputError, UnidentifiableError
-from elastocal.identify.effects import ALL_EFFECTS, get_effect
+from elastocal.identify.effects import ALL_EFFECTS, get_effect, run_effects
+from elastocal.identify.effects.base import Effect
 from elastocal.identify.robot import Robot
 from elastocal.identify.static import Parameter
 from elastocal.identify.verdict import VERDICT_DELTA_BIC, VERDICT_P, NotTestable
@@ -21,13 +30,10 @@ from elastocal.identify.where import GroupSummary, _bins
 
 
 # =================================================================== run data
-#: friction effects and the column of the friction regression each adds
-FRICTION_EFFECTS = ("coulomb_friction", "viscous_friction", "load_dependent_friction")
-
-
-RUN_EFFECTS = (*FRICTION_EFFECTS, "compensator", "gravity")
-
-
+#: friction effects (each adds its column to the friction regression), then the sweep effects
+FRICTION_EFFECTS = run_effects("uv/vu")
+SWEEP_EFFECTS = run_effects("sweep")
+RUN_EFFECTS = (*FRICTION_EFFECTS, *SWEEP_EFFECTS)
 #: a scaled friction design worse conditioned than this cannot separate a term from Coulomb
 MAX_FRICTION_CONDITION = 1e4
 
@@ -126,20 +132,9 @@ def _lr(rss0: np.ndarray, rss1: np.ndarray, n: np.ndarray, q: int) -> tuple[floa
     return stat, p, -stat + q * math.log(max(int(n[ok].sum()), 2))
 
 
-def _friction_columns(speed: np.ndarray, load: np.ndarray) -> dict[str, np.ndarray]:
-    return {"coulomb_friction": np.ones_like(speed), "viscous_friction": speed,
-            "load_dependent_friction": np.abs(load)}
-
-
-_FRICTION_PREFIX = {"coulomb_friction": "fc", "viscous_friction": "fv", "load_dependent_friction": "fl"}
-
-
-_FRICTION_UNIT = {"coulomb_friction": "N*m", "viscous_friction": "N*m*s/rad", "load_dependent_friction": "1"}
-
-
-_FRICTION_NEEDS = {"viscous_friction": "runs at two or more speeds",
-                   "load_dependent_friction": "runs under two or more loads",
-                   "coulomb_friction": "UV/VU runs"}
+def _friction_columns(speed: np.ndarray, load: np.ndarray, effects: Sequence[Effect]) -> dict[str, np.ndarray]:
+    """Each friction effect's column of the regression (its module's ``run_column``)."""
+    return {e.name: e.run_column(speed, load) for e in effects}
 
 
 def _lstsq(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -159,10 +154,13 @@ def _scaled_condition(x: np.ndarray) -> float:
     return float(np.linalg.cond(x / scale))
 
 
-def _diagnose_friction(samples, model: tuple[str, ...]):
-    """Candidates among the friction effects from matched UV/VU samples."""
-    have = [e for e in FRICTION_EFFECTS if e in model]
-    cols_all = _friction_columns(samples.speed, samples.load_torque)
+def _diagnose_friction(samples, model: tuple[str, ...], effects: Sequence[Effect]):
+    """Candidates among the friction ``effects`` (the first is the constant, Coulomb-like
+    one) from matched UV/VU samples."""
+    by_name = {e.name: e for e in effects}
+    names = tuple(by_name)
+    have = [e for e in names if e in model]
+    cols_all = _friction_columns(samples.speed, samples.load_torque, effects)
     rss0 = np.zeros(6)
     n = np.zeros(6, dtype=int)
     before = np.full(samples.friction.shape, np.nan)
@@ -177,10 +175,10 @@ def _diagnose_friction(samples, model: tuple[str, ...]):
         before[ok, j] = x @ beta if have else 0.0
     out: list[tuple[RunCandidate, np.ndarray]] = []
     skipped: list[NotTestable] = []
-    for eff_name in FRICTION_EFFECTS:
+    for eff_name in names:
         if eff_name in have:
             continue
-        eff = get_effect(eff_name)
+        eff = by_name[eff_name]
         rss1 = rss0.copy()
         after = before.copy()
         params, unident, tested = [], [], []
@@ -191,20 +189,20 @@ def _diagnose_friction(samples, model: tuple[str, ...]):
             y = samples.friction[ok, j]
             terms = [*have, eff_name]
             x = np.column_stack([cols_all[e][ok, j] for e in terms])
-            check = terms if "coulomb_friction" in terms else ["coulomb_friction", *terms]
+            check = terms if names[0] in terms else [names[0], *terms]
             xc = np.column_stack([cols_all[e][ok, j] for e in check])
-            name = f"{_FRICTION_PREFIX[eff_name]}{j + 1}"
+            name = f"{eff.run_prefix}{j + 1}"
             if n[j] <= len(check) + 1 or _scaled_condition(xc) > MAX_FRICTION_CONDITION:
                 unident.append(name)
                 continue
             beta, cov, rss1[j] = _lstsq(x, y)
             after[ok, j] = x @ beta
             params.append(Parameter(name, float(beta[-1]), float(np.sqrt(max(cov[-1, -1], 0.0))),
-                                    _FRICTION_UNIT[eff_name]))
+                                    eff.units[0]))
             tested.append(j)
         if not tested:
             skipped.append(NotTestable(eff_name, f"these runs cannot separate it from Coulomb friction; "
-                                                 f"it needs {_FRICTION_NEEDS[eff_name]}"))
+                                                 f"it needs {eff.run_needs}"))
             continue
         idx = np.array(tested)
         stat, p, dbic = _lr(rss0[idx], rss1[idx], n[idx], len(idx))
@@ -229,80 +227,153 @@ def _gravity_regressor2(robot: Robot, theta: np.ndarray) -> np.ndarray:
     return np.array([pin.computeJointTorqueRegressor(model, data, th, zero, zero)[1].copy() for th in theta])
 
 
-def _diagnose_sweeps(robot: Robot, table, model: tuple[str, ...], stiffness: np.ndarray):
-    """Candidates compensator and gravity from joint-2 sweep means."""
-    from elastocal.identify.compensator import identify_compensator, sweep_means
+@dataclass(frozen=True, eq=False)
+class SweepData:
+    """Joint-2 sweep means and the torque the model leaves (``y`` = -M(q2) - gravity error)."""
+
+    robot: Robot
+    means: object                 # identify.compensator.SweepMeans
+    y: np.ndarray                 # (n,) [N·m]
+    theta: np.ndarray             # (n, 6) deflected link-side configurations
+
+
+class SweepTest(Protocol):
+    """A sweep effect as a strategy of the run diagnosis (pysindy style)."""
+
+    effect: str
+
+    def model_torque(self, data: SweepData, in_model: bool) -> np.ndarray:
+        """What the effect adds to ``y`` in the model (in it: fitted; else its nominal part)."""
+
+    def test(self, data: SweepData, r0: np.ndarray) -> tuple[RunCandidate, np.ndarray] | NotTestable:
+        """The effect fitted to the model's residual ``r0``: candidate and new residual, or why not."""
+
+    def refusal(self, data: SweepData) -> NotTestable | None:
+        """Why these data cannot hold the effect at all, whether or not the model has it."""
+
+
+class CompensatorSweepTest:
+    """The compensator's geometry (identify/compensator.py) on the sweep means."""
+
+    effect = "compensator"
+
+    def model_torque(self, data: SweepData, in_model: bool) -> np.ndarray:
+        from elastocal.identify.compensator import identify_compensator
+
+        spec = data.robot.compensator
+        nominal = spec.nominal_parameters() if spec is not None else None
+        if spec is not None and in_model:
+            return spec.torque(data.means.q2, identify_compensator(data.robot, data.means, gravity="model").values)
+        if spec is not None and nominal is not None:
+            return spec.torque(data.means.q2, nominal)
+        return np.zeros_like(data.y)
+
+    def refusal(self, data: SweepData) -> NotTestable | None:
+        if data.robot.compensator is None:
+            return NotTestable("compensator", "the robot description has no [compensator]")
+        return None
+
+    def test(self, data: SweepData, r0: np.ndarray) -> tuple[RunCandidate, np.ndarray] | NotTestable:
+        from elastocal.identify.compensator import identify_compensator
+
+        spec = data.robot.compensator
+        try:
+            fit = identify_compensator(data.robot, data.means, gravity="model")
+        except (InputError, UnidentifiableError) as exc:
+            return NotTestable("compensator", str(exc))
+        n = np.array([len(r0)])
+        rss0 = float(r0 @ r0)
+        r1 = fit.residuals
+        stat, p, dbic = _lr(np.array([rss0]), np.array([float(r1 @ r1)]), n, 2)
+        params = tuple(Parameter(nm, float(v), float(s), u)
+                       for nm, v, s, u in zip(fit.names, fit.values, fit.std, fit.units))
+        base = ("the robot description's nominal values" if spec.nominal_parameters() is not None
+                else "no compensator")
+        eff = get_effect("compensator")
+        evidence = (f"{eff.evidence}: {', '.join(f'{p_.name} = {p_.value:.4g} {p_.unit}' for p_ in params)} "
+                    f"instead of {base}")
+        return (RunCandidate("compensator", "sweep", eff.explanation, evidence,
+                             float(np.sqrt(rss0 / n[0])), fit.rms, dbic, p, stat, 2, params, ()), r1)
+
+
+class GravitySweepTest:
+    """Corrections to the links' mass moments: Pinocchio's joint-2 regressor rows."""
+
+    effect = "gravity"
+
+    def model_torque(self, data: SweepData, in_model: bool) -> np.ndarray:
+        return np.zeros_like(data.y)      # the description's masses are always in the torque model
+
+    def refusal(self, data: SweepData) -> NotTestable | None:
+        return None
+
+    def test(self, data: SweepData, r0: np.ndarray) -> tuple[RunCandidate, np.ndarray] | NotTestable:
+        if not data.robot.has_masses:
+            return NotTestable("gravity", "the robot description gives no link masses to correct")
+        n = np.array([len(r0)])
+        rss0 = float(r0 @ r0)
+        reg = _gravity_regressor2(data.robot, data.theta)
+        scale = np.linalg.norm(reg, axis=0)
+        used = scale > 0
+        _, s, vt = np.linalg.svd(reg[:, used], full_matrices=False)
+        rank = int(np.sum(s > GRAVITY_RANK_TOL * s[0])) if s.size and s[0] > 0 else 0
+        if rank == 0 or len(r0) <= rank + 1:
+            return NotTestable("gravity", "the sweeps excite no gravity parameter")
+        phi = reg[:, used] @ vt[:rank].T
+        beta, cov, rss1 = _lstsq(phi, r0)
+        r1 = r0 - phi @ beta
+        stat, p, dbic = _lr(np.array([rss0]), np.array([rss1]), n, rank)
+        eff = get_effect("gravity")
+        params = tuple(Parameter(f"g{k + 1}", float(b), float(np.sqrt(max(cov[k, k], 0.0))), "N*m")
+                       for k, b in enumerate(beta))
+        return (RunCandidate("gravity", "sweep", eff.explanation,
+                             f"{eff.evidence} ({rank} mass-moment combinations the sweeps excite)",
+                             float(np.sqrt(rss0 / n[0])), float(np.sqrt(rss1 / n[0])), dbic, p, stat, rank,
+                             params, ()), r1)
+
+
+#: the sweep strategies of the effect table, in its order (one per effect with run_part "sweep")
+SWEEP_TESTS: tuple[SweepTest, ...] = (CompensatorSweepTest(), GravitySweepTest())
+
+
+def _diagnose_sweeps(robot: Robot, table, model: tuple[str, ...], stiffness: np.ndarray,
+                     tests: Sequence[SweepTest] = SWEEP_TESTS):
+    """Candidates among the sweep ``tests`` from joint-2 sweep means."""
+    from elastocal.identify.compensator import sweep_means
 
     sub = table.subset(np.isin(table.direction, ("+", "-")))
     means = sweep_means(robot, sub.q, sub.currents, sub.direction, sub.load, sub.wrench, stiffness=stiffness,
                         source=table.source)
-    spec = robot.compensator
     theta = means.theta
     ext = np.array([(robot.jacobians(th, ["load_point"])[0].T @ w)[1] if np.any(w) else 0.0
                     for th, w in zip(theta, means.wrench)])
     g2 = np.array([robot.gravity_torque(th)[1] for th in theta])
     y = means.torque - ext + g2                       # = -M(q2) - (gravity error)
+    data = SweepData(robot=robot, means=means, y=y, theta=theta)
+    m_model = np.zeros_like(y)
+    for t in tests:
+        m_model = m_model + t.model_torque(data, t.effect in model)
+    r0 = y + m_model
     candidates: list[tuple[RunCandidate, np.ndarray]] = []
     skipped: list[NotTestable] = []
-    nominal = spec.nominal_parameters() if spec is not None else None
-    comp_fit = None
-    if spec is not None and "compensator" in model:
-        comp_fit = identify_compensator(robot, means, gravity="model")
-        m_model = spec.torque(means.q2, comp_fit.values)
-    elif spec is not None and nominal is not None:
-        m_model = spec.torque(means.q2, nominal)
-    else:
-        m_model = np.zeros_like(y)
-    r0 = y + m_model
-    n = np.array([len(r0)])
-    rss0 = float(r0 @ r0)
-    if spec is None:
-        skipped.append(NotTestable("compensator", "the robot description has no [compensator]"))
-    elif "compensator" not in model:
-        try:
-            fit = identify_compensator(robot, means, gravity="model")
-        except (InputError, UnidentifiableError) as exc:
-            skipped.append(NotTestable("compensator", str(exc)))
+    for t in tests:
+        refused = t.refusal(data)
+        if refused is not None:
+            skipped.append(refused)
+            continue
+        if t.effect in model:
+            continue
+        found = t.test(data, r0)
+        if isinstance(found, NotTestable):
+            skipped.append(found)
         else:
-            r1 = fit.residuals
-            stat, p, dbic = _lr(np.array([rss0]), np.array([float(r1 @ r1)]), n, 2)
-            params = tuple(Parameter(nm, float(v), float(s), u)
-                           for nm, v, s, u in zip(fit.names, fit.values, fit.std, fit.units))
-            base = "the robot description's nominal values" if nominal is not None else "no compensator"
-            eff = get_effect("compensator")
-            evidence = (f"{eff.evidence}: {', '.join(f'{p_.name} = {p_.value:.4g} {p_.unit}' for p_ in params)} "
-                        f"instead of {base}")
-            candidates.append((RunCandidate("compensator", "sweep", eff.explanation, evidence,
-                                            float(np.sqrt(rss0 / n[0])), fit.rms, dbic, p, stat, 2, params, ()),
-                               r1))
-    if "gravity" not in model:
-        if not robot.has_masses:
-            skipped.append(NotTestable("gravity", "the robot description gives no link masses to correct"))
-        else:
-            reg = _gravity_regressor2(robot, theta)
-            scale = np.linalg.norm(reg, axis=0)
-            used = scale > 0
-            _, s, vt = np.linalg.svd(reg[:, used], full_matrices=False)
-            rank = int(np.sum(s > GRAVITY_RANK_TOL * s[0])) if s.size and s[0] > 0 else 0
-            if rank == 0 or len(r0) <= rank + 1:
-                skipped.append(NotTestable("gravity", "the sweeps excite no gravity parameter"))
-            else:
-                phi = reg[:, used] @ vt[:rank].T
-                beta, cov, rss1 = _lstsq(phi, r0)
-                r1 = r0 - phi @ beta
-                stat, p, dbic = _lr(np.array([rss0]), np.array([rss1]), n, rank)
-                eff = get_effect("gravity")
-                params = tuple(Parameter(f"g{k + 1}", float(b), float(np.sqrt(max(cov[k, k], 0.0))), "N*m")
-                               for k, b in enumerate(beta))
-                candidates.append((RunCandidate("gravity", "sweep", eff.explanation,
-                                                f"{eff.evidence} ({rank} mass-moment combinations the sweeps excite)",
-                                                float(np.sqrt(rss0 / n[0])), float(np.sqrt(rss1 / n[0])), dbic, p,
-                                                stat, rank, params, ()), r1))
+            candidates.append(found)
     return candidates, skipped, means, r0
 
 
 def diagnose_runs(robot: Robot, table, *, model: Sequence[str] = ("joint_stiffness",),
-                  stiffness: Sequence[float] | None = None) -> RunDiagnosis:
+                  stiffness: Sequence[float] | None = None, friction_effects: Sequence[Effect] | None = None,
+                  sweep_tests: Sequence[SweepTest] = SWEEP_TESTS) -> RunDiagnosis:
     """Test the run-data effects the model lacks: friction terms on the UV/VU
     half-differences (identify/friction.py matching), the compensator and the
     gravity on the joint-2 sweep means (identify/compensator.py).
@@ -316,12 +387,19 @@ def diagnose_runs(robot: Robot, table, *, model: Sequence[str] = ("joint_stiffne
     deflected configuration; the joint-2 torque there differs from the
     commanded one by more than the current noise, so without it the sweep
     effects are not tested (they would absorb the deflection).
+
+    ``friction_effects`` (default: the table's "uv/vu" effects, the constant one first)
+    and ``sweep_tests`` (default :data:`SWEEP_TESTS`) are the candidates' strategies.
     """
     from elastocal.identify.friction import friction_samples
 
     model = tuple(dict.fromkeys(["joint_stiffness", *model]))
     for name in model:
         get_effect(name)
+    friction_effects = tuple(get_effect(e) for e in FRICTION_EFFECTS) if friction_effects is None \
+        else tuple(friction_effects)
+    sweep_tests = tuple(sweep_tests)
+    tested_here = {e.name for e in friction_effects} | {t.effect for t in sweep_tests}
     candidates: list[tuple[RunCandidate, object]] = []
     skipped: list[NotTestable] = []
     friction_view = None
@@ -333,7 +411,7 @@ def diagnose_runs(robot: Robot, table, *, model: Sequence[str] = ("joint_stiffne
         sub = table.subset(uvvu)
         samples = friction_samples(sub.q, sub.dq, sub.currents, sub.run, sub.direction, sub.load,
                                    robot.torque_constants, t=sub.t, source=table.source)
-        found, skip, before, rss0, n = _diagnose_friction(samples, model)
+        found, skip, before, rss0, n = _diagnose_friction(samples, model, friction_effects)
         candidates += found
         skipped += skip
         friction_out = (samples, before)
@@ -343,18 +421,20 @@ def diagnose_runs(robot: Robot, table, *, model: Sequence[str] = ("joint_stiffne
         if np.any(np.isfinite(resid)):
             pieces_max = max(pieces_max, float(np.nanmax(np.abs(resid))))
     else:
-        for name in FRICTION_EFFECTS:
-            if name not in model:
-                skipped.append(NotTestable(name, "the runs hold no UV/VU pairs (the same path forward and backward)"))
+        for eff in friction_effects:
+            if eff.name not in model:
+                skipped.append(NotTestable(eff.name, "the runs hold no UV/VU pairs (the same path forward and "
+                                                     "backward)"))
     sweep_out = None
     has_sweeps = bool(np.any(np.isin(table.direction, ("+", "-"))))
     if has_sweeps and stiffness is None:
-        for name in ("compensator", "gravity"):
-            if name not in model:
-                skipped.append(NotTestable(name, "the sweep torques need the joint stiffness to place the arm at "
-                                                 "its deflected configuration: give the static table too"))
+        for t in sweep_tests:
+            if t.effect not in model:
+                skipped.append(NotTestable(t.effect, "the sweep torques need the joint stiffness to place the arm "
+                                                     "at its deflected configuration: give the static table too"))
     elif has_sweeps:
-        found, skip, means, r0 = _diagnose_sweeps(robot, table, model, np.asarray(stiffness, dtype=float))
+        found, skip, means, r0 = _diagnose_sweeps(robot, table, model, np.asarray(stiffness, dtype=float),
+                                                  sweep_tests)
         candidates += found
         skipped += skip
         sweep_out = (means, r0)
@@ -362,11 +442,11 @@ def diagnose_runs(robot: Robot, table, *, model: Sequence[str] = ("joint_stiffne
         pieces_n += len(r0)
         pieces_max = max(pieces_max, float(np.max(np.abs(r0))) if len(r0) else 0.0)
     else:
-        for name in ("compensator", "gravity"):
-            if name not in model:
-                skipped.append(NotTestable(name, "the runs hold no joint-2 sweep (direction + and -)"))
+        for t in sweep_tests:
+            if t.effect not in model:
+                skipped.append(NotTestable(t.effect, "the runs hold no joint-2 sweep (direction + and -)"))
     for name in ALL_EFFECTS:
-        if name in model or name in RUN_EFFECTS:
+        if name in model or name in RUN_EFFECTS or name in tested_here:
             continue
         eff = get_effect(name)
         if "runs" in eff.seen_in:
@@ -377,13 +457,13 @@ def diagnose_runs(robot: Robot, table, *, model: Sequence[str] = ("joint_stiffne
     if friction_out is not None:
         samples, before = friction_out
         after = None
-        if verdict in FRICTION_EFFECTS:
+        if verdict in {e.name for e in friction_effects}:
             after = candidates[0][1]
         friction_view = FrictionView(samples.friction, samples.speed, samples.load_torque, samples.pair,
                                      samples.pairs, before, after)
     if sweep_out is not None:
         means, r0 = sweep_out
-        after = candidates[0][1] if verdict in ("compensator", "gravity") else None
+        after = candidates[0][1] if verdict in {t.effect for t in sweep_tests} else None
         sweep_view = SweepView(means.q2, means.sweep, r0, after)
     rms = float(np.sqrt(pieces_rss / pieces_n)) if pieces_n else None
     return RunDiagnosis(model=model, n=pieces_n, residual_rms=rms, residual_max=pieces_max if pieces_n else None,

@@ -7,7 +7,8 @@ the motion and so changes sign (docs/formats.md sign: ``xi i = tau_load - f``)::
     xi (i_UV - i_VU) / 2 = -sign(dq_UV) f          (Y48, in torque)
     xi (i_UV + i_VU) / 2 = tau_load
 
-with the friction model, per joint,
+with the friction model, per joint, the sum of the columns of the friction
+effects in the model (each effect module's ``run_column``, identify/effects)::
 
     f = fc + fv |dq| + fl |tau_load|               (Coulomb, viscous, load-dependent)
 
@@ -31,14 +32,17 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from elastocal.errors import InputError
+from elastocal.identify.effects import get_effect, run_effects
+from elastocal.identify.effects.base import Effect
 
-#: friction terms, their parameter prefixes (docs/formats.md §4) and units
-FRICTION_TERMS = ("coulomb", "viscous", "load_dependent")
-TERM_PREFIX = {"coulomb": "fc", "viscous": "fv", "load_dependent": "fl"}
-TERM_UNIT = {"coulomb": "N*m", "viscous": "N*m*s/rad", "load_dependent": "1"}
-#: effect names of docs/cli.md for each term
-TERM_EFFECT = {"coulomb": "coulomb_friction", "viscous": "viscous_friction",
-               "load_dependent": "load_dependent_friction"}
+#: the friction effects of the table (run_part "uv/vu"), Coulomb first; a term is the
+#: effect's name without "_friction" (FrictionFit.terms, ``terms=``)
+FRICTION_EFFECTS = run_effects("uv/vu")
+TERM_EFFECT = {name.removesuffix("_friction"): name for name in FRICTION_EFFECTS}
+FRICTION_TERMS = tuple(TERM_EFFECT)
+#: parameter prefixes (docs/formats.md §4) and units of each term, from its effect module
+TERM_PREFIX = {t: get_effect(e).run_prefix for t, e in TERM_EFFECT.items()}
+TERM_UNIT = {t: get_effect(e).units[0] for t, e in TERM_EFFECT.items()}
 #: a scaled design worse conditioned than this cannot separate its terms
 MAX_CONDITION = 1e4
 
@@ -101,6 +105,11 @@ class FrictionFit:
     n: np.ndarray                    # (6,) matched samples used per joint
     residual_rms: np.ndarray         # (6,) [N·m]; NaN for a joint that did not move
     samples: FrictionSamples
+    #: the effect of each term (the strategies that gave the columns)
+    effects: tuple[Effect, ...] = ()
+
+    def _effect(self, term: str) -> Effect:
+        return self.effects[self.terms.index(term)] if self.effects else get_effect(TERM_EFFECT[term])
 
     @property
     def std(self) -> np.ndarray:
@@ -131,7 +140,7 @@ class FrictionFit:
         for k, term in enumerate(self.terms):
             for j in range(6):
                 if not np.isfinite(self.values[j, k]):
-                    out.append(f"{TERM_PREFIX[term]}{j + 1}")
+                    out.append(f"{self._effect(term).run_prefix}{j + 1}")
         return tuple(out)
 
     def parameters(self) -> dict[str, dict[str, float | str]]:
@@ -139,10 +148,11 @@ class FrictionFit:
         out: dict[str, dict[str, float | str]] = {}
         std = self.std
         for k, term in enumerate(self.terms):
+            effect = self._effect(term)
             for j in range(6):
                 if np.isfinite(self.values[j, k]):
-                    out[f"{TERM_PREFIX[term]}{j + 1}"] = {"value": float(self.values[j, k]),
-                                                          "std": float(std[j, k]), "unit": TERM_UNIT[term]}
+                    out[f"{effect.run_prefix}{j + 1}"] = {"value": float(self.values[j, k]),
+                                                          "std": float(std[j, k]), "unit": effect.units[0]}
         return out
 
     def torque(self, dq: np.ndarray, load_torque: np.ndarray) -> np.ndarray:
@@ -151,8 +161,8 @@ class FrictionFit:
         dq = np.atleast_2d(dq)
         tau = np.atleast_2d(load_torque)
         size = np.zeros_like(dq, dtype=float)
-        for name, x in (("coulomb", np.ones_like(dq)), ("viscous", np.abs(dq)), ("load_dependent", np.abs(tau))):
-            size += np.nan_to_num(self.term(name))[None, :] * x
+        for term in self.terms:
+            size += np.nan_to_num(self.term(term))[None, :] * self._effect(term).run_column(np.abs(dq), tau)
         return np.sign(dq) * size
 
 
@@ -257,16 +267,31 @@ def _fit_joint(y: np.ndarray, columns: list[np.ndarray], names: list[str]) -> tu
     return values, covs, float(np.sqrt(np.mean(res ** 2)))
 
 
-def identify_friction(samples: FrictionSamples, *, terms: Sequence[str] = FRICTION_TERMS,
-                      min_samples: int = 5) -> FrictionFit:
-    """Per-joint friction ``fc + fv |dq| + fl |tau|`` from matched UV/VU samples."""
+def friction_strategies(terms: Sequence[str] = FRICTION_TERMS,
+                        effects: Sequence[Effect] | None = None) -> tuple[tuple[str, ...], tuple[Effect, ...]]:
+    """(terms, effects) of a friction model: ``effects`` injected as they are (the first
+    must be the constant, Coulomb-like one: its column is never dropped), else the table's
+    effects for ``terms`` in the table's order."""
+    if effects is not None:
+        effects = tuple(effects)
+        if not effects or any(e.run_column is None for e in effects):
+            raise InputError("a friction model is a list of effects with a run_column, the constant one first")
+        return tuple(e.name.removesuffix("_friction") for e in effects), effects
     terms = tuple(terms)
     for term in terms:
         if term not in FRICTION_TERMS:
             raise InputError(f"unknown friction term {term!r}; one of {', '.join(FRICTION_TERMS)}")
-    if "coulomb" not in terms:
+    if FRICTION_TERMS[0] not in terms:
         raise InputError("the friction model needs the Coulomb term")
     terms = tuple(t for t in FRICTION_TERMS if t in terms)
+    return terms, tuple(get_effect(TERM_EFFECT[t]) for t in terms)
+
+
+def identify_friction(samples: FrictionSamples, *, terms: Sequence[str] = FRICTION_TERMS,
+                      effects: Sequence[Effect] | None = None, min_samples: int = 5) -> FrictionFit:
+    """Per-joint friction ``fc + fv |dq| + fl |tau|`` from matched UV/VU samples; the
+    columns are the effects' own (``effects`` injected, else those of ``terms``)."""
+    terms, effects = friction_strategies(terms, effects)
     nt = len(terms)
     values = np.full((6, nt), np.nan)
     cov = np.full((6, nt, nt), np.nan)
@@ -278,20 +303,20 @@ def identify_friction(samples: FrictionSamples, *, terms: Sequence[str] = FRICTI
         if n[j] < max(min_samples, nt + 1):
             continue
         y = samples.friction[ok, j]
-        cols = {"coulomb": np.ones(n[j]), "viscous": samples.speed[ok, j],
-                "load_dependent": np.abs(samples.load_torque[ok, j])}
-        vals, covs, rms[j] = _fit_joint(y, [cols[t] for t in terms], list(terms))
+        cols = [e.run_column(samples.speed[ok, j], samples.load_torque[ok, j]) for e in effects]
+        vals, covs, rms[j] = _fit_joint(y, cols, list(terms))
         for a, ta in enumerate(terms):
             if ta in vals:
                 values[j, a] = vals[ta]
                 for b, tb in enumerate(terms):
                     if tb in vals:
                         cov[j, a, b] = covs[(ta, tb)]
-    return FrictionFit(terms=terms, values=values, covariance=cov, n=n, residual_rms=rms, samples=samples)
+    return FrictionFit(terms=terms, values=values, covariance=cov, n=n, residual_rms=rms, samples=samples,
+                       effects=effects)
 
 
 def friction_from_run_table(table, torque_constants: Sequence[float], *, terms: Sequence[str] = FRICTION_TERMS,
-                            min_speed_rad_s: float = 1e-3) -> FrictionFit:
+                            effects: Sequence[Effect] | None = None, min_speed_rad_s: float = 1e-3) -> FrictionFit:
     """:func:`identify_friction` on the UV/VU runs of a run table (docs/formats.md §3)."""
     uvvu = np.isin(table.direction, ("UV", "VU"))
     if not np.any(uvvu):
@@ -299,4 +324,4 @@ def friction_from_run_table(table, torque_constants: Sequence[float], *, terms: 
     sub = table.subset(uvvu)
     samples = friction_samples(sub.q, sub.dq, sub.currents, sub.run, sub.direction, sub.load, torque_constants,
                                t=sub.t, min_speed_rad_s=min_speed_rad_s, source=table.source)
-    return identify_friction(samples, terms=terms)
+    return identify_friction(samples, terms=terms, effects=effects)

@@ -16,12 +16,14 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.errors import InputError
+from elastocal.identify.effects import run_effects
 from elastocal.identify.robot import Robot
 from elastocal.identify.tables import RunTable
 
-FRICTION_EFFECTS = {"coulomb_friction": "coulomb", "viscous_friction": "viscous",
-                    "load_dependent_friction": "load_dependent"}
-RUN_EFFECTS = ("compensator", "gravity", *FRICTION_EFFECTS)
+#: the effects run data show, as each effect module declares (run_part)
+RUN_EFFECTS = run_effects()
+SWEEP_EFFECTS = run_effects("sweep")
+FRICTION_EFFECTS = run_effects("uv/vu")
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,7 +66,7 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
     residuals = []
     unident: list[str] = []
     fits: dict = {}
-    if "compensator" in wanted or "gravity" in wanted:
+    if any(m in SWEEP_EFFECTS for m in wanted):
         if robot.compensator is None:
             raise InputError("the robot description has no [compensator]", source="--model")
         gravity = "identify" if "gravity" in wanted else "auto"
@@ -72,7 +74,7 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
         fits["compensator"] = fit
         params.update(fit.parameters())
         residuals.append(np.asarray(fit.residuals, dtype=float).ravel())
-    terms = tuple(FRICTION_EFFECTS[m] for m in wanted if m in FRICTION_EFFECTS)
+    terms = tuple(m.removesuffix("_friction") for m in wanted if m in FRICTION_EFFECTS)
     if terms:
         fit = friction_from_run_table(table, robot.torque_constants, terms=terms)
         fits["friction"] = fit

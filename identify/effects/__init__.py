@@ -43,6 +43,13 @@ def get_effect(name: str) -> Effect:
     return importlib.import_module(EFFECT_MODULES[name]).EFFECT
 
 
+def run_effects(part: str | None = None) -> tuple[str, ...]:
+    """Names of the effects run data show (``part``: only those of "uv/vu" or "sweep"),
+    in the table's order; each effect module declares its ``run_part``."""
+    return tuple(n for n in ALL_EFFECTS if get_effect(n).run_part is not None
+                 and (part is None or get_effect(n).run_part == part))
+
+
 def parse_model(text: str | None) -> tuple[str, ...]:
     """``--model`` text -> effect names, joint_stiffness always first."""
     names = [n.strip() for n in (text or "joint_stiffness").split(",") if n.strip()]

@@ -1,4 +1,4 @@
-"""What an effect is: parameters, where it shows, how it enters the static model.
+"""What an effect is: parameters, where it shows, how it enters the static and run models.
 
 Every static effect enters the model linearly through three bases evaluated on
 a :class:`StaticContext` (one row per load state ``s`` and per deflection ``d``):
@@ -16,6 +16,13 @@ reports it as unidentifiable.
 The fit (identify/static.py) turns angles into positions with Pinocchio: in the
 first-order form through the Jacobians at the commanded pose, in the exact
 form through forward kinematics at the deflected configuration.
+
+Run data are declared the same way: ``run_part`` says which part of a run table
+shows the effect, and a friction effect gives its column of the per-joint friction
+regression (``run_column``) and the runs that separate it (``run_needs``). The
+friction fit and the run diagnosis take the effects as strategies (the friction
+regression is the sum of the columns of the effects in the model), so a new
+friction law is one new effect module.
 """
 
 from __future__ import annotations
@@ -87,6 +94,21 @@ class Effect:
     #: how the effect enters the static model and the run (torque) model, in words
     static_model: str = ""
     run_model: str = ""
+    #: which part of run data shows it: "uv/vu" (the friction half-differences of UV/VU
+    #: pairs, :mod:`elastocal.identify.friction`), "sweep" (joint-2 sweep means,
+    #: :mod:`elastocal.identify.compensator`), or None (run data cannot show it)
+    run_part: Optional[str] = None
+    #: "uv/vu" effects: (speed |dq| [rad/s], load torque [N·m]) of one joint's matched
+    #: samples -> this effect's column of the friction regression (per unit parameter);
+    #: the friction fits and the run diagnosis take their columns from here
+    run_column: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]] = None
+    #: the run data that separate it from the effects before it, in words (for the refusal)
+    run_needs: str = ""
+
+    @property
+    def run_prefix(self) -> str:
+        """Per-joint parameter prefix (``fc`` of fc1..fc6) of a "uv/vu" effect."""
+        return self.parameters[0].rstrip("0123456789")
 
     def reported(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.report is None:

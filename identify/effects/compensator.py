@@ -30,4 +30,5 @@ EFFECT = Effect(
     static_refusal=_refusal,
     static_model="none: its torque cancels in before/after-load differences",
     run_model="xi2 i2 = tau2_load - M(q2; C, l_c) over a joint-2 sweep, UV and VU averaged",
+    run_part="sweep",
 )

@@ -11,6 +11,8 @@ no motion, so they cannot show it.
 
 from __future__ import annotations
 
+import numpy as np
+
 from elastocal.identify.effects.base import Effect, StaticContext
 
 
@@ -28,4 +30,7 @@ EFFECT = Effect(
     static_refusal=_refusal,
     static_model="none: static readings are taken at rest",
     run_model="xi i = tau_load - fc_j sign(dq_j)",
+    run_part="uv/vu",
+    run_column=lambda speed, load: np.ones_like(speed),
+    run_needs="UV/VU runs",
 )

@@ -26,4 +26,5 @@ EFFECT = Effect(
     static_refusal=_refusal,
     static_model="none: gravity cancels in before/after-load differences",
     run_model="xi i gains -dg(q): the gravity torque of corrected link mass moments",
+    run_part="sweep",
 )

@@ -11,6 +11,8 @@ no motion, so they cannot show it.
 
 from __future__ import annotations
 
+import numpy as np
+
 from elastocal.identify.effects.base import Effect, StaticContext
 
 
@@ -28,4 +30,7 @@ EFFECT = Effect(
     static_refusal=_refusal,
     static_model="none: static readings are taken at rest",
     run_model="xi i = tau_load - fl_j abs(tau_load_j) sign(dq_j)",
+    run_part="uv/vu",
+    run_column=lambda speed, load: np.abs(load),
+    run_needs="runs under two or more loads",
 )

@@ -28,4 +28,7 @@ EFFECT = Effect(
     static_refusal=_refusal,
     static_model="none: static readings are taken at rest",
     run_model="xi i = tau_load - fv_j dq_j",
+    run_part="uv/vu",
+    run_column=lambda speed, load: speed,
+    run_needs="runs at two or more speeds",
 )
