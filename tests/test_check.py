@@ -17,7 +17,6 @@ from elastocal.cli import main
 from elastocal.errors import InputError
 from elastocal.identify.calibration import calibration_from_fit, write_calibration
 from elastocal.identify.check import check_calibration, check_static
-from elastocal.identify.robot import bundled_robot
 from elastocal.identify.runs import identify_runs
 from elastocal.identify.static import identify_static
 from elastocal.identify.tables import write_run_table, write_static_table
@@ -31,11 +30,6 @@ K2_DROP = dataclasses.replace(TRUTH, stiffness=TRUTH.stiffness * np.array([1.0, 
 FC3_UP = dataclasses.replace(TRUTH, coulomb=TRUTH.coulomb * np.array([1.0, 1.0, 1.5, 1.0, 1.0, 1.0]))
 FC3_SLIGHTLY = dataclasses.replace(TRUTH, coulomb=TRUTH.coulomb * np.array([1.0, 1.0, 1.06, 1.0, 1.0, 1.0]))
 CHECK_RUN = FrictionPlan(speeds_rad_s=(0.1,), loads=(("0", (0.0,) * 6),), samples=100)
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return bundled_robot()
 
 
 @pytest.fixture(scope="module")

@@ -18,13 +18,8 @@ from elastocal.compensation.trajectory import compensate_path, predicted_residua
 from elastocal.compensation.validate import YANG_WRENCH, validate_on_sim, yang_validation
 from elastocal.errors import InputError
 from elastocal.identify.calibration import Calibration, write_calibration
-from elastocal.identify.robot import LOAD_FRAME, bundled_robot, bundled_robot_path
+from elastocal.identify.robot import LOAD_FRAME, bundled_robot_path
 from elastocal.sims.cell import CellTruth, SimCell
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return bundled_robot()
 
 
 @pytest.fixture(scope="module")

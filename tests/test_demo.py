@@ -2,7 +2,12 @@
 
 import json
 
+import pytest
+
 from elastocal.cli import main
+
+#: the demo runs the simulated cell's procedure in wall-clock time (tests/conftest.py)
+pytestmark = pytest.mark.slow
 
 
 def test_demo_runs_the_whole_chain(tmp_path, capsys):

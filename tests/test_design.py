@@ -14,7 +14,7 @@ from elastocal.errors import InputError
 from elastocal.identify import design as dz
 from elastocal.sims import first_order_map as fom
 from elastocal.identify import design_candidates as dzc
-from elastocal.identify.robot import LOAD_FRAME, bundled_robot
+from elastocal.identify.robot import LOAD_FRAME
 from elastocal.identify.static import identify_static
 from elastocal.identify.tables import static_table_from_arrays
 from elastocal.sims.cell import CellTruth, SimCell
@@ -26,11 +26,6 @@ F_MAX = 1100.0
 TRUTH = CellTruth()
 #: a rough prior: the true stiffness off by up to 30 %
 PRIOR = tuple(TRUTH.stiffness * np.array([1.3, 0.8, 1.2, 0.7, 1.3, 0.8]))
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return bundled_robot()
 
 
 @pytest.fixture(scope="module")

@@ -16,6 +16,9 @@ from elastocal.sims.serve import example_cell_config
 from elastocal.sims.world import SimWorld
 from elastocal.sims.config import sim_config
 
+#: these tests run simulated devices in wall-clock time (tests/conftest.py)
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def config():

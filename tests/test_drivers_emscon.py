@@ -20,6 +20,9 @@ from elastocal.identify.robot import bundled_robot
 from elastocal.sims.emscon_server import SimEmscon
 from elastocal.sims.world import SimWorld
 
+#: these tests run simulated devices in wall-clock time (tests/conftest.py)
+pytestmark = pytest.mark.slow
+
 MARKERS = ("R1", "R2", "R3")
 
 

@@ -16,9 +16,11 @@ from elastocal.drivers.urls import parse_device_url
 from elastocal.sims.config import SimConfig
 from elastocal.drivers.modbus import decode, encode, register_runs
 from elastocal.errors import DeviceFault, DeviceTimeout, InputError, ProtocolError
-from elastocal.identify.robot import bundled_robot
 from elastocal.sims.modbus_server import ModbusServerThread, PtyPair, SimModbusDrive
 from elastocal.sims.world import SimWorld
+
+#: these tests run simulated devices in wall-clock time (tests/conftest.py)
+pytestmark = pytest.mark.slow
 
 CELL = """
 [cell]
@@ -35,11 +37,6 @@ torque   = { address = 4, type = "float32", unit = "N*m" }
 velocity = { address = 10, type = "int16", scale = 0.1, unit = "mrad/s", table = "input" }
 status   = { address = 12, type = "uint16", fault_mask = 8, ready_mask = 1 }
 """
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return bundled_robot()
 
 
 @pytest.fixture
@@ -160,7 +157,9 @@ def test_timeout_after_retries_then_recovers(tcp):
     t0 = time.monotonic()
     with pytest.raises(DeviceTimeout, match="after 2 attempts"):
         drive.read()
-    assert 0.35 < time.monotonic() - t0 < 2.0
+    # it waited for the delayed replies (no upper bound on wall-clock time: on a loaded
+    # machine the attempts take longer; the message says how many there were)
+    assert time.monotonic() - t0 > 0.35
     time.sleep(0.4)
     assert drive.read().status == 1
 

@@ -20,17 +20,14 @@ from elastocal.drivers.urls import parse_device_url
 from elastocal.sims.config import SimConfig
 from elastocal.drivers.tracker_protocol import Measurement, decode_line, encode_line, parse_measurement
 from elastocal.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, InputError, ProtocolError
-from elastocal.identify.robot import bundled_robot
 from elastocal.sims.emscon_server import SimEmscon
 from elastocal.sims.tracker_server import SimTracker
 from elastocal.sims.world import SimWorld
 
+#: these tests run simulated devices in wall-clock time (tests/conftest.py)
+pytestmark = pytest.mark.slow
+
 MARKERS = ("R1", "R2", "R3")
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return bundled_robot()
 
 
 @pytest.fixture
@@ -269,7 +266,9 @@ def test_stall_is_a_timeout(tracker, sim, backend):
     sim.stall(2.5)
     with pytest.raises(DeviceTimeout, match="no reply"):
         tracker.measure()                            # 3 attempts of 0.3 s
-    assert 0.85 < time.monotonic() - w0 < 2.4       # gave up after its attempts, before the stall ended
+    # gave up after its attempts (no upper bound on wall-clock time: a loaded machine makes
+    # them slower; that they ended in a timeout, not a late answer, shows they beat the stall)
+    assert time.monotonic() - w0 > 0.85
     time.sleep(max(0.0, w0 + 2.7 - time.monotonic()))
     w1 = time.monotonic()
     s1 = tracker.measure()                           # a fresh measurement, not a late answer

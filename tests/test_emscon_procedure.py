@@ -5,6 +5,7 @@ import json
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 
 from elastocal.acquisition.export import load_log
@@ -16,6 +17,9 @@ from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.serve import example_cell_config
 from elastocal.sims.static import random_poses
+
+#: these tests run simulated devices in wall-clock time (tests/conftest.py)
+pytestmark = pytest.mark.slow
 
 
 def _run(tmp_path, name, tracker_url, channel):

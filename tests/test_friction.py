@@ -14,17 +14,11 @@ from elastocal.identify.friction import (
     identify_friction,
     match_path,
 )
-from elastocal.identify.robot import bundled_robot
 from elastocal.identify.tables import run_table_from_arrays
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 
 TOL = 0.05  # acceptance: friction coefficients within 5 %
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return bundled_robot()
 
 
 @pytest.fixture(scope="module")

@@ -39,11 +39,6 @@ Q_B = (0.5, 0.55, -0.2, 0.6, 1.2, 0.5)
 
 
 @pytest.fixture(scope="module")
-def robot():
-    return bundled_robot()
-
-
-@pytest.fixture(scope="module")
 def poses(robot):
     return random_poses(robot, 8, np.random.default_rng(11))
 

@@ -20,6 +20,9 @@ from elastocal.sims.cell import CellTruth
 from elastocal.sims.serve import example_cell_config
 from elastocal.sims.static import random_poses
 
+#: these tests run simulated devices in wall-clock time (tests/conftest.py)
+pytestmark = pytest.mark.slow
+
 
 class AbortAt(AutoUI):
     def __init__(self, n):

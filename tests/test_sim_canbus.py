@@ -12,6 +12,9 @@ import pytest
 from elastocal.drivers.canframes import frame_bits, message_bits
 from elastocal.sims.canbus import SimCanBus
 
+#: these tests run simulated devices in wall-clock time (tests/conftest.py)
+pytestmark = pytest.mark.slow
+
 BITRATE = 1_000_000
 
 

@@ -14,6 +14,9 @@ from elastocal.drivers import open_cell
 from elastocal.drivers.config import load_cell_config, parse_cell_config
 from elastocal.sims.serve import SimulatedCell, example_cell_config
 
+#: these tests run simulated devices in wall-clock time (tests/conftest.py)
+pytestmark = pytest.mark.slow
+
 SERIAL_CELL = """
 [cell]
 name = "serial cell"

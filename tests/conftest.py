@@ -1,0 +1,56 @@
+"""Fixtures shared by the test files, and the test suite's markers.
+
+* ``robot``: the bundled HH-150 :class:`~elastocal.identify.robot.Robot`. The robot model
+  is immutable (Pinocchio data are per call), so one instance serves the whole session.
+* ``robot_path``: its robot.toml.
+* ``static_dataset``: a small simulated static experiment (``elastocal sim static``:
+  robot.toml, static.csv, log.mcap, truth.json) in a session folder; copy it before
+  changing a file in it.
+* ``runs_dataset``: the same for ``elastocal sim runs`` with friction hidden.
+
+Markers (registered in pyproject.toml): ``slow`` marks tests that run simulated devices or
+procedures in wall-clock time; ``python -m pytest -m "not slow"`` leaves them out for a
+quick run (CI runs everything).
+
+A new test file uses these by naming them as arguments; a file that needs another robot
+defines its own fixture of the same name, which takes precedence in that file.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import pytest
+
+from elastocal.identify.robot import bundled_robot, bundled_robot_path
+
+
+@pytest.fixture(scope="session")
+def robot():
+    """The bundled HH-150 (immutable: shared by every test)."""
+    return bundled_robot()
+
+
+@pytest.fixture(scope="session")
+def robot_path() -> pathlib.Path:
+    return bundled_robot_path()
+
+
+@pytest.fixture(scope="session")
+def static_dataset(tmp_path_factory) -> pathlib.Path:
+    """``elastocal sim static --seed 1 --poses 6`` (no hidden effect), made once per session."""
+    from elastocal.cli import main
+
+    out = tmp_path_factory.mktemp("static-dataset")
+    assert main(["sim", "static", "--hidden", "none", "--seed", "1", "--poses", "6", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def runs_dataset(tmp_path_factory) -> pathlib.Path:
+    """``elastocal sim runs --hidden friction --seed 5``, made once per session."""
+    from elastocal.cli import main
+
+    out = tmp_path_factory.mktemp("runs-dataset")
+    assert main(["sim", "runs", "--hidden", "friction", "--seed", "5", "--out", str(out)]) == 0
+    return out
