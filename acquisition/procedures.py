@@ -252,7 +252,7 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
                 world = stack.enter_context(rig)
         if yes and world is None:
             raise InputError("--yes answers the prompts of a simulated cell only; a person confirms every load "
-                             "change on a real cell", source="--yes")
+                             "change on a real cell", argument="yes")
         devices = stack.enter_context(open_cell(config))
         io = stack.enter_context(DriverCellIO(robot, config, drives=list(devices.drives.values()),
                                               tracker=devices.tracker, controller=devices.controller,

@@ -166,7 +166,7 @@ def read_points(path: str | pathlib.Path, *, layout: str = "auto", unit: str | N
     path = pathlib.Path(path)
     source = str(path)
     if layout not in LAYOUTS:
-        raise InputError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}", source="--layout")
+        raise InputError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}", argument="layout")
     text = read_text_file(path)
     if layout == "auto":
         layout = "csv" if columns else ("xyz" if path.suffix.lower() in (".xyz", ".txt") else "leica")
@@ -181,7 +181,7 @@ def read_points(path: str | pathlib.Path, *, layout: str = "auto", unit: str | N
 
 
 def _read_xyz(text: str, source: str, unit: str) -> list[ExportPoint]:
-    f = length_factor(unit, source="--unit")
+    f = length_factor(unit, argument="unit")
     out = []
     for line, raw in enumerate(text.split("\n"), start=1):
         s = raw.strip()
@@ -217,7 +217,7 @@ def _read_table(text: str, source: str, unit: str | None, columns: dict[str, str
         raise InputError(f"X, Y and Z have different units ({', '.join(sorted(u or '?' for u in xyz_units))})",
                          source=source, row=1)
     file_unit = xyz_units.pop()
-    if unit is not None and file_unit is not None and length_factor(unit, source="--unit") != \
+    if unit is not None and file_unit is not None and length_factor(unit, argument="unit") != \
             length_factor(file_unit, source=source, column=header[roles["x"][0]]):
         raise InputError(f"--unit {unit} contradicts the header's unit [{file_unit}]", source=source, row=1)
     length = file_unit or unit
@@ -299,15 +299,15 @@ def parse_columns(text: str | None) -> dict[str, str] | None:
     out: dict[str, str] = {}
     for item in text.split(","):
         if "=" not in item:
-            raise InputError(f"expected role=column, got {item!r}", source="--columns")
+            raise InputError(f"expected role=column, got {item!r}", argument="columns")
         role, col = (s.strip() for s in item.split("=", 1))
         if role not in ROLES:
-            raise InputError(f"unknown role {role!r}; one of {', '.join(ROLES)}", source="--columns")
+            raise InputError(f"unknown role {role!r}; one of {', '.join(ROLES)}", argument="columns")
         if role in out:
-            raise InputError(f"{role} is mapped twice", source="--columns")
+            raise InputError(f"{role} is mapped twice", argument="columns")
         out[role] = col
     missing = [r for r in ("name", "x", "y", "z") if r not in out]
     if missing:
         raise InputError(f"--columns must map {', '.join(missing)} (e.g. name=Point,x=X,y=Y,z=Z)",
-                         source="--columns")
+                         argument="columns")
     return out

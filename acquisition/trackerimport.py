@@ -62,19 +62,19 @@ class NamePattern:
                 name = part[1:-1]
                 if name not in PATTERN_FIELDS:
                     raise InputError(f"unknown field {part} in the name pattern; use "
-                                     f"{', '.join('{' + f + '}' for f in PATTERN_FIELDS)}", source="--names")
+                                     f"{', '.join('{' + f + '}' for f in PATTERN_FIELDS)}", argument="names")
                 if name in seen:
-                    raise InputError(f"{part} appears twice in the name pattern", source="--names")
+                    raise InputError(f"{part} appears twice in the name pattern", argument="names")
                 seen.add(name)
                 out.append(f"(?P<{name}>.+?)")
             elif "{" in part or "}" in part:
-                raise InputError(f"unbalanced brace in the name pattern {text!r}", source="--names")
+                raise InputError(f"unbalanced brace in the name pattern {text!r}", argument="names")
             else:
                 out.append(re.escape(part))
         if not {"pose", "load", "marker"} <= seen:
             missing = sorted({"pose", "load", "marker"} - seen)
             raise InputError(f"the name pattern needs {', '.join('{' + m + '}' for m in missing)}",
-                             source="--names")
+                             argument="names")
         return cls(text, re.compile("^" + "".join(out) + "$"))
 
     def match(self, name: str) -> dict[str, str] | None:

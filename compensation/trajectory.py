@@ -76,10 +76,10 @@ class CompensatedPath:
 def _check_inputs(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, form: str,
                   reference: str) -> tuple[np.ndarray, np.ndarray]:
     if form not in FORMS:
-        raise InputError(f"form must be one of {', '.join(FORMS)}, got {form!r}", source="--form")
+        raise InputError(f"form must be one of {', '.join(FORMS)}, got {form!r}", argument="form")
     if reference not in REFERENCES:
         raise InputError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}",
-                         source="--reference")
+                         argument="reference")
     q = np.asarray(q, dtype=float)
     if q.ndim != 2 or q.shape[1] != 6:
         raise ValueError("q must be (n, 6)")

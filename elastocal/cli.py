@@ -144,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
             print(text, file=sys.stderr)
         return code
     except InputError as exc:
+        # the library names its arguments; the command line says its flags
+        exc = exc.on_command_line(getattr(modules[args.command], "ARGUMENT_FLAGS", None))
         print(f"elastocal {args.command}: {one_line(exc)}", file=sys.stderr)
         return 2
     except DeviceError as exc:

@@ -14,25 +14,43 @@ class ElastocalError(Exception):
 class InputError(ElastocalError, ValueError):
     """A file, table, flag or config value is wrong.
 
-    ``source`` names the input (a path or flag), ``row`` is the 1-based line in
-    a file (header = line 1), ``column`` the column or field name.
+    ``source`` names the input (a path, or a flag when the CLI raises it), ``row``
+    is the 1-based line in a file (header = line 1), ``column`` the column or field
+    name. The library names a bad *argument* of its own functions with ``argument``
+    (``"model"``, ``"test_pose"``) and never a command-line flag; the CLI maps the
+    argument onto its flag (:meth:`with_source`, ``--model``).
     """
 
     def __init__(self, message: str, *, source: str | None = None,
-                 row: int | None = None, column: str | None = None) -> None:
+                 row: int | None = None, column: str | None = None, argument: str | None = None) -> None:
         self.source = source
         self.row = row
         self.column = column
+        self.argument = argument
         self.detail = message
         where = []
         if source:
             where.append(str(source))
+        elif argument:
+            where.append(argument)
         if row is not None:
             where.append(f"line {row}")
         if column:
             where.append(f"column {column}")
         prefix = ", ".join(where)
         super().__init__(f"{prefix}: {message}" if prefix else message)
+
+    def with_source(self, source: str) -> "InputError":
+        """The same error naming ``source`` (e.g. the CLI flag of the library's argument)."""
+        return InputError(self.detail, source=source, row=self.row, column=self.column)
+
+    def on_command_line(self, flags: "dict[str, str] | None" = None) -> "InputError":
+        """The error as a command line says it: a library argument becomes its flag
+        (``flags[argument]``, else ``--`` and the argument with dashes)."""
+        if self.source is not None or not self.argument:
+            return self
+        flag = (flags or {}).get(self.argument, "--" + self.argument.replace("_", "-"))
+        return self.with_source(flag)
 
 
 def check_known_keys(table, known, *, source: str | None, where: str, what: str = "") -> None:
@@ -50,6 +68,19 @@ def check_known_keys(table, known, *, source: str | None, where: str, what: str 
     keys = "key" if len(unknown) == 1 else "keys"
     raise InputError(f"unknown {keys} {', '.join(unknown)}{hint}{what}; known keys: {', '.join(known)}",
                      source=source, column=f"{where}.{unknown[0]}" if where else unknown[0])
+
+
+class EffectRefused(InputError):
+    """An effect the model names that these data cannot show: ``effect`` and the
+    ``reason`` its module gives (identification refuses it; diagnosis lists it as
+    not testable). The message is ``"<effect>: <reason>"`` unless ``message`` is given."""
+
+    def __init__(self, effect: str, reason: str, *, message: str | None = None,
+                 source: str | None = None, argument: str | None = None) -> None:
+        self.effect = effect
+        self.reason = reason
+        super().__init__(message if message is not None else f"{effect}: {reason}", source=source,
+                         argument=argument)
 
 
 class UnidentifiableError(ElastocalError):

@@ -72,9 +72,9 @@ def _failed(task: FleetTask, exc: BaseException) -> LogResult:
 def resolve_pool(pool: str, scheduler: str | None) -> str:
     """``dask`` or ``processes`` for the requested ``pool`` (``auto``: Dask when installed)."""
     if pool not in POOLS:
-        raise InputError(f"must be one of {', '.join(POOLS)}, got {pool!r}", source="--pool")
+        raise InputError(f"must be one of {', '.join(POOLS)}, got {pool!r}", argument="pool")
     if scheduler and pool == "processes":
-        raise InputError("a Dask scheduler and the process pool exclude each other", source="--scheduler")
+        raise InputError("a Dask scheduler and the process pool exclude each other", argument="scheduler")
     if pool == "auto":
         pool = "dask" if scheduler or dask_available() else "processes"
     if pool == "dask" and not dask_available():
@@ -92,9 +92,9 @@ def run_tasks(tasks: Sequence[FleetTask], *, pool: str = "auto", scheduler: str 
     tasks = list(tasks)
     kind = resolve_pool(pool, scheduler)
     if workers is not None and workers < 1:
-        raise InputError(f"must be at least 1, got {workers}", source="--workers")
+        raise InputError(f"must be at least 1, got {workers}", argument="workers")
     if scheduler and workers is not None:
-        raise InputError("the scheduler's workers do the work; --workers sizes a local cluster", source="--workers")
+        raise InputError("the scheduler's workers do the work; --workers sizes a local cluster", argument="workers")
     n_workers = workers or default_workers()
     results: list[LogResult | None] = [None] * len(tasks)
     failed = 0

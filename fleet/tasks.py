@@ -18,7 +18,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-from elastocal.errors import ElastocalError
+from elastocal.errors import ElastocalError, InputError
 
 #: the analyses a fleet runs, one per single-log command
 COMMANDS = ("identify", "diagnose", "check")
@@ -86,6 +86,8 @@ class LogResult:
 
 def error_text(exc: BaseException) -> str:
     """One line for an error: an expected error's own message, else its type and message."""
+    if isinstance(exc, InputError):
+        exc = exc.on_command_line()        # as `elastocal identify|diagnose|check` says it
     text = str(exc) if isinstance(exc, ElastocalError) else f"{type(exc).__name__}: {exc}"
     return " ".join(text.split()) or type(exc).__name__
 

@@ -232,7 +232,7 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
     missing = [f"k{j}" for j in range(1, 7) if f"k{j}" not in calibration.parameters]
     if len(missing) == 6:
         raise InputError("the calibration holds no joint stiffness (k1..k6); a static check needs one",
-                         source=calibration.source or "--calibration")
+                         source=calibration.source, argument="calibration")
     from elastocal.identify.absolute import ABSOLUTE_EFFECTS
 
     model = tuple(name for name in calibration.model
@@ -261,7 +261,7 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
         value, std = cal
         if name != beta_name:               # stiffness k -> compliance c
             if value == 0.0:
-                raise InputError(f"calibrated {name} is zero", source=calibration.source or "--calibration",
+                raise InputError(f"calibrated {name} is zero", source=calibration.source, argument="calibration",
                                  column=f"parameters.{name}")
             beta_cal, var = 1.0 / value, (std / value ** 2) ** 2
         else:
@@ -291,7 +291,7 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
     except np.linalg.LinAlgError:
         raise InputError("the calibration's uncertainties leave no test of the deflections (the covariance of "
                          "the prediction is singular): check the std of its parameters",
-                         source=calibration.source or "--calibration", column="parameters") from None
+                         source=calibration.source, argument="calibration", column="parameters") from None
     dof = n - len(nuisance)
     if dof < 1:
         raise InputError(f"{n} deflection components cannot test the calibration once {len(nuisance)} session "
@@ -319,7 +319,7 @@ def check_friction(robot: Robot, calibration: Calibration, runs: RunTable, *, al
     if not any(f"fc{j}" in calibration.parameters for j in range(1, 7)):
         return None
     if not 0.0 <= tolerance:
-        raise InputError(f"must be >= 0, got {tolerance}", source="--friction-tolerance")
+        raise InputError(f"must be >= 0, got {tolerance}", argument="friction_tolerance")
     uvvu = np.isin(runs.direction, ("UV", "VU"))
     if not np.any(uvvu):
         raise InputError("the check runs hold no UV/VU pair", source=runs.source, column="direction")
@@ -363,9 +363,9 @@ def check_calibration(robot: Robot, calibration: Calibration, *, static: StaticT
                       form: str = "exact") -> CheckResult:
     """The verdict on ``calibration`` from a check's static table and/or runs."""
     if not 0.0 < alpha < 1.0:
-        raise InputError(f"must be between 0 and 1, got {alpha}", source="--alpha")
+        raise InputError(f"must be between 0 and 1, got {alpha}", argument="alpha")
     if static is None and runs is None:
-        raise InputError("the check holds neither static poses nor runs", source="--static")
+        raise InputError("the check holds neither static poses nor runs", argument="static")
     has_friction = runs is not None and any(f"fc{j}" in calibration.parameters for j in range(1, 7))
     n_tests = int(static is not None) + int(has_friction)
     share = alpha / max(n_tests, 1)

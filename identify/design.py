@@ -155,13 +155,13 @@ def plan_experiment(robot: Robot, candidates: Candidates, test: TestPose, *, n_p
     share. With tracker noise alone it is ``sigma^2`` K40."""
     nc = len(candidates.q)
     if n_poses < 1:
-        raise InputError(f"must be >= 1, got {n_poses}", source="--poses")
+        raise InputError(f"must be >= 1, got {n_poses}", argument="poses")
     if n_poses > nc:
-        raise InputError(f"cannot choose {n_poses} poses out of {nc} candidates", source="--poses")
+        raise InputError(f"cannot choose {n_poses} poses out of {nc} candidates", argument="poses")
     dirs = load_directions(workspace.directions, robot.gravity)
     if not 1 <= loads_per_pose <= len(dirs):
         raise InputError(f"must be between 1 and {len(dirs)} for directions={workspace.directions}, "
-                         f"got {loads_per_pose}", source="--loads-per-pose")
+                         f"got {loads_per_pose}", argument="loads_per_pose")
     c_prior = 1.0 / np.asarray(prior_stiffness, dtype=float)
     # scaled compliances x = c / c_prior: the measure is invariant, the ridge and the A-optimal term are not
     h, gamma = _weighted_info_parts(robot, candidates.q, markers, workspace.f_max_n * dirs, c_prior, noise)
@@ -241,7 +241,7 @@ def choose_check(robot: Robot, design: ExperimentDesign, test: TestPose, *, n_ch
     test pose is smallest (greedy): a short check that looks where it matters."""
     n = len(design.q)
     if not 1 <= n_check <= n:
-        raise InputError(f"must be between 1 and {n}, got {n_check}", source="--check-poses")
+        raise InputError(f"must be between 1 and {n}, got {n_check}", argument="check_poses")
     c_prior = 1.0 / np.asarray(prior_stiffness, dtype=float)
     g, b = pose_matrices(robot, design.q, markers)
     a0 = a0_matrix(robot, test) * c_prior[None, :]

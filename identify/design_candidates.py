@@ -36,11 +36,11 @@ class TestPose:
         q = tuple(float(v) for v in self.q)
         w = tuple(float(v) for v in self.wrench)
         if len(q) != 6 or not all(math.isfinite(v) for v in q):
-            raise InputError(f"expected 6 finite joint values, got {self.q!r}", source="--test-pose")
+            raise InputError(f"expected 6 finite joint values, got {self.q!r}", argument="test_pose")
         if len(w) != 6 or not all(math.isfinite(v) for v in w):
-            raise InputError(f"expected 6 finite wrench values, got {self.wrench!r}", source="--load")
+            raise InputError(f"expected 6 finite wrench values, got {self.wrench!r}", argument="load")
         if not any(w):
-            raise InputError("the process load is zero: nothing deflects at the test pose", source="--load")
+            raise InputError("the process load is zero: nothing deflects at the test pose", argument="load")
         object.__setattr__(self, "q", q)
         object.__setattr__(self, "wrench", w)
 
@@ -72,22 +72,22 @@ class Workspace:
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.f_max_n) and self.f_max_n > 0):
-            raise InputError(f"must be a positive force [N], got {self.f_max_n!r}", source="--f-max")
+            raise InputError(f"must be a positive force [N], got {self.f_max_n!r}", argument="f_max")
         if self.directions not in DIRECTION_KINDS:
             raise InputError(f"must be one of {', '.join(DIRECTION_KINDS)}, got {self.directions!r}",
-                             source="--directions")
+                             argument="directions")
         if not self.max_height_m > self.min_height_m:
             raise InputError(f"max height {self.max_height_m} m is not above min height {self.min_height_m} m",
-                             source="--max-height")
-        for name, flag in (("link_radius_m", "--link-radius"), ("tracker_range_m", "tracker_range_m")):
+                             argument="max_height")
+        for name, argument in (("link_radius_m", "link_radius"), ("tracker_range_m", "tracker_range_m")):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
-                raise InputError(f"must be > 0, got {v!r}", source=flag)
+                raise InputError(f"must be > 0, got {v!r}", argument=argument)
         if self.base_p_tracker is not None:
             p = tuple(float(v) for v in self.base_p_tracker)
             if len(p) != 3 or not all(math.isfinite(v) for v in p):
                 raise InputError(f"expected x,y,z in metres, got {self.base_p_tracker!r}",
-                                 source="--tracker-position")
+                                 argument="tracker_position")
             object.__setattr__(self, "base_p_tracker", p)
 
 
@@ -189,7 +189,7 @@ def sample_candidates(robot: Robot, n: int, rng: np.random.Generator, workspace:
     +-pi) that respect ``workspace``; raises InputError when fewer than ``n``
     of ``max_sampled`` (default 50 n) draws do."""
     if n < 1:
-        raise InputError(f"must be >= 1, got {n}", source="--candidates")
+        raise InputError(f"must be >= 1, got {n}", argument="candidates")
     lo = robot.lower.copy()
     hi = robot.upper.copy()
     for j in (0, 3, 5):
@@ -209,7 +209,7 @@ def sample_candidates(robot: Robot, n: int, rng: np.random.Generator, workspace:
     if len(kept) < n:
         reasons = ", ".join(f"{c} {r}" for r, c in zip(REJECTIONS, counts) if c)
         raise InputError(f"only {len(kept)} of {sampled} sampled poses respect the workspace (rejected: {reasons}); "
-                         "relax the constraints or check the tracker position", source="--candidates")
+                         "relax the constraints or check the tracker position", argument="candidates")
     return Candidates(q=np.array(kept[:n]), sampled=sampled, accepted=len(kept),
                       rejected=tuple((r, int(c)) for r, c in zip(REJECTIONS, counts)))
 
@@ -224,7 +224,7 @@ def load_directions(kind: str, gravity: Sequence[float] = (0.0, 0.0, -9.81)) -> 
     if kind == "down":
         return down[None, :]
     if kind != "any":
-        raise InputError(f"must be one of {', '.join(DIRECTION_KINDS)}, got {kind!r}", source="--directions")
+        raise InputError(f"must be one of {', '.join(DIRECTION_KINDS)}, got {kind!r}", argument="directions")
     dirs = [down]
     for v in itertools.product((-1, 0, 1), repeat=3):
         u = np.array(v, dtype=float)

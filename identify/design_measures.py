@@ -31,11 +31,11 @@ class NoiseModel:
 
     def __post_init__(self) -> None:
         if not (self.tracker_m > 0 and math.isfinite(self.tracker_m)):
-            raise InputError(f"must be > 0, got {self.tracker_m!r}", source="--tracker-noise")
+            raise InputError(f"must be > 0, got {self.tracker_m!r}", argument="tracker_noise")
         if not (self.current_a >= 0 and math.isfinite(self.current_a)):
-            raise InputError(f"must be >= 0, got {self.current_a!r}", source="--current-noise")
+            raise InputError(f"must be >= 0, got {self.current_a!r}", argument="current_noise")
         if self.repeats < 1:
-            raise InputError(f"must be >= 1, got {self.repeats!r}", source="--repeats")
+            raise InputError(f"must be >= 1, got {self.repeats!r}", argument="repeats")
 
 
 def pose_matrices(robot: Robot, q: np.ndarray, markers: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:

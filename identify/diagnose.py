@@ -56,7 +56,7 @@ import numpy as np
 import scipy.sparse
 import scipy.stats
 
-from elastocal.errors import InputError, UnidentifiableError
+from elastocal.errors import EffectRefused, UnidentifiableError
 from elastocal.identify.effects import ALL_EFFECTS, get_effect
 from elastocal.identify.robot import Robot
 from elastocal.identify.static import (
@@ -283,11 +283,8 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
         eff = get_effect(name)
         try:
             aug = identify_static(robot, ds, model=(*model_names, name), torque=torque, form=form)
-        except InputError as exc:
-            if exc.source != "--model":
-                raise
-            reason = exc.detail.split(": ", 1)[1] if exc.detail.startswith(name + ":") else exc.detail
-            skipped.append(NotTestable(name, reason))
+        except EffectRefused as exc:       # the effect module's own reason, typed
+            skipped.append(NotTestable(exc.effect, exc.reason))
             continue
         except UnidentifiableError as exc:
             skipped.append(NotTestable(name, str(exc)))

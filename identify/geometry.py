@@ -310,7 +310,7 @@ def geometry_from_run_table(table, *, pivot: str, cylinder: Sequence[str], joint
         return mask
 
     if len(set(cylinder)) != len(cylinder) or pivot in cylinder:
-        raise InputError("the pivot and cylinder markers must be distinct", source="--cylinder")
+        raise InputError("the pivot and cylinder markers must be distinct", argument="cylinder")
     pm = rows(pivot)
     masks = [rows(c) for c in cylinder]
     return identify_compensator_geometry(table.q[pm, joint - 1], table.xyz[pm], [table.xyz[m] for m in masks])

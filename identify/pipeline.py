@@ -81,7 +81,7 @@ def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: str, form
     if static_diag is None and runs_diag is None:
         if log is not None:
             raise InputError("nothing to diagnose: the log holds neither a static experiment nor runs", source=log)
-        raise InputError("nothing to diagnose: give a static table and/or runs", source="--static")
+        raise InputError("nothing to diagnose: give a static table and/or runs", argument="static")
     return static_diag, runs_diag
 
 

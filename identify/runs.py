@@ -18,6 +18,7 @@ import numpy as np
 from elastocal.errors import InputError
 from elastocal.identify.effects import run_effects
 from elastocal.identify.robot import Robot
+from elastocal.identify.static import Parameter
 from elastocal.identify.tables import RunTable
 
 #: the effects run data show, as each effect module declares (run_part)
@@ -28,8 +29,10 @@ FRICTION_EFFECTS = run_effects("uv/vu")
 
 @dataclass(frozen=True, eq=False)
 class RunFit:
+    """The run-data effects fitted: typed parameters (docs/formats.md §4 names), the torque residuals."""
+
     model: tuple[str, ...]
-    parameters: dict
+    parameters: tuple[Parameter, ...]
     residuals: np.ndarray            # torque residuals [N·m], all fits together
     unidentifiable: tuple[str, ...] = ()
     fits: dict = field(default_factory=dict, repr=False)   # "compensator" / "friction" -> fit object
@@ -39,7 +42,8 @@ class RunFit:
         return float(np.sqrt(np.mean(self.residuals ** 2))) if self.residuals.size else float("nan")
 
     def to_json(self) -> dict:
-        out = {"model": list(self.model), "torque": "current", "parameters": self.parameters,
+        out = {"model": list(self.model), "torque": "current",
+               "parameters": {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in self.parameters},
                "residual": {"rms": self.rms, "max": float(np.max(np.abs(self.residuals))) if self.residuals.size
                             else float("nan"), "n": int(self.residuals.size), "unit": "N*m"},
                "noise_floor": None}
@@ -58,17 +62,17 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
     unknown = [m for m in wanted if m not in RUN_EFFECTS]
     if unknown:
         raise InputError(f"{unknown[0]} cannot be identified from run data alone; it needs a static table",
-                         source="--model")
+                         argument="model")
     if not wanted:
         raise InputError("run data alone do not give the joint stiffness; name the run effects to fit, e.g. "
-                         "--model compensator,coulomb_friction,viscous_friction", source="--model")
+                         "--model compensator,coulomb_friction,viscous_friction", argument="model")
     params: dict = {}
     residuals = []
     unident: list[str] = []
     fits: dict = {}
     if any(m in SWEEP_EFFECTS for m in wanted):
         if robot.compensator is None:
-            raise InputError("the robot description has no [compensator]", source="--model")
+            raise InputError("the robot description has no [compensator]", argument="model")
         gravity = "identify" if "gravity" in wanted else "auto"
         fit = compensator_from_run_table(robot, table, gravity=gravity, stiffness=stiffness)
         fits["compensator"] = fit
@@ -86,5 +90,6 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
         r = half - predicted
         residuals.append(r[np.isfinite(r)])
     names = tuple(dict.fromkeys(["joint_stiffness", *wanted]))
-    return RunFit(model=names, parameters=params, residuals=np.concatenate(residuals) if residuals else np.zeros(0),
+    return RunFit(model=names, parameters=tuple(Parameter(n, float(p["value"]), float(p["std"]), str(p["unit"]))
+                                                for n, p in params.items()), residuals=np.concatenate(residuals) if residuals else np.zeros(0),
                   unidentifiable=tuple(unident), fits=fits)

@@ -31,7 +31,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
-from elastocal.errors import InputError, UnidentifiableError
+from elastocal.errors import EffectRefused, InputError, UnidentifiableError
 from elastocal.identify.effects import get_effect
 from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext
 from elastocal.identify.robot import (
@@ -499,9 +499,9 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
                     form: str = "exact", max_iter: int = 30, tol: float = 1e-10) -> StaticFit:
     """Fit the static model ``model`` (effect names) to a table or dataset."""
     if torque not in TORQUE_SOURCES:
-        raise InputError(f"must be current or force, got {torque!r}", source="--torque")
+        raise InputError(f"must be current or force, got {torque!r}", argument="torque")
     if form not in FORMS:
-        raise InputError(f"must be exact or first-order, got {form!r}", source="--form")
+        raise InputError(f"must be exact or first-order, got {form!r}", argument="form")
     ds = data if isinstance(data, StaticDataset) else build_dataset(data)
     if ds.tracker_rotation is None:
         # a tracker placed anywhere: the deflections turned back to base axes by the
@@ -535,10 +535,11 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     ctx = _context(pr, tau)
     for eff in effects:
         if "static" not in eff.seen_in and eff.static_refusal is None:
-            raise InputError(f"{eff.name} cannot be identified from static data", source="--model")
+            words = f"{eff.name} cannot be identified from static data"
+            raise EffectRefused(eff.name, words, message=words, argument="model")
         reason = eff.static_refusal(ctx) if eff.static_refusal is not None else None
         if reason:
-            raise InputError(f"{eff.name}: {reason}", source="--model")
+            raise EffectRefused(eff.name, reason, argument="model")
     beta_names = tuple(p for eff in effects for p in eff.parameters)
     bases = _bases(pr, ctx)
     y = ds.dP.reshape(-1)

@@ -65,9 +65,9 @@ def first_order_map(robot: Robot, *, q_base: Sequence[float], wrench: Sequence[f
     them, with ``Gamma`` from the gear torques ("current") or ``J_f(q)^T W``
     ("force")."""
     if torque not in ("current", "force"):
-        raise InputError(f"must be current or force, got {torque!r}", source="--torque")
+        raise InputError(f"must be current or force, got {torque!r}", argument="torque")
     if n_grid < 2:
-        raise InputError(f"must be >= 2, got {n_grid}", source="--map-grid")
+        raise InputError(f"must be >= 2, got {n_grid}", argument="map_grid")
     markers = list(markers or robot.marker_names)
     k = np.asarray(stiffness, dtype=float)
     comp = None

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import pathlib
 from dataclasses import replace
-from types import MappingProxyType
 from importlib import resources
 from types import MappingProxyType
 

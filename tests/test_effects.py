@@ -7,7 +7,7 @@ import importlib
 import numpy as np
 import pytest
 
-from elastocal.errors import InputError
+from elastocal.errors import EffectRefused, InputError
 from elastocal.identify.effects import ALL_EFFECTS, EFFECT_MODULES, get_effect, parse_model
 from elastocal.identify.effects import backlash
 from elastocal.identify.effects.base import StaticContext
@@ -58,15 +58,17 @@ def test_parse_model_accepts_any_combination_and_names_unknown_ones():
     assert parse_model(None) == ("joint_stiffness",)
     with pytest.raises(InputError) as err:
         parse_model("joint_stiffness,link_complience")
-    assert err.value.source == "--model" and "link_complience" in str(err.value)
+    # the library names its argument, never a command-line flag (the CLI maps it to --model)
+    assert err.value.argument == "model" and err.value.source is None and "link_complience" in str(err.value)
+    assert str(err.value.on_command_line()).startswith("--model: unknown effect 'link_complience'")
 
 
 @pytest.mark.parametrize("name", RUN_ONLY)
 def test_run_only_effects_are_refused_on_static_data_with_the_reason(complete, name):
     with pytest.raises(InputError) as err:
         identify_static(ROBOT, complete, model=("joint_stiffness", name))
-    assert err.value.source == "--model"
-    assert str(err.value).startswith(f"--model: {name}: ")
+    assert isinstance(err.value, EffectRefused) and err.value.effect == name and err.value.argument == "model"
+    assert str(err.value).startswith(f"model: {name}: ") and err.value.reason == err.value.detail[len(name) + 2:]
     reason = err.value.detail
     if "friction" in name:
         assert "static data hold no motion" in reason

@@ -121,7 +121,7 @@ def test_no_repeats_means_no_noise_floor():
 def test_drift_without_time_is_refused():
     table = simulate_static(ROBOT, TRUTH, seed=10, plan=StaticPlan(n_poses=4, n_loads=2, repeats=2))
     no_time = dataclasses.replace(table, t=np.full(len(table), np.nan))
-    with pytest.raises(InputError, match=r"--model: thermal_drift: the static table has no times"):
+    with pytest.raises(InputError, match=r"^model: thermal_drift: the static table has no times"):
         identify_static(ROBOT, no_time, model=("joint_stiffness", "thermal_drift"))
 
 

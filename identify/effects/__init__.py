@@ -39,7 +39,7 @@ ALL_EFFECTS = tuple(EFFECT_MODULES)
 
 def get_effect(name: str) -> Effect:
     if name not in EFFECT_MODULES:
-        raise InputError(f"unknown effect {name!r}; known: {', '.join(ALL_EFFECTS)}", source="--model")
+        raise InputError(f"unknown effect {name!r}; known: {', '.join(ALL_EFFECTS)}", argument="model")
     return importlib.import_module(EFFECT_MODULES[name]).EFFECT
 
 
