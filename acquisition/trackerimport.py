@@ -1,4 +1,4 @@
-"""Tracker exports plus the robot's joint log -> the static table (formats.md §2; docs/import.md).
+"""Tracker exports plus the robot's joint log -> the static table (docs/formats.md §2; docs/import.md).
 
 Each point of the export (:mod:`elastocal.acquisition.trackerexports`) is paired
 with a pose, a load state and a marker, and with the joint coordinates and

@@ -1,8 +1,8 @@
 """The absolute fit: geometry, tracker registration and elasticity together.
 
 Every static table holds the absolute marker positions in the tracker's frame
-(formats.md §2). The model of each state's mean reading (architecture.md,
-"Absolute and relative"; physics.md, "Absolute positions") is
+(docs/formats.md §2). The model of each state's mean reading (docs/architecture.md,
+"Absolute and relative"; docs/physics.md, "Absolute positions") is
 
     p_tracker = R · FK(θ) · p_marker + t,   θ = q + offset + Δθ_kin + Δθ_elastic
 
@@ -59,7 +59,7 @@ from elastocal.identify.static import (
 )
 from elastocal.identify.tables import StaticTable
 
-#: effects only absolute positions show (cli.md, effect table)
+#: effects only absolute positions show (docs/cli.md, effect table)
 ABSOLUTE_EFFECTS = ("kinematic_errors", "tracker_frame")
 FRAME_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 #: the tracker noise assumed for weights when the table holds no repeated readings [m]
@@ -138,7 +138,7 @@ class AbsoluteFit:
         return out
 
     def json_fields(self) -> dict:
-        """What the absolute fit adds to ``identify --json`` (cli.md)."""
+        """What the absolute fit adds to ``identify --json`` (docs/cli.md)."""
         reg = self.registration
         out = {"absolute_residual": {"rms": self.rms, "max": self.max, "n": self.n, "unit": "m"},
                "absolute_noise_floor": self.noise_floor,
@@ -149,7 +149,7 @@ class AbsoluteFit:
         return out
 
     def to_json(self) -> dict:
-        """The ``identify --json`` object (cli.md), deflection residual included."""
+        """The ``identify --json`` object (docs/cli.md), deflection residual included."""
         out = self.static.to_json()
         out["model"] = list(self.model)
         from elastocal.identify.evidence import mark_stiffness

@@ -1,4 +1,4 @@
-"""Diagnosis on the absolute positions (cli.md, ``diagnose --json`` with absolute positions).
+"""Diagnosis on the absolute positions (docs/cli.md, ``diagnose --json`` with absolute positions).
 
 The deflection diagnosis (identify/diagnose.py) finds what the elastic model
 misses; this one compares the same model with the absolute marker positions and
@@ -34,7 +34,7 @@ from elastocal.identify.robot import Robot
 from elastocal.identify.static import StaticDataset
 from elastocal.identify.stepwise import FLOOR_RATIO
 
-#: a candidate is significant below this p-value and delta BIC (cli.md)
+#: a candidate is significant below this p-value and delta BIC (docs/cli.md)
 VERDICT_P = 0.01
 VERDICT_DELTA_BIC = -10.0
 #: what each absolute candidate is fitted with (the registration is always in). Thermal drift
@@ -151,7 +151,7 @@ def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *, 
             try:
                 aug = identify_absolute(robot, ds, model=names, torque=torque, form=form)
             except InputError as exc:       # the data cannot show it (no times for a drift)
-                if exc.source != "--model":
+                if exc.argument != "model":  # a refusal of the model, typed; anything else is an error
                     raise
                 continue
             stat, p, dbic, dof = _test(fit, aug)

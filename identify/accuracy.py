@@ -1,4 +1,4 @@
-"""A calibration against data it was not fitted on (cli.md, ``elastocal validate``).
+"""A calibration against data it was not fitted on (docs/cli.md, ``elastocal validate``).
 
 Two models predict the same static table:
 
@@ -14,7 +14,7 @@ Both are registered to the tracker afresh on the validation data (closed-form
 rigid fit: the tracker may have moved), or the calibrated one keeps the
 calibration's registration (``keep_frame``, which needs ``tracker_frame`` in
 the calibration). Errors are over the x, y, z components (each counts once, as
-in cli.md's residuals): rms, mean of their magnitudes, max, 95th percentile.
+in docs/cli.md's residuals): rms, mean of their magnitudes, max, 95th percentile.
 Session effects (thermal drift) are not carried from one day to another.
 """
 
@@ -115,7 +115,7 @@ def calibration_frame(calibration: Calibration) -> Registration:
     values = [_value(calibration, n) for n in ("rx", "ry", "rz", "tx", "ty", "tz")]
     if any(v is None for v in values):
         raise InputError("--keep-frame needs a calibration with tracker_frame (rx..tz); identify with "
-                         "--model ...,tracker_frame", source="--calibration")
+                         "--model ...,tracker_frame", argument="calibration")
     return Registration(rotation=pin.exp3(np.array(values[:3])), translation=np.array(values[3:]), rms=float("nan"))
 
 
@@ -131,7 +131,7 @@ def predicted_base_positions(robot: Robot, calibration: Calibration, ds: StaticD
             for j in range(1, 7):
                 k = _value(calibration, f"k{j}")
                 if k is None or not k > 0:
-                    raise InputError(f"the calibration holds no positive k{j}", source="--calibration")
+                    raise InputError(f"the calibration holds no positive k{j}", argument="calibration")
                 beta.append(1.0 / k)
         else:
             beta += [_value(calibration, n) or 0.0 for n in eff.parameters]
@@ -168,7 +168,7 @@ def validate(robot: Robot, calibration: Calibration, data: StaticTable | StaticD
     """Nominal and calibrated model against the data (module docstring)."""
     if calibration.robot != robot.name:
         raise InputError(f"the calibration is of robot {calibration.robot!r}, the description of {robot.name!r}",
-                         source="--calibration")
+                         argument="calibration")
     ds = data if isinstance(data, StaticDataset) else build_dataset(data)
     if calibration.torque == "current" and not ds.has_currents:
         raise InputError("a current-based calibration needs the currents i1..i6 in every row", source=ds.source)

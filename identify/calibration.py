@@ -37,7 +37,7 @@ class Calibration:
     data: tuple[Mapping[str, str], ...] = ()
     #: the file it was read from, for errors (not part of the calibration)
     source: str = field(default="", compare=False)
-    #: optional (elastocal extension of formats.md §4): the absolute comparison of
+    #: optional (elastocal extension of docs/formats.md §4): the absolute comparison of
     #: the fit, rms/max/n/noise_floor [m] of the marker positions after the registration
     absolute_residual: Mapping[str, float] | None = None
     #: optional (elastocal extension): the robot.toml text the calibration was

@@ -38,9 +38,9 @@ class TestPose:
         if len(q) != 6 or not all(math.isfinite(v) for v in q):
             raise InputError(f"expected 6 finite joint values, got {self.q!r}", argument="test_pose")
         if len(w) != 6 or not all(math.isfinite(v) for v in w):
-            raise InputError(f"expected 6 finite wrench values, got {self.wrench!r}", argument="load")
+            raise InputError(f"expected 6 finite wrench values, got {self.wrench!r}", argument="wrench")
         if not any(w):
-            raise InputError("the process load is zero: nothing deflects at the test pose", argument="load")
+            raise InputError("the process load is zero: nothing deflects at the test pose", argument="wrench")
         object.__setattr__(self, "q", q)
         object.__setattr__(self, "wrench", w)
 

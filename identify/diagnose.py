@@ -201,7 +201,7 @@ class Diagnosis:
         }
 
     def _absolute_json(self) -> dict:
-        """absolute_residual, absolute_noise_floor and the absolute candidates (cli.md)."""
+        """absolute_residual, absolute_noise_floor and the absolute candidates (docs/cli.md)."""
         if self.absolute is None:
             return {}
         return {**self.absolute.to_json(),

@@ -1,7 +1,7 @@
 """Kinematic (geometric) errors of a modified-DH robot and their identifiable set.
 
 The real robot differs from its drawing by small errors of the DH table
-(physics.md, "Absolute positions"): per joint ``i`` the joint zero ``dq<i>``
+(docs/physics.md, "Absolute positions"): per joint ``i`` the joint zero ``dq<i>``
 [rad], the link length ``da<i>`` (of ``a_{i-1}``) [m], the offset along the axis
 ``dd<i>`` [m] and the twist ``dalpha<i>`` (of ``alpha_{i-1}``) [rad]; where the
 axes of joints ``i-1`` and ``i`` are parallel (``alpha_{i-1}`` = 0 or pi, joints
@@ -68,7 +68,7 @@ def parameter_names(robot: Robot, markers: Sequence[str]) -> tuple[str, ...]:
     """The full set of kinematic parameters of ``robot`` with these markers."""
     if robot.urdf is not None:
         raise InputError("kinematic_errors needs a modified-DH robot (a URDF robot's joint origins are not "
-                         "DH parameters)", source="--model")
+                         "DH parameters)", argument="model")
     parallel = parallel_joints(robot)
     names = []
     for i in range(1, len(robot.joints) + 1):

@@ -1,6 +1,6 @@
-"""Registration of the tracker frame to the robot base (physics.md, "Absolute positions").
+"""Registration of the tracker frame to the robot base (docs/physics.md, "Absolute positions").
 
-The tracker stands anywhere in the cell (formats.md §2): its readings are
+The tracker stands anywhere in the cell (docs/formats.md §2): its readings are
 ``p_tracker = R p_base + t``. A closed-form rigid fit (Kabsch/Horn, an SVD of
 the cross-covariance) of the model's predicted base positions to the measured
 ones gives ``R, t``; the absolute fit (identify/absolute.py) refines them with

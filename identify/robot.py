@@ -125,7 +125,7 @@ class JointSpec:
     mass: float = 0.0
     com: tuple[float, float, float] = (0.0, 0.0, 0.0)
     name: str = ""
-    #: Hayati's rotation about y [rad] (elastocal extension of formats.md §1, for
+    #: Hayati's rotation about y [rad] (elastocal extension of docs/formats.md §1, for
     #: calibrated robots whose axes i-1 and i are parallel): Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)
     beta: float = 0.0
 

@@ -3,7 +3,7 @@
 Pure: a robot and a diagnosis in, a frozen :class:`CellView` out; the viser page
 (:mod:`elastocal.commands.view`) only draws it. For each pose the robot's
 skeleton (joint origins and flange) from its URDF at the commanded joint values;
-for each deflection (loaded reading minus its unloaded reference, formats.md §2)
+for each deflection (loaded reading minus its unloaded reference, docs/formats.md §2)
 the marker's rigid position at the pose (the anchor) and the measured and
 predicted deflections; for each model shown (the model as given, the model with
 the diagnosed effect, a calibration's prediction) the residuals and, per pose,

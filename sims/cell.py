@@ -57,7 +57,7 @@ def tracker_placement(base_p_tracker, yaw: float, tilt_x: float, tilt_y: float) 
 
 
 #: the default simulated tracker: on a tripod 3.7 m from the robot, turned
-#: 2.4 rad about the vertical, 4 and 3 mrad off level (formats.md §2: any rigid placement)
+#: 2.4 rad about the vertical, 4 and 3 mrad off level (docs/formats.md §2: any rigid placement)
 DEFAULT_TRACKER = tracker_placement((3.2, -1.8, 0.6), 2.4, 0.004, -0.003)
 #: ``--hidden tracker_frame``: the tracker moved to another stand, behind and
 #: above the robot, facing it from the other side

@@ -235,7 +235,7 @@ def test_validate_on_other_poses_and_another_tracker_stand(calibration_file, tmp
     moved = simulate_static(ROBOT, replace_tracker(truth), seed=33)
     assert validate(ROBOT, cal, moved).absolute_calibrated.rms < 2.0 * v.noise_floor
     assert validate(ROBOT, cal, moved, keep_frame=True).absolute_calibrated.rms > 1e-2
-    # the command and its --json object (cli.md)
+    # the command and its --json object (docs/cli.md)
     write_static_table(tmp_path / "other.csv", other)
     (tmp_path / "robot.toml").write_text(ROBOT.to_toml())
     args = ["validate", "--robot", str(tmp_path / "robot.toml"), "--calibration", str(calibration_file),

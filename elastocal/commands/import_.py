@@ -13,7 +13,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--log", help="the MCAP log of `elastocal calibrate` (poses, loads, currents, the robot)")
     src.add_argument("--joints", help="a joint/current log CSV: t,q1..q6,i1..i6 [,pose,load] [,fx..mz]")
-    parser.add_argument("--out", required=True, help="the static table to write (formats.md §2)")
+    parser.add_argument("--out", required=True, help="the static table to write (docs/formats.md §2)")
     parser.add_argument("--robot", help="robot.toml to check markers and joint limits against; default: the "
                                         "log's robot (with --log)")
     parser.add_argument("--layout", choices=("auto", "leica", "xyz", "csv"), default="auto",

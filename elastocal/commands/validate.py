@@ -1,4 +1,4 @@
-"""`elastocal validate`: a calibration against data it was not fitted on (cli.md)."""
+"""`elastocal validate`: a calibration against data it was not fitted on (docs/cli.md)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from elastocal.errors import InputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--robot", required=True, help="robot.toml (formats.md §1): the nominal description")
-    parser.add_argument("--calibration", required=True, help="calibration JSON (formats.md §4)")
-    parser.add_argument("--static", required=True, help="static table (formats.md §2) not used in the fit")
+    parser.add_argument("--robot", required=True, help="robot.toml (docs/formats.md §1): the nominal description")
+    parser.add_argument("--calibration", required=True, help="calibration JSON (docs/formats.md §4)")
+    parser.add_argument("--static", required=True, help="static table (docs/formats.md §2) not used in the fit")
     parser.add_argument("--keep-frame", action="store_true",
                         help="keep the calibration's tracker registration (tracker_frame) instead of "
                              "registering the tracker afresh on these data")

@@ -32,7 +32,7 @@ PREDICTED_RGB = (30, 110, 230)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser)
-    parser.add_argument("--calibration", help="cal.json: also show what this calibration predicts (formats.md §4)")
+    parser.add_argument("--calibration", help="cal.json: also show what this calibration predicts (docs/formats.md §4)")
     parser.add_argument("--add", help="effect shown as 'after' (default: the diagnosis' verdict, else the best "
                                       "plausible candidate)")
     parser.add_argument("--port", type=int, default=8080,

@@ -2,7 +2,7 @@
 
 Parameters rx, ry, rz [rad] (the rotation vector of R) and tx, ty, tz [m]:
 ``p_tracker = R p_base + t``, the tracker standing anywhere in the cell
-(formats.md §2). Every absolute comparison registers the tracker (a closed-form
+(docs/formats.md §2). Every absolute comparison registers the tracker (a closed-form
 rigid fit of the model's predictions, identify/registration.py); as an effect,
 the registration is identified with the rest of the model by the absolute fit
 (identify/absolute.py), with standard deviations. A translation cancels in
