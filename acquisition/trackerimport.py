@@ -186,9 +186,16 @@ class _Row:
     currents: np.ndarray
 
 
-def _marker_of(point: ExportPoint, fields: dict | None, markers: tuple[str, ...] | None) -> str | None:
-    m = fields["marker"] if fields else point.name
-    return m if markers is None or m in markers else None
+def _identify_point(point: ExportPoint, names: NamePattern | None,
+                    markers: tuple[str, ...] | None) -> tuple[dict | None, str, str]:
+    """(the pattern's fields or None, the marker, why the point cannot be paired or "")."""
+    fields = names.match(point.name) if names is not None else None
+    if names is not None and fields is None:
+        return None, "", f"name does not match {names.text}"
+    marker = fields["marker"] if fields else point.name
+    if markers is not None and marker not in markers:
+        return fields, marker, f"marker {marker!r} is not one of the robot's ({', '.join(markers)})"
+    return fields, marker, ""
 
 
 def pair_with_log(points: list[ExportPoint], contents: LogContents, *, names: NamePattern | None,
@@ -204,13 +211,9 @@ def pair_with_log(points: list[ExportPoint], contents: LogContents, *, names: Na
     counts = {k: len(v) for k, v in queues.items()}
     wall = np.array([r.wall_s for r in readings])
     for p in points:
-        fields = names.match(p.name) if names is not None else None
-        if names is not None and fields is None:
-            unpaired.append((p, f"name does not match {names.text}"))
-            continue
-        marker = _marker_of(p, fields, markers)
-        if marker is None:
-            unpaired.append((p, f"marker {fields['marker'] if fields else p.name!r} is not one of the robot's"))
+        fields, marker, why = _identify_point(p, names, markers)
+        if why:
+            unpaired.append((p, why))
             continue
         if by == "name":
             key = (fields["pose"], fields["load"], marker)
@@ -248,13 +251,9 @@ def pair_with_joints(points: list[ExportPoint], log: JointLog, *, names: NamePat
     rows, unpaired = [], []
     t0 = min((p.t_s for p in points if p.t_s is not None), default=None)
     for p in points:
-        fields = names.match(p.name) if names is not None else None
-        if names is not None and fields is None:
-            unpaired.append((p, f"name does not match {names.text}"))
-            continue
-        marker = _marker_of(p, fields, markers)
-        if marker is None:
-            unpaired.append((p, f"marker {fields['marker'] if fields else p.name!r} is not one of the robot's"))
+        fields, marker, why = _identify_point(p, names, markers)
+        if why:
+            unpaired.append((p, why))
             continue
         if by == "time" or (p.t_s is not None and fields is None):
             if p.t_s is None:

@@ -67,7 +67,7 @@ def test_cesapi_packets_on_the_wire(sim, world):
         link.send(es.StartMeasurementCT())
         answer, result = link.receive(2.0), link.receive(2.0)
         assert isinstance(answer, es.StartMeasurementRT) and isinstance(result, es.SingleMeasResultT)
-        truth = world.cell.marker_positions(world.equilibrium_at(), ["R1"])[0]
+        truth = world.cell.tracker_positions(world.equilibrium_at(), ["R1"])[0]
         np.testing.assert_allclose([result.dVal1, result.dVal2, result.dVal3], truth * 1e3, atol=1e-6)
         assert (result.dTemperature, result.dPressure, result.dHumidity) == (20.5, 1013.25, 45.0)
     with pytest.raises(ProtocolError, match="says 99 bytes"):
@@ -81,7 +81,7 @@ def test_units_reflectors_and_weather(sim, world):
         assert dict(info.details)["reflectors"] == "R1: R1, R2: R2, R3: CCR-1.5in"
         t.select("R2")
         s = t.measure()
-        truth = world.cell.marker_positions(world.equilibrium_at(), ["R2"])[0]
+        truth = world.cell.tracker_positions(world.equilibrium_at(), ["R2"])[0]
         np.testing.assert_allclose(s.tracker_p_marker, truth, atol=1e-9)        # metres, whatever was set before
         env = dict(s.environment)
         assert env["temperature_c"] == 20.5 and env["humidity_pct"] == 45.0

