@@ -108,7 +108,9 @@ def _available() -> dict[str, tuple[str, str]]:
 
 
 def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict[str, object]]:
-    """The parser; command modules are imported only for ``only`` (or all if None)."""
+    """The parser; only the command module of ``only`` is imported (none if None: the top-level
+    ``--help`` and ``--version`` need the names and one-line helps of the table alone, so they
+    import none of the heavy libraries -- pinocchio, scipy, matplotlib, the drivers)."""
     parser = _Parser(prog="elastocal", description="Elastostatic calibration of industrial robot cells.")
     parser.add_argument("--version", action="version", version=f"elastocal {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -118,7 +120,7 @@ def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict
         p = sub.add_parser(name, help=text, description=text,
                            epilog=f"Documentation: {docs} in the elastocal repository; words like noise floor "
                                   "or ΔBIC: README.md, Glossary.")
-        if only is None or name == only:
+        if name == only:
             module = importlib.import_module(module_name)
             module.add_arguments(p)
             modules[name] = module
