@@ -62,6 +62,8 @@ from elastocal.identify.tables import StaticTable
 #: effects only absolute positions show (docs/cli.md, effect table)
 ABSOLUTE_EFFECTS = ("kinematic_errors", "tracker_frame")
 FRAME_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
+#: std per axis of a prior tracker position (cell.toml's base_p_tracker: a tape measure) [m]
+TRACKER_PRIOR_STD_M = 0.1
 #: the tracker noise assumed for weights when the table holds no repeated readings [m]
 UNIT_NOISE_M = 1e-5
 
@@ -104,6 +106,7 @@ class AbsoluteFit:
     rss_whitened: float = 0.0
     n_params: int = 0
     iterations: int = 0
+    tracker_prior: np.ndarray | None = None
 
     @property
     def residuals(self) -> np.ndarray:
@@ -144,6 +147,10 @@ class AbsoluteFit:
                "absolute_noise_floor": self.noise_floor,
                "registration": {"rotation": reg.rotation.tolist(), "translation": reg.translation.tolist(),
                                 "base_p_tracker": reg.base_p_tracker.tolist()}}
+        if self.tracker_prior is not None:
+            out["registration"]["prior"] = {
+                "base_p_tracker": [float(v) for v in self.tracker_prior], "std": TRACKER_PRIOR_STD_M,
+                "offset": float(np.linalg.norm(reg.base_p_tracker - np.asarray(self.tracker_prior))), "unit": "m"}
         if self.absorbed_by:
             out["absorbed_by"] = {name: kin.absorbed_words(name, combo) for name, combo in self.absorbed_by.items()}
         return out
@@ -289,9 +296,15 @@ def _whitened(st: _Setup, r: np.ndarray, jac: np.ndarray | None):
 
 def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
                       model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
-                      form: str = "exact", max_iter: int = 30) -> AbsoluteFit:
+                      form: str = "exact", max_iter: int = 30,
+                      tracker_prior: Sequence[float] | None = None) -> AbsoluteFit:
     """Compare the model with the absolute positions (and fit the absolute
-    effects of ``model`` jointly with the rest); see the module docstring."""
+    effects of ``model`` jointly with the rest); see the module docstring.
+
+    ``tracker_prior``: where the tracker stands in base coordinates [m] as the
+    cell knows it (cell.toml's ``[tracker] base_p_tracker``): a prior of
+    :data:`TRACKER_PRIOR_STD_M` per axis on the registration when it is fitted,
+    and reported against the registration found."""
     ds0 = data if isinstance(data, StaticDataset) else build_dataset(data)
     names = tuple(dict.fromkeys(["joint_stiffness", *model]))
     static_model, absolute = split_model(names)
@@ -355,7 +368,12 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
             xx[idx] = xf
             p, j = _model(st, *_unpack(st, xx, n_el), jacobian=True)
             rw, jw_ = _whitened(st, y - p, j)
-            return rw, -jw_[:, idx]
+            rw, jac_ = rw, -jw_[:, idx]
+            if tracker_prior is not None:       # three rows: the tracker's position against the cell's
+                r_p, j_p = _prior_rows(st, xx, n_el, np.asarray(tracker_prior, dtype=float))
+                rw = np.concatenate([rw, r_p])
+                jac_ = np.vstack([jac_, j_p[:, idx]])
+            return rw, jac_
 
         x_free, iterations = _gauss_newton(evaluate, x_full[idx], max_iter=max_iter)
         x_full = x_full.copy()
@@ -429,7 +447,27 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
         elastic_beta=beta.copy(), measured=y, predicted=pred, rms=float(np.sqrt(np.mean(r_flat ** 2))),
         max=float(np.max(np.abs(r_flat))), n=int(r_flat.size), noise_floor=floor, deflection_residuals=d_res,
         deflection_rms=float(np.sqrt(np.mean(d_res ** 2))), deflection_max=float(np.max(np.abs(d_res))),
-        rss_whitened=rss_w, n_params=p, iterations=iterations)
+        rss_whitened=rss_w, n_params=p, iterations=iterations,
+        tracker_prior=None if tracker_prior is None else np.asarray(tracker_prior, dtype=float))
+
+
+def _tracker_position(st: _Setup, x: np.ndarray, n_el: int) -> np.ndarray:
+    """Where the registration puts the tracker, base coordinates: ``-R^T t``."""
+    _, dr, dt, _ = _unpack(st, x, n_el)
+    rot = st.rot0 @ pin.exp3(dr)
+    return -rot.T @ (st.rot0 @ dt + st.t0)
+
+
+def _prior_rows(st: _Setup, x: np.ndarray, n_el: int, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened residual (3,) of the tracker position against its prior and its
+    Jacobian (3, len(x)) (central differences in the frame's six: a closed form)."""
+    here = _tracker_position(st, x, n_el)
+    jac = np.zeros((3, len(x)))
+    for k in range(n_el, n_el + 6):
+        step = np.zeros(len(x))
+        step[k] = 1e-7
+        jac[:, k] = (_tracker_position(st, x + step, n_el) - _tracker_position(st, x - step, n_el)) / 2e-7
+    return (prior - here) / TRACKER_PRIOR_STD_M, -jac / TRACKER_PRIOR_STD_M
 
 
 def _gauss_newton(evaluate, x0: np.ndarray, *, max_iter: int, rel_tol: float = 1e-10) -> tuple[np.ndarray, int]:

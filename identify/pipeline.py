@@ -11,7 +11,7 @@ from elastocal.errors import InputError
 from elastocal.identify.effects import ALL_EFFECTS, get_effect
 
 
-def absolute_or_static(robot, table, model: tuple[str, ...], torque: str, form: str):
+def absolute_or_static(robot, table, model: tuple[str, ...], torque: str, form: str, *, tracker_prior=None):
     """The absolute fit (identify/absolute.py) when the table holds absolute
     positions or the model has absolute effects, else the deflection fit."""
     from elastocal.identify.absolute import ABSOLUTE_EFFECTS, has_absolute_positions, identify_absolute
@@ -19,12 +19,12 @@ def absolute_or_static(robot, table, model: tuple[str, ...], torque: str, form: 
 
     ds = build_dataset(table)
     if has_absolute_positions(robot, ds) or any(m in ABSOLUTE_EFFECTS for m in model):
-        return identify_absolute(robot, ds, model=model, torque=torque, form=form)
+        return identify_absolute(robot, ds, model=model, torque=torque, form=form, tracker_prior=tracker_prior)
     return identify_static(robot, ds, model=model, torque=torque, form=form)
 
 
 def identify_data(robot, static, runs, model: tuple[str, ...], torque: str, form: str, *,
-                  exclude_outliers: bool = False) -> tuple[dict, object | None]:
+                  exclude_outliers: bool = False, tracker_prior=None) -> tuple[dict, object | None]:
     """The ``identify --json`` object for the tables, and the static fit if any.
     ``outliers`` lists the static readings far off their repeats (identify/outliers.py);
     with ``exclude_outliers`` the fit leaves them out."""
@@ -40,7 +40,7 @@ def identify_data(robot, static, runs, model: tuple[str, ...], torque: str, form
     run_model = tuple(m for m in model if m in RUN_EFFECTS)
     static_model = tuple(m for m in model if m not in RUN_EFFECTS or runs is None)
     table, excluded = without_outliers(static) if exclude_outliers else (static, ())
-    fit = absolute_or_static(robot, table, static_model, torque, form)
+    fit = absolute_or_static(robot, table, static_model, torque, form, tracker_prior=tracker_prior)
     obj = fit.to_json()
     obj["model"] = list(model)
     obj["outliers"] = [o.to_json() for o in (*excluded, *fit.dataset.outliers)]

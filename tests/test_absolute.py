@@ -406,3 +406,15 @@ def test_one_marker_on_the_tool_axis():
     assert fit.absorbed_by["dq6"] == ()                  # moves nothing at all
     assert fit.rms < 1.25 * fit.noise_floor
     assert all(abs(p.value) < 0.01 for p in fit.parameters if p.name in fit.kinematic_names)
+
+
+def test_tracker_position_prior_from_the_cell(kinematic_data):
+    truth, tables = kinematic_data
+    free = identify_absolute(ROBOT, tables[2], model=FULL)
+    placed = identify_absolute(ROBOT, tables[2], model=FULL, tracker_prior=(3.1, -1.7, 0.6))
+    prior = placed.json_fields()["registration"]["prior"]
+    assert prior["std"] == 0.1 and prior["offset"] == pytest.approx(np.linalg.norm(
+        placed.registration.base_p_tracker - np.array([3.1, -1.7, 0.6])))
+    # a tape-measure prior does not move a registration the data fix to micrometres
+    np.testing.assert_allclose(placed.registration.base_p_tracker, free.registration.base_p_tracker, atol=1e-6)
+    assert placed.rms == pytest.approx(free.rms, rel=1e-3)

@@ -20,14 +20,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_outlier_argument(parser)
     parser.add_argument("--out", help="write the calibration JSON (docs/formats.md §4) here")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    parser.add_argument("--tracker-position", metavar="X,Y,Z",
+                        help="where the tracker stands in base coordinates [m] (cell.toml's [tracker] "
+                             "base_p_tracker): a prior of 0.1 m on the registration (docs/absolute.md)")
 
 
 def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *,
-                    exclude_outliers: bool = False) -> tuple[dict, object | None]:
+                    exclude_outliers: bool = False, tracker_prior=None) -> tuple[dict, object | None]:
     """The identify --json object for the inputs, and the static fit if any
     (:func:`elastocal.identify.pipeline.identify_data`)."""
     return identify_data(inputs.robot, inputs.static, inputs.runs, model, torque, form,
-                         exclude_outliers=exclude_outliers)
+                         exclude_outliers=exclude_outliers, tracker_prior=tracker_prior)
+
+
+def _tracker_position(text: str | None):
+    if text is None:
+        return None
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise InputError(f"expected x,y,z in metres, got {text!r}", source="--tracker-position") from None
+    if len(values) != 3 or not all(abs(v) < 100.0 for v in values):
+        raise InputError(f"expected 3 finite numbers x,y,z in metres, got {text!r}", source="--tracker-position")
+    return tuple(values)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
     inputs = load_inputs(args)
     if inputs.static is None and inputs.runs is None:
         raise InputError("the log holds neither a static experiment nor runs", source=args.log or "--static")
-    obj, fit = identify_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers)
+    obj, fit = identify_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers,
+                               tracker_prior=_tracker_position(args.tracker_position))
     if args.out:
         calibration = calibration_from_fit(inputs.robot.name, obj, inputs.files,
                                            robot_description=inputs.robot.to_toml())
