@@ -101,11 +101,14 @@ def _number(text: str, *, decimal_comma: bool, source: str, line: int, column: s
     return v
 
 
-def length_factor(unit: str, *, source: str, column: str | None = None) -> float:
+def length_factor(unit: str, *, source: str | None = None, column: str | None = None,
+                  argument: str | None = None) -> float:
+    """Metres per ``unit``; an unknown unit names the file (``source``, ``column``) or the
+    command-line ``argument`` it came from."""
     key = unit.strip().lower()
     if key not in LENGTH_UNITS:
         raise InputError(f"unknown length unit {unit!r}; one of {', '.join(k for k in LENGTH_UNITS if k != 'µm')}",
-                         source=source, column=column)
+                         source=source, column=column, argument=argument)
     return LENGTH_UNITS[key]
 
 
@@ -224,7 +227,7 @@ def _read_table(text: str, source: str, unit: str | None, columns: dict[str, str
     if length is None:
         raise InputError("the coordinates' unit is not in the header (X [mm]); give --unit mm or --unit m",
                          source=source, row=1)
-    f = length_factor(length, source=source if file_unit else "--unit")
+    f = length_factor(length, source=source) if file_unit else length_factor(length, argument="unit")
     fu = length_factor(head_units["u95"], source=source) if "u95" in head_units else f
     temp_unit = (head_units.get("temperature") or "°C").replace(" ", "").lower()
     if temp_unit not in ("°c", "c", "degc", "°f", "f", "degf"):
