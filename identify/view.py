@@ -61,6 +61,8 @@ class CellView:
     candidates: tuple[tuple[str, ...], ...]   # rows of the candidate table (header first)
     verdict: str | None
     noise_floor: float | None
+    #: (P, K, 3) the same skeletons with a calibration's geometry (kinematic_errors), or None
+    skeletons_calibrated: np.ndarray | None = None
 
 
 def urdf_skeletons(robot: Robot, q: np.ndarray) -> np.ndarray:
@@ -108,10 +110,11 @@ def _candidate_rows(diag: Diagnosis) -> tuple[tuple[str, ...], ...]:
 
 
 def cell_view(robot: Robot, diag: Diagnosis, *, add: str | None = None,
-              calibrated: tuple[str, np.ndarray] | None = None) -> CellView:
+              calibrated: tuple[str, np.ndarray] | None = None, calibrated_robot: Robot | None = None) -> CellView:
     """The view of a static diagnosis: the model as given, the model with ``add``
     (default: the verdict, else the best plausible candidate), and optionally a
-    calibration's predicted deflections ``(title, (D, 3))``."""
+    calibration's predicted deflections ``(title, (D, 3))``; ``calibrated_robot``: the robot
+    with a calibration's geometry, whose skeletons are kept beside the nominal ones."""
     where = diag.where
     n_poses = len(where.pose_ids)
     first = np.array([np.flatnonzero(where.pose == p)[0] for p in range(n_poses)])
@@ -126,10 +129,12 @@ def cell_view(robot: Robot, diag: Diagnosis, *, add: str | None = None,
     effect = add or diag.verdict or next((c.effect for c in diag.candidates if not c.implausible), None)
     if effect is not None:
         cand = next((c for c in diag.candidates if c.effect == effect), None)
-        if cand is None:
+        if cand is None and add is not None:
             raise ValueError(f"{effect!r} is not among the tested candidates")
-        after = where_it_fails(robot, cand.fit, noise=diag.noise_known)
-        models.append(_model_view(f"model + {effect}", where.measured, after.predicted, where.pose, n_poses, floor))
+        if cand is not None:   # (a verdict on the absolute positions, e.g. kinematic_errors, has no deflection fit)
+            after = where_it_fails(robot, cand.fit, noise=diag.noise_known)
+            models.append(_model_view(f"model + {effect}", where.measured, after.predicted, where.pose, n_poses,
+                                      floor))
     if calibrated is not None:
         title, predicted = calibrated
         models.append(_model_view(title, where.measured, predicted, where.pose, n_poses, floor))
@@ -137,7 +142,15 @@ def cell_view(robot: Robot, diag: Diagnosis, *, add: str | None = None,
                     markers=tuple(where.markers), defl_pose=where.pose, defl_marker=where.marker,
                     defl_load=where.load, anchor=anchor, measured=where.measured, pose_floor=floor,
                     models=tuple(models), candidates=_candidate_rows(diag), verdict=diag.verdict,
-                    noise_floor=diag.noise_floor)
+                    noise_floor=diag.noise_floor,
+                    skeletons_calibrated=None if calibrated_robot is None else urdf_skeletons(calibrated_robot, q))
+
+
+def geometry_skeletons(view: CellView, calibrated: bool, magnify: float = MAGNIFY) -> np.ndarray:
+    """Skeletons to draw: nominal, or calibrated with its difference from nominal magnified."""
+    if not calibrated or view.skeletons_calibrated is None:
+        return view.skeletons
+    return view.skeletons + magnify * (view.skeletons_calibrated - view.skeletons)
 
 
 def ratio_colours(ratio: np.ndarray) -> np.ndarray:

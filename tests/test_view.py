@@ -115,3 +115,31 @@ def test_view_refuses_bad_input_in_one_line(dataset, capsys):
     assert main(["view", "--robot", str(dataset / "robot.toml"), "--static", str(dataset / "static.csv"),
                  "--add", "nonsense"]) == 2
     assert "--add" in capsys.readouterr().err
+
+
+def test_nominal_and_calibrated_geometry_toggle(tmp_path):
+    """A calibration with kinematic_errors: the page draws the robot with the nominal or the
+    calibrated geometry (difference magnified), and the calibration's prediction is a model."""
+    from elastocal.commands.view import ViewPage, build_view
+    from elastocal.identify.view import geometry_skeletons
+
+    d = tmp_path / "abs"
+    assert main(["sim", "static", "--hidden", "kinematic_errors", "--seed", "2", "--poses", "8", "--out", str(d)]) == 0
+    assert main(["identify", "--robot", str(d / "robot.toml"), "--static", str(d / "static.csv"), "--model",
+                 "joint_stiffness,kinematic_errors,tracker_frame", "--out", str(d / "cal.json")]) == 0
+    view = build_view(view_args("--robot", str(d / "robot.toml"), "--static", str(d / "static.csv"),
+                                "--calibration", str(d / "cal.json")))
+    assert view.skeletons_calibrated is not None and view.models[-1].title.startswith("calibration")
+    shift = np.linalg.norm(view.skeletons_calibrated - view.skeletons, axis=2)
+    assert shift[:, 0].max() == 0.0 and 1e-4 < shift.max() < 1e-2        # the base stays, the arm moves by mm
+    np.testing.assert_allclose(geometry_skeletons(view, True, 100.0) - view.skeletons,
+                               100.0 * (view.skeletons_calibrated - view.skeletons))
+    page = ViewPage(view, port=0)
+    try:
+        page.gui_geometry.value = "calibrated"
+        deadline = time.monotonic() + 10
+        while page.geometry != "calibrated" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert page.geometry == "calibrated" and "largest joint-origin shift" in page.gui_scale.content
+    finally:
+        page.stop()

@@ -55,7 +55,7 @@ def build_view(args: argparse.Namespace):
                          source=args.log or "--static")
     model = parse_model(args.model)
     static, _ = diagnose_inputs(inputs, model, args.torque, args.form)
-    calibrated = None
+    calibrated = robot_calibrated = None
     if args.calibration:
         from elastocal.identify.calibration import read_calibration
         from elastocal.identify.check import check_static
@@ -67,9 +67,13 @@ def build_view(args: argparse.Namespace):
             raise InputError("the calibration's model orders the deflections differently; cannot compare",
                              source=args.calibration)
         calibrated = (f"calibration {args.calibration}", result.predicted)
+        if "kinematic_errors" in cal.model and inputs.robot.urdf is None:
+            from elastocal.identify.accuracy import calibrated_robot
+
+            robot_calibrated = calibrated_robot(inputs.robot, cal)
     if args.add is not None and args.add not in {c.effect for c in static.candidates}:
         raise InputError(f"{args.add} is not a tested candidate of these data", source="--add")
-    return cell_view(inputs.robot, static, add=args.add, calibrated=calibrated)
+    return cell_view(inputs.robot, static, add=args.add, calibrated=calibrated, calibrated_robot=robot_calibrated)
 
 
 class ViewPage:
@@ -93,6 +97,7 @@ class ViewPage:
         self.magnify = float(magnify)
         self.magnify_errors = float(magnify_errors)
         self.pose = "all"
+        self.geometry = "nominal"
         self._build_gui()
         self._draw()
 
@@ -110,6 +115,15 @@ class ViewPage:
         self.gui_errors = gui.add_slider("errors ×", min=10.0, max=5000.0, step=10.0,
                                          initial_value=self.magnify_errors)
         self.gui_pose = gui.add_dropdown("pose", options=["all", *view.pose_ids], initial_value="all")
+        self.gui_geometry = None
+        if view.skeletons_calibrated is not None:
+            self.gui_geometry = gui.add_dropdown("geometry", options=["nominal", "calibrated"],
+                                                 initial_value="nominal")
+
+            @self.gui_geometry.on_update
+            def _(_event) -> None:
+                self.geometry = self.gui_geometry.value
+                self._draw()
         self.gui_scale = gui.add_markdown("")
         self.gui_summary = gui.add_markdown("")
         rows = view.candidates
@@ -144,7 +158,7 @@ class ViewPage:
 
     # ---------------------------------------------------------------- scene
     def _draw(self) -> None:
-        from elastocal.identify.view import arrows, pose_summary, ratio_colours
+        from elastocal.identify.view import arrows, geometry_skeletons, pose_summary, ratio_colours
 
         with self._lock:
             view, scene = self.view, self.server.scene
@@ -153,8 +167,9 @@ class ViewPage:
             scene.add_grid("/floor", width=4.0, height=4.0, cell_size=0.25, position=(0.6, 0.0, 0.0))
             colours = ratio_colours(model.pose_ratio)
             shown = [p for p, pid in enumerate(view.pose_ids) if self.pose in ("all", pid)]
+            skeletons = geometry_skeletons(view, self.geometry == "calibrated", self.magnify)
             for p, pid in enumerate(view.pose_ids):
-                pts = view.skeletons[p]
+                pts = skeletons[p]
                 segments = np.stack([pts[:-1], pts[1:]], axis=1)
                 scene.add_line_segments(f"/poses/{pid}/links", segments, tuple(int(c) for c in colours[p]),
                                         thickness=0.035, visible=p in shown)
@@ -184,6 +199,11 @@ class ViewPage:
             self.gui_scale.content = (f"**{model.title}**: residual rms {model.rms * 1e6:.1f} µm, {floor}. "
                                       f"Deflections ×{self.magnify:g} (the black bar: 1 mm), errors "
                                       f"×{self.magnify_errors:g} (the magenta bar: 100 µm).")
+            if view.skeletons_calibrated is not None:
+                shift = np.linalg.norm(view.skeletons_calibrated - view.skeletons, axis=2).max()
+                self.gui_scale.content += (f" Geometry: **{self.geometry}**" +
+                                           (f" (its difference from nominal ×{self.magnify:g}; largest joint-origin "
+                                            f"shift {shift * 1e3:.2f} mm)." if self.geometry == "calibrated" else "."))
             self.gui_summary.content = "**Poses** (residual rms)\n\n" + "\n".join(
                 f"- {line}" for line in pose_summary(view, model))
 
