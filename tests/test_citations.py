@@ -66,7 +66,7 @@ def test_the_contract_documents_are_here():
 @pytest.mark.parametrize("line,message", [
     # (the bad citations are written in pieces so that no tool rewrites them)
     ("# see " + "formats.md §2", "cites " + "formats.md, which the repository does not hold (write docs/formats.md?)"),
-    ('help="robot.toml (../' + 'spec/formats.md §1)"', "points outside the repository"),
+    ('help="robot.toml (../' + 'spec/formats' + '.md §1)"', "points outside the repository"),
     ("# the paper: ../shared/seeds/000_c7816f4a9764a4d5.txt", "points outside the repository"),
     ("# docs/nonexistent.md", "cites docs/nonexistent.md"),
 ])
@@ -75,9 +75,9 @@ def test_a_citation_outside_the_repository_fails(tmp_path, line, message):
         target = tmp_path / path.relative_to(ROOT)
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(path.read_bytes())
-    assert not problems(tmp_path)
+    before = set(problems(tmp_path))     # (test_every_cited_document_is_in_the_repository judges these)
     bad = tmp_path / "identify" / "static.py"
     bad.write_text(bad.read_text(encoding="utf-8") + f"\n{line}\n", encoding="utf-8")
-    found = problems(tmp_path)
+    found = [f for f in problems(tmp_path) if f not in before]
     assert found and all(f.startswith("identify/static.py:") for f in found), found
     assert any(message in f for f in found), found
