@@ -29,6 +29,10 @@ angles), block by block (one block per state: its markers share its currents).
 
 Standard deviations come from the covariance of the weighted fit; the
 absolute noise floor is what the noise alone would leave, ``trace((I - H) Σ)``.
+
+Why one module over 500 lines: the absolute model, its noise weighting and its
+solver share one private setup (:class:`_Setup`) of one fit; the geometry and the
+registration it uses are in identify/kinematics.py and identify/registration.py.
 """
 
 from __future__ import annotations
