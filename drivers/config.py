@@ -448,7 +448,7 @@ def _check_can_nodes(drives: tuple[DriveConfig, ...], *, source: str) -> None:
     for d in drives:
         if d.url.scheme != "canopen":
             continue
-        key = (d.url.can_interface, d.url.can_channel, int(d.url.param("node")))
+        key = (d.url.can_interface, d.url.can_channel, d.url.int_param("node", 1, source=source))
         if key in seen:
             raise InputError(f"joints {seen[key]} and {d.joint} use the same CAN node {key[2]} on "
                              f"{key[0]}/{key[1]}", source=source, column="drive")

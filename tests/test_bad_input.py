@@ -562,3 +562,13 @@ def test_identify_writes_no_calibration_its_reader_would_refuse(data, tmp_path, 
                                   "--out", tmp_path / "cal.json"])
     assert_refused(rc, err, f"{data / 'static.csv'}: the fit gives k", "is not a plausible joint stiffness")
     assert not (tmp_path / "cal.json").exists()
+
+
+def test_a_can_node_in_hex_is_read_as_the_drives_read_it():
+    from elastocal.drivers.config import parse_cell_config
+    from elastocal.errors import InputError
+
+    text = ('[cell]\nrobot = "hh150"\n[[drive]]\njoint = 1\nurl = "canopen://virtual/x?node=0x10"\n'
+            '[[drive]]\njoint = 2\nurl = "canopen://virtual/x?node=16"\n')
+    with pytest.raises(InputError, match="joints 1 and 2 use the same CAN node 16"):
+        parse_cell_config(text, source="cell.toml")
