@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.stats
 
+from elastocal.identify.grouping import combine, first_seen, group_count, group_sum, sums_per_group
+
 #: chance that a complete dataset shows any outlier (Bonferroni over its readings)
 ALPHA = 1e-3
 
@@ -50,11 +52,12 @@ class Outlier:
                 "residual": self.residual, "p_value": self.p_value, "excluded": self.excluded}
 
 
-def _groups(table) -> list[np.ndarray]:
-    keys: dict[tuple[str, str, str], list[int]] = {}
-    for i, key in enumerate(zip(table.pose, table.load, table.marker)):
-        keys.setdefault(key, []).append(i)
-    return [np.array(v) for v in keys.values()]
+def _group_codes(table) -> tuple[np.ndarray, int]:
+    """(code per row, number of groups): the (pose, load, marker) repeat groups numbered in
+    order of first appearance (identify/grouping.py)."""
+    key = combine(first_seen(table.pose)[0], first_seen(table.load)[0], first_seen(table.marker)[0])
+    code, first = first_seen(key)
+    return code, len(first)
 
 
 def robust_sigma(xyz: np.ndarray, groups: list[np.ndarray]) -> float | None:
@@ -69,31 +72,64 @@ def robust_sigma(xyz: np.ndarray, groups: list[np.ndarray]) -> float | None:
     return float(np.sqrt(np.median(s2) / median_scale))
 
 
+def _robust_sigma_grouped(xyz: np.ndarray, code: np.ndarray, n_groups: int) -> float | None:
+    """robust_sigma over the groups numbered by ``code``, in one grouped pass."""
+    n = group_count(code, n_groups)
+    repeated = n > 1
+    if not np.any(repeated):
+        return None
+    mean = group_sum(code, xyz, n_groups) / np.maximum(n, 1)[:, None]
+    rows = np.flatnonzero(repeated[code])
+    rows = rows[np.argsort(code[rows], kind="stable")]
+    dof = 3 * (n[repeated] - 1)
+    s2 = sums_per_group((xyz[rows] - mean[code[rows]]) ** 2, n[repeated]) / dof
+    # each s2 is sigma^2 chi2(dof)/dof: correct the median by that distribution's median
+    median_scale = np.median(scipy.stats.chi2.median(dof) / dof)
+    return float(np.sqrt(np.median(s2) / median_scale))
+
+
 def find_outliers(table, *, alpha: float = ALPHA) -> tuple[Outlier, ...]:
-    """Readings of a static table far off their repeats, worst first."""
+    """Readings of a static table far off their repeats, worst first.
+
+    The first test of every group is one grouped pass over the rows; only the groups whose
+    worst reading fails it are tested again reading by reading."""
     xyz = table.xyz
-    groups = _groups(table)
-    sigma = robust_sigma(xyz, groups)
-    tested = sum(len(g) for g in groups if len(g) >= 3)
+    code, n_groups = _group_codes(table)
+    sigma = _robust_sigma_grouped(xyz, code, n_groups)
+    n = group_count(code, n_groups)
+    tested = int(n[n >= 3].sum())
     if sigma is None or not sigma > 0 or tested == 0:
         return ()
     limit = alpha / tested
+    big = n >= 3
+    rows = np.flatnonzero(big[code])
+    g = code[rows]
+    x = xyz[rows]
+    ng = n[g][:, None]
+    others = (group_sum(g, x, n_groups)[g] - x) / (ng - 1)
+    d2 = ((x - others) ** 2).sum(axis=1) / (sigma**2 * (1.0 + 1.0 / (ng[:, 0] - 1)))
+    worst = np.full(n_groups, -np.inf)
+    np.maximum.at(worst, g, d2)
+    candidates = np.flatnonzero(big & (scipy.stats.chi2.sf(np.where(big, worst, 0.0), 3) < limit * (1 + 1e-6)))
     found: list[Outlier] = []
-    for g in groups:
-        left = list(g)
-        while len(left) >= 3:
-            x = xyz[left]
-            n = len(left)
-            others = (x.sum(axis=0) - x) / (n - 1)
-            d2 = ((x - others) ** 2).sum(axis=1) / (sigma**2 * (1.0 + 1.0 / (n - 1)))
-            k = int(np.argmax(d2))
-            p = float(scipy.stats.chi2.sf(d2[k], 3))
-            if p >= limit:
-                break
-            i = left.pop(k)
-            found.append(Outlier(row=int(i), line=int(table.line[i]), pose=str(table.pose[i]),
-                                 load=str(table.load[i]), marker=str(table.marker[i]),
-                                 residual=float(np.linalg.norm(x[k] - others[k])), p_value=p))
+    if candidates.size:
+        members = np.argsort(code, kind="stable")
+        starts = np.concatenate([[0], np.cumsum(n)])
+        for c in candidates:
+            left = list(members[starts[c]:starts[c + 1]])
+            while len(left) >= 3:
+                x = xyz[left]
+                m = len(left)
+                others = (x.sum(axis=0) - x) / (m - 1)
+                d2 = ((x - others) ** 2).sum(axis=1) / (sigma**2 * (1.0 + 1.0 / (m - 1)))
+                k = int(np.argmax(d2))
+                p = float(scipy.stats.chi2.sf(d2[k], 3))
+                if p >= limit:
+                    break
+                i = left.pop(k)
+                found.append(Outlier(row=int(i), line=int(table.line[i]), pose=str(table.pose[i]),
+                                     load=str(table.load[i]), marker=str(table.marker[i]),
+                                     residual=float(np.linalg.norm(x[k] - others[k])), p_value=p))
     found.sort(key=lambda o: -o.residual)
     return tuple(found)
 

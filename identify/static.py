@@ -42,6 +42,7 @@ from elastocal.identify.robot import (
     Robot,
 )
 from elastocal.identify.evidence import check_loads_changed, mark_stiffness
+from elastocal.identify.grouping import combine, first_seen, group_count, group_sum, sums_per_group
 from elastocal.identify.registration import in_base_axes, refine_registration
 from elastocal.identify.tables import StaticTable
 
@@ -125,91 +126,116 @@ def distinct_readings(currents: np.ndarray) -> np.ndarray:
     return currents[np.sort(first)]
 
 
+def _in_order(values: np.ndarray, start: np.ndarray | float) -> np.ndarray:
+    """``start`` plus the ``values`` (along axis 0) added one after the other, in order: the sum
+    a loop over the groups makes, to the last bit (the fits downstream are that sensitive)."""
+    return np.add.accumulate(np.concatenate([np.asarray(start, dtype=float)[None], values]), axis=0)[-1]
+
+
 def build_dataset(table: StaticTable) -> StaticDataset:
     """Average repeated readings and form the deflections of a validated table.
 
     The tracker's repeatability leaves out the readings far off their repeats
-    (identify/outliers.py); they are listed in ``outliers``."""
+    (identify/outliers.py); they are listed in ``outliers``.
+
+    States are numbered pose by pose in order of first appearance, the reference (load 0)
+    first, then the pose's loads in order of first appearance; deflections run over the
+    loaded states and every marker of the table. One grouped pass over the rows
+    (identify/grouping.py): no Python loop per row, state or marker."""
     from elastocal.identify.outliers import find_outliers, outlier_mask
 
     outliers = find_outliers(table)
     bad = outlier_mask(len(table), outliers)
-    pose_ids = tuple(dict.fromkeys(table.pose))
-    markers = tuple(dict.fromkeys(table.marker))
-    q = np.array([table.q[table.pose == p][0] for p in pose_ids])
-    state_pose, state_load, state_ref, cur, ncur, wrench = [], [], [], [], [], []
-    defl = {k: [] for k in ("state", "ref", "marker", "dP", "n", "n_ref", "dt", "t")}
-    abs_xyz, abs_n, abs_t = [], [], []
-    dev_sq_p, dof_p = 0.0, 0
-    dev_sq_i, dof_i = np.zeros(6), 0
+    pose_code, pose_first = first_seen(table.pose)
+    marker_code, marker_first = first_seen(table.marker)
+    pose_ids = tuple(table.pose[pose_first])
+    markers = tuple(table.marker[marker_first])
+    q = table.q[pose_first]
+    n_markers = len(markers)
+    missing = sorted(set(range(len(pose_ids))) - set(pose_code[table.load == "0"].tolist()))
+    if missing:
+        p = pose_ids[missing[0]]
+        raise InputError(f"pose {p} has no unloaded reference (load 0)", source=table.source,
+                         row=int(table.line[pose_first[missing[0]]]), column="load")
+
+    # states: (pose, load) pairs, the reference first within a pose, then in order of first appearance
+    pair_code, pair_first = first_seen(combine(pose_code, first_seen(table.load)[0]))
+    order = np.lexsort((pair_first, table.load[pair_first] != "0", pose_code[pair_first]))
+    state_of_pair = np.empty(len(order), dtype=np.intp)
+    state_of_pair[order] = np.arange(len(order))
+    state = state_of_pair[pair_code]                       # (n,) state of each row
+    first_row = pair_first[order]                          # (S,) first row of each state
+    n_states = len(first_row)
+    state_pose = pose_code[first_row]
+    state_load = np.array(list(table.load[first_row]), dtype=str)
+    state_ref = np.searchsorted(state_pose, state_pose)    # states are sorted by pose, reference first
+
+    # currents: the distinct drive readings of each state (distinct_readings), averaged
+    currents = table.currents
+    row_finite = np.all(np.isfinite(currents), axis=1)
+    state_finite = group_count(state[~row_finite], n_states) == 0
+    keep = np.ones(len(table), dtype=bool)
+    dedupe = np.flatnonzero(state_finite[state])
+    if dedupe.size:
+        _, first = np.unique(np.column_stack([state[dedupe].astype(float), currents[dedupe]]), axis=0,
+                             return_index=True)
+        keep[dedupe] = False
+        keep[dedupe[first]] = True
+    ncur = group_count(state[keep], n_states)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cur = group_sum(state[keep], currents[keep], n_states) / ncur[:, None]
+    noisy = state_finite & (ncur > 1)
+    rows_i = keep & noisy[state]
+    per_state = group_sum(state[rows_i], (currents[rows_i] - cur[state[rows_i]]) ** 2, n_states)[noisy]
+    dev_sq_i = _in_order(per_state, np.zeros(6))
+    dof_i = int(np.sum(ncur[noisy] - 1))
+
+    wrench = table.wrench[first_row].copy()
+    blank_ref = (state_load == "0") & ~np.all(np.isfinite(wrench), axis=1)
+    wrench[blank_ref] = 0.0
+
+    # (state, marker) cells: mean position, readings, mean time; repeatability from the good readings
+    cell = state * n_markers + marker_code
+    n_cells = n_states * n_markers
+    count = group_count(cell, n_cells)
+    good = ~bad
+    n_good = group_count(cell[good], n_cells)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xyz_mean = group_sum(cell, table.xyz, n_cells) / count[:, None]
+        t_mean = group_sum(cell, table.t, n_cells) / count
+        good_mean = group_sum(cell[good], table.xyz[good], n_cells) / n_good[:, None]
+    rows_p = np.flatnonzero(good & (n_good[cell] > 1))
+    rows_p = rows_p[np.argsort(cell[rows_p], kind="stable")]
+    dev_sq_p = float(_in_order(sums_per_group((table.xyz[rows_p] - good_mean[cell[rows_p]]) ** 2,
+                                               n_good[n_good > 1]), 0.0))
+    dof_p = int(np.sum(3 * (n_good[n_good > 1] - 1)))
     u95 = table.optional("u95")
     if u95 is not None and not (np.all(np.isfinite(u95)) and np.all(u95 > 0)):
         u95 = None                  # weights only when every reading has its uncertainty
-    var_of: dict[tuple[str, str], float] = {}
-    u95_var, u95_var_ref = [], []
-    for pi, p in enumerate(pose_ids):
-        rows_p = table.pose == p
-        loads = ["0"] + [ld for ld in dict.fromkeys(table.load[rows_p]) if ld != "0"]
-        ref_index = len(state_pose)
-        means: dict[tuple[str, str], tuple[np.ndarray, int, float]] = {}
-        for ld in loads:
-            rows = rows_p & (table.load == ld)
-            c = distinct_readings(table.currents[rows])
-            state_pose.append(pi)
-            state_load.append(ld)
-            state_ref.append(ref_index)
-            cur.append(c.mean(axis=0))
-            ncur.append(len(c))
-            if np.all(np.isfinite(c)) and len(c) > 1:
-                dev_sq_i += ((c - c.mean(axis=0)) ** 2).sum(axis=0)
-                dof_i += len(c) - 1
-            w = table.wrench[rows][0]
-            if ld == "0" and not np.all(np.isfinite(w)):
-                w = np.zeros(6)
-            wrench.append(w)
-            for m in markers:
-                rm = rows & (table.marker == m)
-                x = table.xyz[rm]
-                good = table.xyz[rm & ~bad]
-                if len(good) > 1:
-                    dev_sq_p += float(((good - good.mean(axis=0)) ** 2).sum())
-                    dof_p += 3 * (len(good) - 1)
-                means[(ld, m)] = (x.mean(axis=0), len(x), float(np.mean(table.t[rm])))
-                if u95 is not None:       # variance of the mean of the state's readings
-                    var_of[(ld, m)] = float(np.sum((u95[rm] / 1.96) ** 2)) / int(rm.sum()) ** 2
-            abs_xyz.append([means[(ld, m)][0] for m in markers])
-            abs_n.append([means[(ld, m)][1] for m in markers])
-            abs_t.append([means[(ld, m)][2] for m in markers])
-        for li, ld in enumerate(loads[1:], start=1):
-            for mi, m in enumerate(markers):
-                x1, n1, t1 = means[(ld, m)]
-                x0, n0, t0 = means[("0", m)]
-                defl["state"].append(ref_index + li)
-                defl["ref"].append(ref_index)
-                if u95 is not None:
-                    u95_var.append(var_of[(ld, m)] + var_of[("0", m)])
-                    u95_var_ref.append(var_of[("0", m)])
-                defl["marker"].append(mi)
-                defl["dP"].append(x1 - x0)
-                defl["n"].append(n1)
-                defl["n_ref"].append(n0)
-                defl["dt"].append(t1 - t0)
-                defl["t"].append(t1)
+    if u95 is not None:             # variance of the mean of the state's readings
+        with np.errstate(invalid="ignore", divide="ignore"):
+            var_of = group_sum(cell, (u95 / 1.96) ** 2, n_cells) / count.astype(float) ** 2
+
+    # deflections: every loaded state against its pose's reference, marker by marker
+    loaded = np.flatnonzero(state_ref != np.arange(n_states))
+    d_state = np.repeat(loaded, n_markers)
+    d_marker = np.tile(np.arange(n_markers), len(loaded))
+    d_ref = state_ref[d_state]
+    c1, c0 = d_state * n_markers + d_marker, d_ref * n_markers + d_marker
     sigma_tracker = float(np.sqrt(dev_sq_p / dof_p)) if dof_p else None
     sigma_current = np.sqrt(dev_sq_i / dof_i) if dof_i else None
     return StaticDataset(
         source=table.source, pose_ids=pose_ids, q=q, markers=markers,
-        state_pose=np.array(state_pose), state_load=np.array(state_load, dtype=str),
-        state_ref=np.array(state_ref), state_currents=np.array(cur), state_n_currents=np.array(ncur),
-        state_wrench=np.array(wrench), defl_state=np.array(defl["state"]), defl_ref=np.array(defl["ref"]),
-        defl_marker=np.array(defl["marker"]), dP=np.array(defl["dP"]).reshape(-1, 3),
-        defl_n=np.array(defl["n"]), defl_n_ref=np.array(defl["n_ref"]), defl_dt=np.array(defl["dt"]),
-        defl_t=np.array(defl["t"]), sigma_tracker=sigma_tracker, sigma_current=sigma_current,
-        defl_u95_var=np.array(u95_var) if u95 is not None else None,
-        defl_u95_var_ref=np.array(u95_var_ref) if u95 is not None else None,
+        state_pose=state_pose, state_load=state_load, state_ref=state_ref, state_currents=cur,
+        state_n_currents=ncur, state_wrench=wrench, defl_state=d_state, defl_ref=d_ref,
+        defl_marker=d_marker, dP=(xyz_mean[c1] - xyz_mean[c0]).reshape(-1, 3),
+        defl_n=count[c1], defl_n_ref=count[c0], defl_dt=t_mean[c1] - t_mean[c0],
+        defl_t=t_mean[c1], sigma_tracker=sigma_tracker, sigma_current=sigma_current,
+        defl_u95_var=var_of[c1] + var_of[c0] if u95 is not None else None,
+        defl_u95_var_ref=var_of[c0] if u95 is not None else None,
         outliers=outliers,
-        abs_xyz=np.array(abs_xyz).reshape(len(state_pose), len(markers), 3), abs_n=np.array(abs_n),
-        abs_t=np.array(abs_t, dtype=float),
+        abs_xyz=xyz_mean.reshape(n_states, n_markers, 3), abs_n=count.reshape(n_states, n_markers),
+        abs_t=t_mean.reshape(n_states, n_markers).astype(float),
     )
 
 
