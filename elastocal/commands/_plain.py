@@ -17,7 +17,8 @@ def _length(x: float) -> str:
 
 def demo_findings(*, hidden: str, verdict: str | None, explanation: str | None, rms_before: float,
                   rms_after: float, floor: float | None, stiffness_error_percent: np.ndarray,
-                  validation: Mapping[str, Mapping[str, float]]) -> list[str]:
+                  validation: Mapping[str, Mapping[str, float]],
+                  absolute: tuple[float, float] | None = None) -> list[str]:
     """What the demo found, as sentences a newcomer reads without the glossary."""
     worst = float(np.max(stiffness_error_percent))
     out = [f"The robot bends under load like six springs at its joints. elastocal measured how stiff each "
@@ -38,6 +39,12 @@ def demo_findings(*, hidden: str, verdict: str | None, explanation: str | None, 
                    "left): nothing is missing from the model.")
     if hidden != "none" and verdict is not None and verdict != hidden:
         out.append(f"(The simulator hid {hidden}; the diagnosis named {verdict}.)")
+    if absolute is not None:
+        before, after = absolute
+        out.append(f"The robot as built is not quite the robot on its drawing: with the drawing's link lengths "
+                   f"and angles, the markers are {_length(before)} (typical) from where the tracker sees them; "
+                   f"with the lengths and angles elastocal measured, and the tracker's place found, "
+                   f"{_length(after)}.")
     unc, exact = validation["uncompensated"]["max"], validation["exact"]["max"]
     out.append(f"Then it corrected a process path: under a 1500 N process force the tool would miss its path by "
                f"up to {_length(unc)}; with the calibration, by up to {_length(exact)}.")

@@ -223,7 +223,8 @@ def run(args: argparse.Namespace) -> int:
     for sentence in demo_findings(hidden=args.hidden, verdict=diag.verdict,
                                   explanation=None if cand is None else cand.explanation,
                                   rms_before=diag.fit.rms, rms_after=final.rms, floor=diag.noise_floor,
-                                  stiffness_error_percent=err, validation=validation):
+                                  stiffness_error_percent=err, validation=validation,
+                                  absolute=(absolute.base.rms, geo.rms)):
         print("  " + textwrap.fill(sentence, 96, subsequent_indent="  "))
     print("\n  The numbers: joint stiffness identified (final model, from motor currents) against the truth")
     final_k = {p.name: {"value": p.value, "std": p.std, "unit": p.unit}
