@@ -98,6 +98,11 @@ def record_results(results: Sequence[LogResult], *, now_ns: int) -> Recorded:
 
 
 # --------------------------------------------------------------- plant drift
+#: a calibrated value whose std is larger than this share of it is not determined by its data
+#: (a joint the poses hardly load): its drift is reported as such, never as a finding
+DETERMINED_RELATIVE_STD = 0.1
+
+
 @dataclass(frozen=True)
 class CellDrift:
     """One cell of the plant: its history summed up (``error`` when it has none or it cannot be read)."""
@@ -108,21 +113,33 @@ class CellDrift:
     robot: str = ""
     calibrations: int = 0
     last_calibration: str | None = None         # UTC, ISO 8601
-    drift: tuple[tuple[str, str, float, float, float | None], ...] = ()   # (name, unit, first, latest, change)
+    #: (name, unit, first, latest, change, determined): change relative to the first calibration; determined is
+    #: False when the first or the last calibration leaves the parameter undetermined
+    drift: tuple[tuple[str, str, float, float, float | None, bool], ...] = ()
     checks: int = 0
     checks_failed: int = 0
     last_check: str | None = None
     last_verdict: str | None = None
     error: str = ""
 
-    def change(self, name: str) -> float | None:
-        return next((c for n, _, _, _, c in self.drift if n == name), None)
+    def change(self, name: str) -> tuple[float | None, bool]:
+        """(relative change of ``name``, whether it is determined); (None, False) when never calibrated."""
+        return next(((c, d) for n, _, _, _, c, d in self.drift if n == name), (None, False))
 
-    @property
-    def largest(self) -> tuple[str, float] | None:
-        """The parameter that moved most (relative), and its change."""
-        moved = [(n, c) for n, _, _, _, c in self.drift if c is not None and math.isfinite(c)]
+    def largest(self, exclude: Sequence[str] = ()) -> tuple[str, float] | None:
+        """The determined parameter (not in ``exclude``) that moved most, and its relative change."""
+        moved = [(n, c) for n, _, _, _, c, d in self.drift
+                 if d and n not in exclude and c is not None and math.isfinite(c)]
         return max(moved, key=lambda nc: abs(nc[1])) if moved else None
+
+
+def _determined(drift, name: str) -> bool:
+    """Whether the first and the last calibration both determine ``name``."""
+    j = drift.names.index(name)
+    values, stds = drift.calibration_value[:, j], drift.calibration_std[:, j]
+    known = [i for i, v in enumerate(values) if math.isfinite(v)]
+    return all(math.isfinite(stds[i]) and stds[i] <= DETERMINED_RELATIVE_STD * abs(values[i])
+               for i in (known[0], known[-1]))
 
 
 def find_cell_configs(paths: Sequence[str | pathlib.Path]) -> list[pathlib.Path]:
@@ -162,11 +179,12 @@ def cell_drift(cell_config: pathlib.Path) -> CellDrift:
         with History(config.history, create=False) as h:
             cals = h.calibrations()
             checks = h.checks()
-            summary = drift_summary(h.drift())
+            drift_data = h.drift()
     except InputError as exc:
         return CellDrift(**base, history=str(config.history), error=str(exc))
-    drift = tuple((name, str(p["unit"]), float(p["first"]), float(p["latest"]), p["change"])
-                  for name, p in summary.items())
+    summary = drift_summary(drift_data)
+    drift = tuple((name, str(p["unit"]), float(p["first"]), float(p["latest"]), p["change"],
+                   _determined(drift_data, name)) for name, p in summary.items())
     return CellDrift(**base, history=str(config.history), robot=cals[-1].robot if cals else "",
                      calibrations=len(cals), last_calibration=cals[-1].time if cals else None, drift=drift,
                      checks=len(checks), checks_failed=sum(c.verdict == "recalibrate" for c in checks),

@@ -5,7 +5,8 @@ in task order, calling ``progress`` as each one arrives.
 
 * **Dask** (``dask.distributed``, the ``elastocal[fleet]`` extra): a running
   scheduler (``tcp://host:8786``), or a ``LocalCluster`` of ``workers``
-  processes with one thread each, bound to 127.0.0.1, without a dashboard.
+  processes with one thread each, everything bound to 127.0.0.1 (its HTTP
+  routes on a free port; no dashboard unless bokeh is installed).
 * **Process pool** (``concurrent.futures``, no extra needed): ``workers``
   single-process pools, one task in each at a time.
 
@@ -38,6 +39,10 @@ POOLS = ("auto", "dask", "processes")
 #: the worker processes' numeric libraries run one thread each (as Dask's nanny sets them):
 #: one task per core, and no oversubscription of a machine the workers share
 SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
+#: where a LocalCluster's scheduler and workers serve HTTP (Dask always serves some routes; without an
+#: address the scheduler takes port 8787, which another cluster on the machine may hold)
+LOOPBACK_ANY_PORT = "127.0.0.1:0"
 
 Progress = Callable[[int, int, int, LogResult], None]
 
@@ -131,7 +136,8 @@ def _dask(tasks: list[FleetTask], fn, *, scheduler: str | None, workers: int) ->
         else:
             cluster = stack.enter_context(LocalCluster(
                 n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                dashboard_address=None, worker_dashboard_address=None, silence_logs=logging.CRITICAL))
+                dashboard_address=LOOPBACK_ANY_PORT, worker_dashboard_address=LOOPBACK_ANY_PORT,
+                silence_logs=logging.CRITICAL))
             client = stack.enter_context(Client(cluster))
         futures = client.map(fn, tasks, pure=False)
         index = {f.key: i for i, f in enumerate(futures)}

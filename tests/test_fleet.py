@@ -214,6 +214,8 @@ def test_record_identify_then_check_and_a_rerun_adds_nothing(plant, tmp_path_fac
     c = next(x for x in obj["cells"] if x["cell"] == "cell-c")
     assert c["calibrations"] == 8 and c["checks"] == 8 and c["checks_failed"] == 5
     assert -0.15 < c["drift"]["k2"]["change"] < -0.05     # first (stiff) to latest (soft): about -10 %
+    assert c["drift"]["k2"]["determined"] and not c["drift"]["k1"]["determined"]   # 4 poses hardly load joint 1
+    assert "n/d" in lines["cell-c"]
 
 
 @pytest.mark.parametrize("pool", ["dask", "processes"])

@@ -72,7 +72,7 @@ class _Progress:
 
 
 def _history(args: argparse.Namespace) -> int:
-    from elastocal.fleet.plant import plant_drift
+    from elastocal.fleet.plant import DETERMINED_RELATIVE_STD, plant_drift
 
     for flag in ("out", "record", "scheduler", "workers", "cell"):
         if getattr(args, flag):
@@ -84,23 +84,24 @@ def _history(args: argparse.Namespace) -> int:
         print(json.dumps(clean({"cells": [
             {"cell": c.cell, "cell_config": c.cell_config, "history": c.history, "robot": c.robot,
              "calibrations": c.calibrations, "last_calibration": c.last_calibration,
-             "drift": {n: {"unit": u, "first": f, "latest": la, "change": ch} for n, u, f, la, ch in c.drift},
+             "drift": {n: {"unit": u, "first": f, "latest": la, "change": ch, "determined": d}
+                       for n, u, f, la, ch, d in c.drift},
              "checks": c.checks, "checks_failed": c.checks_failed, "last_check": c.last_check,
              "last_verdict": c.last_verdict, "error": c.error or None} for c in cells]})))
         return 0
     stiff = [f"k{j}" for j in range(1, 7)]
     width = max([len(c.cell) for c in cells] + [4])
     lines = [f"plant: {len(cells)} cell(s); drift = latest (last calibration or later check) against the first "
-             "calibration",
+             f"calibration; n/d: not determined by the calibrations' data (std > "
+             f"{DETERMINED_RELATIVE_STD * 100:.0f} % of the value)",
              f"  {'cell':<{width}}  {'robot':<10}  {'cals':>4}  {'last calibration':<20}  "
              + " ".join(f"{k:>7}" for k in stiff) + f"  {'largest other':<18}  {'checks failed':>13}  last check"]
     for c in cells:
         if c.error:
             lines.append(f"  {c.cell or '?':<{width}}  {c.cell_config}: {c.error}")
             continue
-        ks = " ".join(f"{c.change(k) * 100:+6.2f}%" if c.change(k) is not None else f"{'-':>7}" for k in stiff)
-        other = [(n, ch) for n, _, _, _, ch in c.drift if n not in stiff and ch is not None]
-        big = max(other, key=lambda nc: abs(nc[1])) if other else None
+        ks = " ".join(_change(*c.change(k)) for k in stiff)
+        big = c.largest(exclude=stiff)
         other_s = f"{big[0]} {big[1] * 100:+.1f}%" if big else "-"
         last = f"{c.last_verdict} {c.last_check}" if c.last_check else "-"
         lines.append(f"  {c.cell:<{width}}  {c.robot[:10]:<10}  {c.calibrations:>4}  "
@@ -108,6 +109,13 @@ def _history(args: argparse.Namespace) -> int:
                      f"{f'{c.checks_failed} of {c.checks}':>13}  {last}")
     print("\n".join(lines))
     return 0
+
+
+def _change(change: float | None, determined: bool) -> str:
+    """A drift as ``+1.23%``; ``n/d`` when the data do not determine the parameter."""
+    if change is None:
+        return f"{'-':>7}"
+    return f"{change * 100:+6.2f}%" if determined else f"{'n/d':>7}"
 
 
 def _tasks(args: argparse.Namespace, inputs, model: tuple[str, ...]):
