@@ -95,6 +95,18 @@ def _without_seconds(rows: list[dict]) -> list[dict]:
 
 
 @pytest.fixture(scope="session")
+def scheduler():
+    """A Dask cluster the tests share through --scheduler (its start costs more than most tests' work)."""
+    import logging
+
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL) as cluster:
+        yield cluster.scheduler_address
+
+
+@pytest.fixture(scope="session")
 def identified(plant, tmp_path_factory):
     """fleet identify of the plant on Dask with 2 workers (no recording)."""
     out = tmp_path_factory.mktemp("identify") / "results.csv"
@@ -168,11 +180,11 @@ def test_without_dask_fleet_falls_back_to_the_process_pool_and_says_how_to_insta
     assert code == 2 and "pip install 'elastocal[fleet]'" in err
 
 
-def test_record_identify_then_check_and_a_rerun_adds_nothing(plant, tmp_path_factory, capsys):
+def test_record_identify_then_check_and_a_rerun_adds_nothing(plant, scheduler, tmp_path_factory, capsys):
     root = tmp_path_factory.mktemp("recorded")
     for name in CELLS:
         shutil.copytree(plant / name, root / name)
-    code, out, _ = _fleet(capsys, "identify", root, "--out", root / "cal.csv", "--record", "--workers", "2")
+    code, out, _ = _fleet(capsys, "identify", root, "--out", root / "cal.csv", "--record", "--scheduler", scheduler)
     assert code == 0 and "recorded 37 calibration(s) and 0 check(s) in 4 histories; 0 already recorded" in out
 
     def counts() -> dict:
@@ -185,14 +197,16 @@ def test_record_identify_then_check_and_a_rerun_adds_nothing(plant, tmp_path_fac
 
     assert counts() == {"cell-a": (10, 0), "cell-b": (10, 0), "cell-c": (8, 0), "cell-d": (9, 0)}
     code, out, _ = _fleet(capsys, "identify", root, "--out", root / "cal.csv", "--record", "--force",
-                          "--pool", "processes")
+                          "--scheduler", scheduler)
     assert code == 0 and "recorded 0 calibration(s) and 0 check(s) in 4 histories; 37 already recorded" in out
-    code, out, _ = _fleet(capsys, "check", root, "--out", root / "check.csv", "--record", "--workers", "2")
-    assert code == 0 and "recorded 0 calibration(s) and 37 check(s)" in out
+    checked = (root / "cell-a", root / "cell-c")     # two cells of the plant: 18 logs, 2 broken
+    code, out, _ = _fleet(capsys, "check", *checked, "--out", root / "check.csv", "--record", "--scheduler", scheduler)
+    assert code == 0 and "recorded 0 calibration(s) and 18 check(s)" in out
     first = counts()
-    code, out, _ = _fleet(capsys, "check", root, "--out", root / "check.csv", "--record", "--force")
-    assert "37 already recorded" in out and counts() == first == {
-        "cell-a": (10, 10), "cell-b": (10, 10), "cell-c": (8, 8), "cell-d": (9, 9)}
+    code, out, _ = _fleet(capsys, "check", *checked, "--out", root / "check.csv", "--record", "--force",
+                          "--scheduler", scheduler)
+    assert "18 already recorded" in out and counts() == first == {
+        "cell-a": (10, 10), "cell-b": (10, 0), "cell-c": (8, 8), "cell-d": (9, 0)}
     rows = {r["path"]: r for r in read_table(root / "check.csv")}
     # the decisions are exactly elastocal check's on each log alone
     for rel in ("cell-a/logs/04/log.mcap", "cell-c/logs/01/log.mcap", "cell-c/logs/06/log.mcap"):
@@ -261,11 +275,11 @@ def test_bad_input_is_one_line_exit_2_and_nothing_written(plant, tmp_path, capsy
     assert not list(tmp_path.iterdir())
 
 
-def test_diagnose_rows_are_what_diagnose_prints(plant, tmp_path, capsys):
+def test_diagnose_rows_are_what_diagnose_prints(plant, scheduler, tmp_path, capsys):
     out_csv = tmp_path / "d.csv"
     code, out, _ = _fleet(capsys, "diagnose", plant / "cell-a" / "logs" / "00", plant / "cell-c" / "logs",
-                          "--out", out_csv, "--workers", "2")
-    assert code == 0
+                          "--out", out_csv, "--scheduler", scheduler)
+    assert code == 0 and f"on {scheduler}" in out
     rows = {r["path"]: r for r in read_table(out_csv)}
     assert len(rows) == 11
     for rel in ("cell-a/logs/00/log.mcap", "cell-c/logs/06/log.mcap"):
