@@ -41,8 +41,11 @@ class _ExactReads:
     def __init__(self, raw: IO[bytes]) -> None:
         self._raw = raw
         self.offset = 0
+        self._size = os.fstat(raw.fileno()).st_size
 
     def read(self, n: int = -1) -> bytes:
+        if n is not None and n > self._size - self.offset:   # never allocate what the file cannot hold
+            raise EndOfFile()
         data = self._raw.read(n)
         if n is not None and n >= 0 and len(data) < n:
             raise EndOfFile()
@@ -51,11 +54,17 @@ class _ExactReads:
 
 
 class _Position:
-    """A complete file, read directly (no per-read check needed)."""
+    """A complete file, read directly; a length field that claims more than the file
+    holds (a corrupt record) is refused before anything is allocated for it."""
 
     def __init__(self, raw: IO[bytes]) -> None:
         self._raw = raw
-        self.read = raw.read
+        self._size = os.fstat(raw.fileno()).st_size
+
+    def read(self, n: int = -1) -> bytes:
+        if n is not None and n > self._size - self._raw.tell():
+            raise McapError(f"a length of {n} bytes, more than the rest of the file holds")
+        return self._raw.read(n)
 
     @property
     def offset(self) -> int:

@@ -572,3 +572,23 @@ def test_a_can_node_in_hex_is_read_as_the_drives_read_it():
             '[[drive]]\njoint = 2\nurl = "canopen://virtual/x?node=16"\n')
     with pytest.raises(InputError, match="joints 1 and 2 use the same CAN node 16"):
         parse_cell_config(text, source="cell.toml")
+
+
+def test_a_corrupt_length_field_in_a_log_is_one_line_not_a_memory_error(data, tmp_path, capsys):
+    """A bit flipped in a chunk's length field claims gigabytes: refused before anything is allocated."""
+    import struct
+
+    raw = bytearray((data / "log.mcap").read_bytes())
+    pos = 8
+    while raw[pos] != 0x06:                          # the first Chunk record
+        pos += 9 + struct.unpack_from("<Q", raw, pos + 1)[0]
+    field = pos + 9 + 8 + 8 + 8 + 4                  # start, end, uncompressed size, crc
+    field += 4 + struct.unpack_from("<I", raw, field)[0]   # the compression name
+    raw[field + 4] ^= 0x80                           # records length += 2**39
+    bad = tmp_path / "log.mcap"
+    bad.write_bytes(bytes(raw))
+    rc, _, err = run_cli(capsys, ["export", bad, "--out", tmp_path / "out"])
+    assert_refused(rc, err, f"{bad}: corrupt MCAP record near byte", "more than the rest of the file holds")
+    bad.write_bytes(bytes(raw[:-100]))               # the same in a file without its end
+    rc, _, err = run_cli(capsys, ["identify", bad])
+    assert rc in (0, 2) and "Traceback" not in err and "MemoryError" not in err
