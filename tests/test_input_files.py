@@ -146,7 +146,7 @@ def test_a_byte_order_mark_is_accepted_in_toml_and_json(tmp_path):
 # --------------------------------------------------- 2. unknown keys in robot.toml
 @pytest.mark.parametrize("edit, key, reason", [
     (lambda t: t.replace("mass = 160.0", "mas = 160.0"), "joint[2].mas",
-     "unknown key mas (did you mean mass?); known keys: name, a, alpha, d, offset, lower, upper, torque_constant, "
+     "unknown key mas (did you mean mass?); known keys: name, a, alpha, d, beta, offset, lower, upper, torque_constant, "
      "mass, com"),
     (lambda t: t.replace('name = "A3"\n', 'name = "A3"\nfoo = 1\n'), "joint[3].foo", "unknown key foo; known keys"),
     (lambda t: t.replace('name = "HH-150"\n', 'name = "HH-150"\nfoo = 1\n'), "foo",
