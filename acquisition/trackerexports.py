@@ -184,7 +184,7 @@ def read_points(path: str | pathlib.Path, *, layout: str = "auto", unit: str | N
 
 
 def _read_xyz(text: str, source: str, unit: str) -> list[ExportPoint]:
-    f = length_factor(unit, argument="unit")
+    f = length_factor(unit, source="--unit")
     out = []
     for line, raw in enumerate(text.split("\n"), start=1):
         s = raw.strip()
@@ -220,14 +220,14 @@ def _read_table(text: str, source: str, unit: str | None, columns: dict[str, str
         raise InputError(f"X, Y and Z have different units ({', '.join(sorted(u or '?' for u in xyz_units))})",
                          source=source, row=1)
     file_unit = xyz_units.pop()
-    if unit is not None and file_unit is not None and length_factor(unit, argument="unit") != \
+    if unit is not None and file_unit is not None and length_factor(unit, source="--unit") != \
             length_factor(file_unit, source=source, column=header[roles["x"][0]]):
         raise InputError(f"--unit {unit} contradicts the header's unit [{file_unit}]", source=source, row=1)
     length = file_unit or unit
     if length is None:
         raise InputError("the coordinates' unit is not in the header (X [mm]); give --unit mm or --unit m",
                          source=source, row=1)
-    f = length_factor(length, source=source) if file_unit else length_factor(length, argument="unit")
+    f = length_factor(length, source=source) if file_unit else length_factor(length, source="--unit")
     fu = length_factor(head_units["u95"], source=source) if "u95" in head_units else f
     temp_unit = (head_units.get("temperature") or "°C").replace(" ", "").lower()
     if temp_unit not in ("°c", "c", "degc", "°f", "f", "degf"):
