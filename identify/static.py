@@ -24,6 +24,7 @@ physics is not here but in identify/effects, one module each.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -375,10 +376,27 @@ def _bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np
     return np.concatenate(thetas, axis=2), np.concatenate(links, axis=2), np.concatenate(adds, axis=2)
 
 
+_WORK = threading.local()
+
+
+def _work_data(model: pin.Model) -> pin.Data:
+    """One Pinocchio Data per model and thread, reused by every kinematics call of a fit
+    (creating one costs more than the kinematics; each call overwrites what it reads)."""
+    cache = getattr(_WORK, "data", None)
+    if cache is None:
+        cache = _WORK.data = {}
+    entry = cache.get(id(model))
+    if entry is None or entry[0] is not model:
+        if len(cache) > 8:
+            cache.clear()
+        entry = cache[id(model)] = (model, model.createData())
+    return entry[1]
+
+
 def _kinematics(robot: Robot, theta10: np.ndarray, frames: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """Positions (M, 3) and position Jacobians (M, 3, 10) of frames in the link model."""
     model = robot.link_model
-    data = model.createData()
+    data = _work_data(model)
     pin.computeJointJacobians(model, data, theta10)
     pin.updateFramePlacements(model, data)
     pos = np.empty((len(frames), 3))
