@@ -213,11 +213,13 @@ def _finite(x: float | None) -> float | None:
 
 
 # =================================================================== tests
-def _wald(aug: StaticFit, names: Sequence[str]) -> tuple[float, int, float, float]:
+def _wald(aug: StaticFit, names: Sequence[str], reported: Sequence[str] | None = None) -> tuple[float, int, float, float]:
     """Statistic, dof, p-value and delta BIC of the added parameters ``names``
-    (the augmented fit's sandwich covariance with the noise model, scaled by
-    its dispersion)."""
-    idx = [aug.beta_names.index(nm) for nm in names if nm not in aug.unidentifiable]
+    (beta names; ``reported``: the names they are reported under) from the
+    augmented fit's sandwich covariance with the noise model, scaled by its
+    dispersion."""
+    reported = names if reported is None else reported
+    idx = [aug.beta_names.index(nm) for nm, rn in zip(names, reported) if rn not in aug.unidentifiable]
     q = len(idx)
     gamma = aug.beta[idx]
     cov = aug.beta_cov[np.ix_(idx, idx)]
@@ -281,27 +283,39 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
         if name in model_names:
             continue
         eff = get_effect(name)
+        given = base.effects or model_names      # restricted effects stay as they were selected
         try:
-            aug = identify_static(robot, ds, model=(*model_names, name), torque=torque, form=form)
+            aug = identify_static(robot, ds, model=(*given, name), torque=torque, form=form)
+            fitted = next(e for e in aug.effects if e.name == name) if aug.effects else eff
+            sel = next((sl for sl in aug.selections if sl.effect == name), None)
+            if sel is not None and not sel.kept and sel.next_best is not None:
+                # nothing passes: test the best component, to say how far it is from passing
+                fitted = eff.restricted((sel.next_best,))
+                aug = identify_static(robot, ds, model=(*given, fitted), torque=torque, form=form)
         except EffectRefused as exc:       # the effect module's own reason, typed
             skipped.append(NotTestable(exc.effect, exc.reason))
             continue
         except UnidentifiableError as exc:
             skipped.append(NotTestable(name, str(exc)))
             continue
-        added = [p for p in eff.parameters]
-        unident = tuple(nm for nm in added if nm in aug.unidentifiable)
+        added = list(fitted.parameters)
+        reported = list(fitted.reported_names)
+        unident = tuple(nm for nm in reported if nm in aug.unidentifiable)
+        if eff.selectable and not added:
+            skipped.append(NotTestable(name, "none of its components can be separated from the model's parameters "
+                                             "in these data"))
+            continue
         if added and len(unident) == len(added):
             skipped.append(NotTestable(name, "these data cannot separate its parameters from the model's "
                                              f"(rank {aug.n_params} of {len(aug.beta_names)} parameters, "
                                              f"condition number {aug.condition_number:.3g})"))
             continue
         if added:
-            stat, dof, p, dbic = _wald(aug, added)
+            stat, dof, p, dbic = _wald(aug, added, reported)
         else:
             stat, p, dbic = _embedding(base, aug)
             dof = 1
-        params = tuple(pp for pp in aug.parameters if pp.name in added)
+        params = tuple(pp for pp in aug.parameters if pp.name in reported)
         candidates.append(Candidate(
             effect=name, explanation=eff.explanation, evidence=_evidence(eff, params, eff.evidence),
             rms_after=aug.rms, max_after=aug.max, noise_floor_after=aug.noise_floor if noise_known else None,

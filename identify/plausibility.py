@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastocal.identify.effects.base import WRONG_SIGN_STD, wrong_sign  # noqa: F401 (re-exported)
+
 
 #: scaled condition number above which a fit counts as near-singular
 MAX_CONDITION = 1e8

@@ -280,6 +280,12 @@ class StaticFit:
     noise_blocks: tuple[tuple[np.ndarray, np.ndarray], ...] | None = field(default=None, repr=False)
     #: (S, M, 3) the model's absolute marker positions of every state, base frame
     absolute_base: np.ndarray | None = field(default=None, repr=False)
+    #: beta names of the design's columns
+    design_names: tuple[str, ...] = ()
+    #: what the data support of each selectable effect (identify/selection.py)
+    selections: tuple = ()
+    #: the effects fitted (selectable ones restricted to the kept parameters)
+    effects: tuple = field(default=(), repr=False)
 
     def parameter(self, name: str) -> Parameter:
         for p in self.parameters:
@@ -307,6 +313,8 @@ class StaticFit:
         if self.unidentifiable:
             out["unidentifiable"] = list(self.unidentifiable)
             out["rank"] = self.n_params
+        for sel in self.selections:
+            out.setdefault("selected", {})[sel.effect] = list(sel.kept)
         out["condition_number"] = self.condition_number
         return out
 
@@ -340,6 +348,7 @@ def _context(pr: _Problem, tau: np.ndarray, estimate: np.ndarray | None = None) 
     robot, ds = pr.robot, pr.ds
     delta_tau = tau - tau[ds.state_ref]
     delta_link = np.zeros((ds.n_states, 4))
+    delta_wrench = np.zeros((ds.n_states, 6))
     for pi in range(len(ds.pose_ids)):
         states = np.flatnonzero(ds.state_pose == pi)
         theta10 = robot.theta_links(robot.theta(ds.q[pi]))
@@ -355,7 +364,12 @@ def _context(pr: _Problem, tau: np.ndarray, estimate: np.ndarray | None = None) 
             else:
                 dw = ds.state_wrench[s] - ds.state_wrench[ds.state_ref[s]]
             delta_link[s] = j_spr.T @ dw
+            delta_wrench[s] = dw
+    torque_noise = None
+    if ds.sigma_current is not None and pr.torque == "current":
+        torque_noise = robot.torque_constants * ds.sigma_current / np.sqrt(ds.state_n_currents)[:, None]
     return StaticContext(tau=tau, delta_tau=delta_tau, delta_link_moment=delta_link,
+                         delta_wrench=delta_wrench, torque_noise=torque_noise, robot=robot, dataset=ds,
                          state_is_reference=ds.state_ref == np.arange(ds.n_states),
                          deflection_dt=ds.defl_dt, n_deflections=ds.n_deflections, torque_source=pr.torque,
                          form=pr.form, estimate=estimate,
@@ -511,23 +525,32 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
     return blocks
 
 
-def _select_columns(a: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+def _select_columns(a: np.ndarray, names: Sequence[str],
+                    later: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Column scales and the mask of identifiable columns (pivoted QR on the
-    scaled regressor)."""
+    scaled regressor). ``later`` (bool per column): columns that count only for
+    what the others leave (a selectable effect's components never displace a
+    joint spring they alias)."""
     scale = np.linalg.norm(a, axis=0)
     # a column that is rounding noise next to the largest moves nothing (the twist of joint 6
     # seen by one marker on its axis): it is not identifiable, however the noise is scaled
     keep = scale > ZERO_COLUMN * float(np.max(scale, initial=0.0))
-    scaled = a[:, keep] / scale[keep]
-    if scaled.shape[1]:
-        _, r, piv = scipy.linalg.qr(scaled, mode="economic", pivoting=True)
+    mask = np.zeros(len(names), dtype=bool)
+    first = keep if later is None else keep & ~later
+    scaled = a / np.where(scale > 0, scale, 1.0)
+    largest = None
+    q = np.zeros((a.shape[0], 0))
+    for group in ([first] if later is None else [first, keep & later]):
+        idx = np.flatnonzero(group)
+        if idx.size == 0:
+            continue
+        block = scaled[:, idx] - q @ (q.T @ scaled[:, idx])
+        qb, r, piv = scipy.linalg.qr(block, mode="economic", pivoting=True)
         diag = np.abs(np.diag(r))
-        good = diag > RANK_TOL * diag[0]
-        kept_idx = np.flatnonzero(keep)
-        mask = np.zeros(len(names), dtype=bool)
-        mask[kept_idx[piv[good]]] = True
-    else:
-        mask = np.zeros(len(names), dtype=bool)
+        largest = diag[0] if largest is None else largest
+        good = diag > RANK_TOL * max(largest, 1e-300) if group is first else diag > RANK_TOL * 1.0
+        mask[idx[piv[good]]] = True
+        q = np.column_stack([q, qb[:, good]])
     return np.where(scale > 0, scale, 1.0), mask
 
 
@@ -563,8 +586,25 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         raise InputError("force-based identification needs the wrench fx..mz of every loaded state",
                          source=ds.source)
     check_loads_changed(ds)          # loads that changed nothing determine nothing (identify/evidence.py)
-    names = tuple(dict.fromkeys(["joint_stiffness", *model]))
-    effects = tuple(get_effect(n) for n in names)
+    given = {m.name: m for m in model if isinstance(m, Effect)}   # effects restricted to some parameters
+    names = tuple(dict.fromkeys(["joint_stiffness", *(m if isinstance(m, str) else m.name for m in model)]))
+    effects = tuple(given.get(n) or get_effect(n) for n in names)
+    selections = []
+    for k, eff in enumerate(effects):
+        if eff.selectable and eff.selected_from is None:
+            # the components the data support (identify/selection.py), from the fit with all of them
+            from elastocal.identify.selection import confirm_selection, forward_select
+
+            # (first-order: one linear solve; the kept components are then fitted in ``form``)
+            full = identify_static(robot, ds, model=[*effects[:k], eff.restricted(eff.parameters), *effects[k + 1:]],
+                                   torque=torque, form="first-order", max_iter=max_iter, tol=tol)
+            sel = forward_select(full, eff.name, eff.parameters)
+            if form != "first-order" and sel.kept:
+                sel = confirm_selection(sel, lambda keep: identify_static(
+                    robot, ds, model=[*effects[:k], eff.restricted(keep), *effects[k + 1:]], torque=torque,
+                    form=form, max_iter=max_iter, tol=tol), n=ds.dP.size)
+            selections.append(sel)
+            effects = (*effects[:k], eff.restricted(sel.kept), *effects[k + 1:])
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     for m in ds.markers:
         robot.frame_id(m)
@@ -592,7 +632,8 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
 
     # first-order linear solve: starting point, and the answer for form=first-order
     _, a = _evaluate(pr, np.zeros(len(beta_names)), bases, exact=False)
-    scale, mask = _select_columns(a, beta_names)
+    later = np.array([eff.selected_from is not None for eff in effects for _ in eff.parameters], dtype=bool)
+    scale, mask = _select_columns(a, beta_names, later if later.any() else None)
     beta = np.zeros(len(beta_names))
     # rows weighted by the readings' U95 when the table has them (1 / sigma, mean weight 1)
     w = None if ds.defl_u95_var is None else np.repeat(1.0 / np.sqrt(ds.defl_u95_var), 3)
@@ -673,17 +714,22 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         if k == 0:
             continue
         values, deriv = eff.reported(np.where(mask[sl], beta[sl], 1.0))
+        own_std = deriv * std[sl]
+        if eff.report_with_model is not None:
+            values, own_std = eff.report_with_model(beta_names, beta, cov, sl)
         units = eff.report_units or eff.units
-        names_out = [f"k{j}" for j in range(1, 7)] if eff.name == "joint_stiffness" else list(eff.parameters)
+        names_out = [f"k{j}" for j in range(1, 7)] if eff.name == "joint_stiffness" else list(eff.reported_names)
         for i in range(k):
             if not mask[sl][i]:
                 unident.append(names_out[i])
                 continue
-            params.append(Parameter(names_out[i], float(values[i]), float(abs(deriv[i]) * std[sl][i]), units[i]))
+            params.append(Parameter(names_out[i], float(values[i]), float(abs(own_std[i])), units[i]))
     return StaticFit(model=names, torque=torque, form=form, parameters=tuple(params),
                      absolute_base=_absolute_base(pr, beta, bases),
                      unidentifiable=tuple(unident), beta_names=beta_names, beta=beta, beta_cov=cov,
                      predicted=pred, residuals=resid, rms=float(np.sqrt(rss / n)),
                      max=float(np.max(np.abs(r))), n=n, rss=rss, n_params=p, noise_floor=noise_floor,
                      expected_rss=expected, condition_number=cond, iterations=iterations, dataset=ds,
-                     design=a_k, noise_blocks=None if blocks is None else tuple(blocks))
+                     design=a_k, noise_blocks=None if blocks is None else tuple(blocks),
+                     design_names=tuple(nm for nm, m in zip(beta_names, mask) if m), selections=tuple(selections),
+                     effects=effects)

@@ -37,7 +37,7 @@ from elastocal.identify.kinematics import corrected_robot
 HH150_STIFFNESS = (0.559e6, 1.435e6, 1.829e6, 0.184e6, 0.171e6, 0.070e6)
 #: effects the simulator can hide in a dataset (``--hidden``)
 HIDDEN_EFFECTS = ("none", "link_compliance", "thermal_drift", "static_friction", "backlash",
-                  "kinematic_errors", "tracker_frame")
+                  "kinematic_errors", "tracker_frame", "base_tilt", "nonlinear_stiffness")
 
 
 def _rot(axis: int, angle: float) -> np.ndarray:
@@ -103,6 +103,12 @@ class CellTruth:
     #: backlash (total lost motion) per joint [rad]; smoothed over backlash_torque_nm
     backlash: np.ndarray = field(default_factory=lambda: np.zeros(6))
     backlash_torque_nm: float = 20.0
+    #: compliance of the base about its x and y axes [rad/(N·m)]: the whole robot
+    #: tilts about the base origin under the overturning moment (load and link weights)
+    base_tilt: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    #: torque-dependent gear stiffness dtau/dtheta = k (1 + |tau| / T) per joint [N·m];
+    #: inf (the default) for a linear spring
+    hardening_torque: np.ndarray = field(default_factory=lambda: np.full(6, np.inf))
     #: Coulomb, viscous and load-dependent friction during motion
     coulomb: np.ndarray = field(default_factory=lambda: np.zeros(6))
     viscous: np.ndarray = field(default_factory=lambda: np.zeros(6))
@@ -120,13 +126,17 @@ class CellTruth:
     def __post_init__(self) -> None:
         for name, n in (("stiffness", 6), ("link_compliance", 4), ("drift_velocity", 3),
                         ("static_friction", 6), ("backlash", 6), ("coulomb", 6), ("viscous", 6),
-                        ("load_friction", 6)):
+                        ("load_friction", 6), ("base_tilt", 2)):
             object.__setattr__(self, name, _arr(getattr(self, name), n, name))
         object.__setattr__(self, "tracker_translation", _arr(self.tracker_translation, 3, "tracker_translation"))
         rot = np.asarray(self.tracker_rotation, dtype=float)
         if rot.shape != (3, 3) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-9) or np.linalg.det(rot) < 0:
             raise ValueError("tracker_rotation must be a rotation matrix")
         object.__setattr__(self, "tracker_rotation", rot)
+        hard = np.asarray(self.hardening_torque, dtype=float).reshape(-1)
+        if hard.shape != (6,) or np.any(np.isnan(hard)) or np.any(hard <= 0):
+            raise ValueError("hardening_torque: expected 6 positive values (inf for a linear spring)")
+        object.__setattr__(self, "hardening_torque", hard)
         if np.any(self.stiffness <= 0):
             raise ValueError("stiffness must be positive")
 
@@ -153,6 +163,11 @@ class CellTruth:
         if effect == "tracker_frame":
             return replace(self, tracker_rotation=MOVED_TRACKER[0].copy(),
                            tracker_translation=MOVED_TRACKER[1].copy())
+        if effect == "base_tilt":
+            return replace(self, base_tilt=np.array([5.0e-8, 4.0e-8]))
+        if effect == "nonlinear_stiffness":
+            # stiffness that doubles at these torques: hardening gears (catalogue curves)
+            return replace(self, hardening_torque=np.array([4000.0, 15000.0, 8000.0, 1500.0, 1200.0, 500.0]))
         raise ValueError(f"unknown hidden effect {effect!r}; one of {', '.join(HIDDEN_EFFECTS)}")
 
     def parameters(self, robot: Robot) -> dict[str, dict[str, float | str]]:
@@ -167,6 +182,12 @@ class CellTruth:
         if np.any(self.link_compliance):
             for name, v in zip(LINK_SPRINGS, self.link_compliance):
                 out[name] = {"value": float(v), "unit": "rad/(N*m)"}
+        if np.any(self.base_tilt):
+            for name, v in zip(("cl0x", "cl0y"), self.base_tilt):
+                out[name] = {"value": float(v), "unit": "rad/(N*m)"}
+        if np.any(np.isfinite(self.hardening_torque)):
+            for j, v in enumerate(self.hardening_torque, start=1):
+                out[f"T{j}"] = {"value": float(v) if np.isfinite(v) else None, "unit": "N*m"}
         if np.any(self.drift_velocity):
             for name, v in zip(("vx", "vy", "vz"), self.drift_velocity):
                 out[name] = {"value": float(v), "unit": "m/s"}
@@ -208,6 +229,21 @@ class Equilibrium:
     gear_torque: np.ndarray        # torque each gear (and motor) carries [N·m]; xi i = gear_torque
     wrench: np.ndarray             # external wrench on the load point, base axes
     friction_torque: np.ndarray    # part of the load absorbed by static friction [N·m]
+    base_rotation: np.ndarray = field(default_factory=lambda: np.zeros(3))  # tilt of the base [rad]
+
+
+def spring_angle(torque: np.ndarray, stiffness: np.ndarray, hardening_torque: np.ndarray) -> np.ndarray:
+    """Twist of the joint springs under ``torque``: ``tau / k`` for a linear
+    spring, ``(T / k) sign(tau) ln(1 + |tau| / T)`` for one whose stiffness
+    ``dtau/dtheta = k (1 + |tau| / T)`` grows with the torque."""
+    torque = np.asarray(torque, dtype=float)
+    linear = torque / stiffness
+    finite = np.isfinite(hardening_torque)
+    if not np.any(finite):
+        return linear
+    t = np.where(finite, hardening_torque, 1.0)
+    hard = t / stiffness * np.sign(torque) * np.log1p(np.abs(torque) / t)
+    return np.where(finite, hard, linear)
 
 
 class SimCell:
@@ -244,7 +280,6 @@ class SimCell:
         t = self.truth
         q = np.asarray(q, dtype=float)
         w = np.zeros(6) if wrench is None else np.asarray(wrench, dtype=float)
-        compliance = 1.0 / t.stiffness
         theta0 = r.theta(q)
         absorbed = np.zeros(6)
 
@@ -253,7 +288,7 @@ class SimCell:
             for _ in range(max_iter):
                 load = self._full_load(th10, w)
                 gear = load[ACTUATED_IN_LINK_MODEL] - fixed_absorbed
-                dtheta = compliance * gear
+                dtheta = spring_angle(gear, t.stiffness, t.hardening_torque)
                 if np.any(t.backlash):
                     dtheta = dtheta + 0.5 * t.backlash * np.tanh(gear / t.backlash_torque_nm)
                 new = th10.copy()
@@ -271,14 +306,36 @@ class SimCell:
             delta = gear - reference.gear_torque
             absorbed = np.sign(delta) * np.minimum(np.abs(delta), t.static_friction)
             th10, gear = solve(absorbed)
+        tilt = np.zeros(3)
+        if np.any(t.base_tilt):
+            tilt[:2] = t.base_tilt * self.base_moment(th10, w)[:2]
         return Equilibrium(q=q, theta=th10[ACTUATED_IN_LINK_MODEL].copy(),
                            link_angles=th10[SPRINGS_IN_LINK_MODEL].copy(), gear_torque=gear,
-                           wrench=w, friction_torque=absorbed)
+                           wrench=w, friction_torque=absorbed, base_rotation=tilt)
+
+    def base_moment(self, theta10: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+        """Moment the robot puts on its base about the base origin [N·m]: the link
+        weights and the external wrench (the compensator's forces are internal)."""
+        import pinocchio as pin
+
+        r = self.physical
+        model = r.link_model
+        data = model.createData()
+        com = pin.centerOfMass(model, data, theta10)
+        mass = pin.computeTotalMass(model)
+        moment = mass * np.cross(com, np.array(r.gravity))
+        p_load = r.positions(theta10, [LOAD_FRAME], links=True)[0]
+        return moment + wrench[3:] + np.cross(p_load, wrench[:3])
 
     def marker_positions(self, eq: Equilibrium, markers: Sequence[str]) -> np.ndarray:
         """Noise-free base-frame positions (len(markers), 3) at an equilibrium."""
         th10 = self.physical.theta_links(eq.theta, eq.link_angles)
-        return self.physical.positions(th10, list(markers), links=True)
+        p = self.physical.positions(th10, list(markers), links=True)
+        if np.any(eq.base_rotation):
+            import pinocchio as pin
+
+            p = p @ pin.exp3(eq.base_rotation).T      # the base tilts about its origin
+        return p
 
     def tracker_positions(self, eq: Equilibrium, markers: Sequence[str]) -> np.ndarray:
         """Noise-free positions (len(markers), 3) in the tracker's frame, without drift."""

@@ -32,6 +32,7 @@ EFFECT_MODULES = {
         "tracker_frame",
         "kinematic_errors",
         "static_friction",
+        "nonlinear_stiffness",
     )
 }
 ALL_EFFECTS = tuple(EFFECT_MODULES)

@@ -27,6 +27,10 @@ from elastocal.identify.effects.base import (
 TAU_BAND_NM = 20.0
 #: lost motion beyond this is no gear's play (catalogue gears: a few arcmin) [rad]
 MAX_PLAY_RAD = np.radians(1.0)
+#: with repeated readings, a load state shows a joint's play only when its torque
+#: change is this many noise std (a joint whose torque moves by noise only has no
+#: identifiable play)
+NOISE_MARGIN = 3.0
 #: a joint shows its play only if some load state changes tanh(tau/band)/2 by at
 #: least this fraction of the play (one tenth of it)
 MIN_VISIBLE_FRACTION = 0.1
@@ -41,10 +45,26 @@ def visible_joints(ctx: StaticContext) -> np.ndarray:
     """(6,) bool: joints whose play some load state of these data shows."""
     frac = take_up(ctx.tau)
     ref = take_up(ctx.tau - ctx.delta_tau)
-    change = np.abs(frac - ref)[~ctx.state_is_reference]
+    loaded = ~ctx.state_is_reference
+    change = np.abs(frac - ref)[loaded]
     if change.size == 0:
         return np.zeros(ctx.tau.shape[1], dtype=bool)
-    return change.max(axis=0) >= MIN_VISIBLE_FRACTION
+    visible = change >= MIN_VISIBLE_FRACTION
+    if ctx.torque_noise is not None:
+        # the torque change must be more than its noise: a joint whose torque moves by
+        # noise only (joint 1 under a hung weight) shows no play, only noise
+        ref_noise = ctx.torque_noise[_reference_index(ctx)[loaded]]
+        noise = np.hypot(ctx.torque_noise[loaded], ref_noise)
+        visible &= np.abs(ctx.delta_tau[loaded]) > NOISE_MARGIN * noise
+    return visible.any(axis=0)
+
+
+def _reference_index(ctx: StaticContext) -> np.ndarray:
+    """(S,) index of each state's reference state (the pose's unloaded one)."""
+    ds = ctx.dataset
+    if ds is not None:
+        return np.asarray(ds.state_ref)
+    return np.arange(len(ctx.tau))
 
 
 def _basis(ctx: StaticContext) -> StaticBasis:

@@ -49,6 +49,15 @@ class StaticContext:
     #: effects whose basis depends on it (Effect.iterative)
     estimate: np.ndarray | None = None
     estimate_names: tuple[str, ...] = ()
+    #: (S, 6) change of the external wrench on the load point from the pose's
+    #: reference, base axes (from the wrench columns, or J_f^{-T} dGamma with currents)
+    delta_wrench: np.ndarray | None = None
+    #: (S, 6) std of each state's gear torque from current noise [N·m] (None without repeats)
+    torque_noise: np.ndarray | None = None
+    #: the robot and the dataset, for effects whose basis needs the geometry
+    #: (located compliance: frames and marker positions at each pose)
+    robot: object = None
+    dataset: object = None
 
     def estimated(self, name: str) -> float | None:
         """Current estimate of parameter ``name`` (None before the first solve)."""
@@ -80,6 +89,9 @@ class Effect:
     #: model value -> reported value and its derivative (for the std)
     report: Optional[Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]] = None
     report_units: tuple[str, ...] | None = None
+    #: (beta names, beta, covariance, this effect's slice) -> (reported values, stds), for
+    #: reported values that need other parameters of the model (nonlinear_stiffness: T = c / phi)
+    report_with_model: Optional[Callable] = None
     #: the static basis depends on the current estimate (StaticContext.estimate):
     #: the fit rebuilds it at every iteration
     iterative: bool = False
@@ -91,6 +103,13 @@ class Effect:
     #: (parameter names, values, stds) of a fit -> why the values are physically
     #: implausible (identify/plausibility.py), or None
     plausibility: Optional[Callable[[tuple[str, ...], np.ndarray, np.ndarray], Optional[str]]] = None
+    #: a fit keeps only the parameters the data support (forward selection,
+    #: identify/selection.py) unless the effect is already restricted
+    selectable: bool = False
+    #: the parameters of the effect it was restricted from (None: not restricted)
+    selected_from: tuple[str, ...] | None = None
+    #: names under which parameters are reported (default: ``parameters``)
+    report_names: tuple[str, ...] | None = None
     #: how the effect enters the static model and the run (torque) model, in words
     static_model: str = ""
     run_model: str = ""
@@ -109,6 +128,38 @@ class Effect:
     def run_prefix(self) -> str:
         """Per-joint parameter prefix (``fc`` of fc1..fc6) of a "uv/vu" effect."""
         return self.parameters[0].rstrip("0123456789")
+
+    @property
+    def reported_names(self) -> tuple[str, ...]:
+        return self.report_names if self.report_names is not None else self.parameters
+
+    def restricted(self, keep) -> "Effect":
+        """The effect with only the parameters ``keep`` (the others held at zero)."""
+        full = self.selected_from if self.selected_from is not None else self.parameters
+        base = self if self.selected_from is None else self._unrestricted
+        idx = [full.index(n) for n in keep]
+        names = tuple(full[i] for i in idx)
+        inner = base.static_basis
+        sens = base.torque_sensitivity
+
+        def basis(ctx: StaticContext) -> StaticBasis:
+            b = inner(ctx) if inner is not None else StaticBasis()
+            return StaticBasis(theta=None if b.theta is None else b.theta[..., idx],
+                               links=None if b.links is None else b.links[..., idx],
+                               add=None if b.add is None else b.add[..., idx])
+
+        def sensitivity(ctx: StaticContext, values: np.ndarray) -> np.ndarray:
+            v = np.zeros(len(full))
+            v[idx] = values
+            return sens(ctx, v)
+
+        from dataclasses import replace
+
+        out = replace(base, parameters=names, units=tuple(base.units[i] for i in idx), static_basis=basis,
+                      torque_sensitivity=None if sens is None else sensitivity, selected_from=full,
+                      report_names=None if base.report_names is None else tuple(base.report_names[i] for i in idx))
+        object.__setattr__(out, "_unrestricted", base)
+        return out
 
     def reported(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.report is None:

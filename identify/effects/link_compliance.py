@@ -1,39 +1,126 @@
-"""link_compliance: torsion and bending at the distal ends of links 2 and 3.
+"""link_compliance: compliance located at the base or at the distal end of a link.
 
-Parameters cl2x, cl2y, cl3x, cl3y [rad/(N·m)]: rotations about x and y of the
-frame at the distal end of link 2 (the joint-3 axis frame) and of link 3 (the
-wrist centre), proportional to the moment the load puts there. The moments come
-from the external wrench; with currents the wrench is recovered from the joint
-torques, W = J_f^{-T} Gamma (docs/physics.md), so both torque sources can show it.
+Klimchik's virtual-joint model with 6-D springs (docs/physics.md, "Effects beyond
+the seeds' joint springs"): a rotational spring at location ``l`` turns the
+whole chain beyond it by ``dphi_l = C_l M_l``, ``M_l`` the moment the structure
+carries there. Locations: ``l = 0`` the base (its origin and axes: the base
+tilting under the overturning moment), ``l = 1..5`` the distal end of link
+``l`` (the frame of joint ``l+1`` before its rotation).
+Components: the rotations about the two axes ``x, y`` normal to the axis of
+the joint there (a rotation about that axis is the joint's own spring).
+Parameters ``cl<l><axis>`` [rad/(N·m)]; ``cl2x, cl2y, cl3x, cl3y`` are the
+classic torsion and bending springs at the ends of links 2 and 3 (exact, through
+the link model's passive joints), the others enter to first order in their
+small rotation: the marker moves by ``dphi x (p_marker - o_l)``.
+
+The moments come from the change of the external wrench (with currents,
+recovered from the joint torques, ``W = J_f^{-T} Gamma``). The effect is
+``selectable``: a fit keeps only the components the data support (forward
+selection with the diagnosis' own test, identify/selection.py), and the answer
+says where the compliance is.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import pinocchio as pin
 
 from elastocal.identify.effects.base import (
     Effect,
     StaticBasis,
     StaticContext,
-    diagonal_basis,
     strongest,
     wrong_sign,
 )
-from elastocal.identify.robot import LINK_SPRINGS
+from elastocal.identify.robot import LINK_SPRINGS, LOAD_FRAME, MARKER_PREFIX
+
+#: locations: 0 the base, 1..5 the distal ends of links 1..5 (the flange coincides with the
+#: joint-6 frame of a DH robot, so a spring there would be joint 5 and 6 springs over again)
+LOCATIONS = tuple(range(6))
+PARAMETERS = tuple(f"cl{l}{a}" for l in LOCATIONS for a in "xy")
+#: the components that are passive joints of the link model (exact)
+_IN_LINK_MODEL = {name: k for k, name in enumerate(LINK_SPRINGS)}
+
+
+def _normal_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from elastocal.identify.robot import _normal_axes as normal
+
+    return normal(axis)
+
+
+def location_frames(robot, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Origins (L, 3) and component axes (L, 2, 3) of the locations in base axes
+    at joint angles ``theta``, and the positions of the load point and markers."""
+    model = robot.model
+    data = model.createData()
+    theta = np.asarray(theta, dtype=float)
+    pin.computeJointJacobians(model, data, theta)
+    pin.updateFramePlacements(model, data)
+    origins = np.zeros((len(LOCATIONS), 3))
+    axes = np.zeros((len(LOCATIONS), 2, 3))
+    for l in LOCATIONS:
+        axis_world = data.J[3:, l]               # the axis of joint l+1 in base axes
+        frame = pin.SE3.Identity() if l == 0 else data.oMi[l] * model.jointPlacements[l + 1]
+        axis_local = frame.rotation.T @ axis_world
+        u, v = _normal_axes(axis_local / np.linalg.norm(axis_local))
+        origins[l] = frame.translation
+        axes[l, 0] = frame.rotation @ u
+        axes[l, 1] = frame.rotation @ v
+    points = {name: data.oMf[model.getFrameId(name)].translation.copy()
+              for name in [LOAD_FRAME, *(MARKER_PREFIX + m for m in robot.marker_names)]}
+    return origins, axes, points
 
 
 def _basis(ctx: StaticContext) -> StaticBasis:
-    return StaticBasis(links=diagonal_basis(ctx.delta_link_moment))
+    robot, ds = ctx.robot, ctx.dataset
+    p = len(PARAMETERS)
+    links = np.zeros((len(ctx.tau), 4, p))
+    add = np.zeros((ctx.n_deflections, 3, p))
+    for name, k in _IN_LINK_MODEL.items():
+        links[:, k, PARAMETERS.index(name)] = ctx.delta_link_moment[:, k]
+    if robot is None or ds is None or ctx.delta_wrench is None:
+        return StaticBasis(links=links, add=add)
+    located = [k for k, name in enumerate(PARAMETERS) if name not in _IN_LINK_MODEL]
+    loc_of = np.array([int(PARAMETERS[k][2]) for k in located])
+    axis_of = np.array(["xy".index(PARAMETERS[k][3]) for k in located])
+    defl_pose = ds.state_pose[ds.defl_state]
+    for pi in range(len(ds.pose_ids)):
+        defl = np.flatnonzero(defl_pose == pi)
+        if defl.size == 0:
+            continue
+        origins, axes, points = location_frames(robot, robot.theta(ds.q[pi]))
+        o = origins[loc_of]                                   # (K, 3)
+        u = axes[loc_of, axis_of]                             # (K, 3)
+        dw = ctx.delta_wrench[ds.defl_state[defl]]            # (n, 6)
+        lever = points[LOAD_FRAME][None, :] - o               # (K, 3)
+        # moment about each location's axis: u . (m + lever x f)  -> (n, K)
+        m_axis = dw[:, 3:] @ u.T + dw[:, :3] @ np.cross(u, lever).T
+        p_m = np.array([points[MARKER_PREFIX + ds.markers[k]] for k in ds.defl_marker[defl]])  # (n, 3)
+        arm = np.cross(u[None, :, :], p_m[:, None, :] - o[None, :, :])                       # (n, K, 3)
+        add[np.ix_(defl, np.arange(3), located)] = np.transpose(arm * m_axis[:, :, None], (0, 2, 1))
+    return StaticBasis(links=links, add=add)
 
 
-_WORDS = {"cl2x": "torsion load on link 2", "cl2y": "bending load on link 2",
-          "cl3x": "torsion load on link 3", "cl3y": "bending load on link 3"}
+_PLACE = {0: "the base"}
+
+
+def place(location: int) -> str:
+    return _PLACE.get(location, f"the distal end of link {location}")
 
 
 def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> str:
+    by_place: dict[int, list[tuple[str, float]]] = {}
+    for n, v in zip(names, values):
+        by_place.setdefault(int(n[2]), []).append((n[3], v))
     k = strongest(names, values, stds)
-    return (f"lateral deflection follows the {_WORDS.get(names[k], names[k])} "
-            f"({names[k]} = {values[k]:.3g} rad/(N*m), {abs(values[k]) / stds[k]:.0f} std)")
+    parts = []
+    for loc, comps in sorted(by_place.items()):
+        verb = "tilting" if loc == 0 else "bending"
+        axes = " and ".join(a for a, _ in comps)
+        sizes = ", ".join(f"{v:.2g}" for _, v in comps)
+        parts.append(f"{place(loc)} ({verb} about {axes}, {sizes} rad/(N*m))")
+    return (f"compliance located at {'; '.join(parts)}; strongest {names[k]} "
+            f"({abs(values[k]) / stds[k]:.0f} std)")
 
 
 def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> str | None:
@@ -42,15 +129,16 @@ def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) 
 
 EFFECT = Effect(
     name="link_compliance",
-    parameters=LINK_SPRINGS,
-    units=("rad/(N*m)",) * 4,
+    parameters=PARAMETERS,
+    units=("rad/(N*m)",) * len(PARAMETERS),
     seen_in=("static",),
-    explanation="the arm links bend and twist, which no joint spring can mimic",
-    evidence="lateral deflection follows the torsion and bending moments on links 2 and 3",
+    explanation="the structure gives way at the base or in the links, which no joint spring can mimic",
+    evidence="lateral deflection follows the moment the load puts on the base or on a link",
     static_basis=_basis,
     describe=_describe,
     plausibility=_plausibility,
-    static_model="two extra rotations (about x and y) at the ends of links 2 and 3, "
-                 "cl times the moment of the load change there",
+    selectable=True,
+    static_model="rotations about the two axes normal to the joint axis at the base and at the distal end of "
+                 "each link, cl times the moment of the load change there; the data choose the components",
     run_model="not in the torque model: link springs change positions, not joint torques",
 )

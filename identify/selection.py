@@ -1,0 +1,158 @@
+"""Forward selection of the parameters of a selectable effect (located compliance).
+
+An effect with many possible components (a spring at the base and at the end of
+every link, two axes each) keeps only those the data support: starting from
+the model without them, the component whose addition has the largest Wald
+statistic is added when it passes the diagnosis' own test (p < 0.01 and
+delta BIC < -10, cli.md) and its value has the physical sign, and the rest are
+tested again, until none passes.
+
+The tests run on the linearisation of the fit with every component (its design
+matrix and the noise covariance it knows), so one full fit serves the whole
+selection: each subset is a small least-squares problem on precomputed
+Gram matrices ``D'D``, ``D' Sigma D`` and ``D'y``. The covariance of a subset's
+parameters is the sandwich ``(X'X)^-1 X' Sigma X (X'X)^-1`` scaled by the
+dispersion the subset leaves (as in identify/static.py), or ``(X'X)^-1 s^2``
+without repeated readings.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+import scipy.stats
+
+#: the test of a component (cli.md's verdict rule)
+SELECT_P = 0.01
+SELECT_DELTA_BIC = -10.0
+#: a component this many std below zero has the wrong sign and is not kept
+WRONG_SIGN_STD = 3.0
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What the data support of a selectable effect."""
+
+    effect: str
+    kept: tuple[str, ...]
+    #: the best component not kept (None when every one was kept or none is identifiable)
+    next_best: str | None
+    next_statistic: float
+
+
+def _sigma(fit) -> scipy.sparse.csr_matrix | None:
+    if fit.noise_blocks is None:
+        return None
+    n = fit.n
+    rows = np.concatenate([r for r, _ in fit.noise_blocks])
+    stacked = scipy.sparse.block_diag([c for _, c in fit.noise_blocks], format="csr")
+    order = np.empty(n, dtype=int)
+    order[rows] = np.arange(len(rows))
+    return stacked[order][:, order]
+
+
+def forward_select(full_fit, effect: str, components: tuple[str, ...]) -> Selection:
+    """Select among ``components`` (beta names of ``full_fit``) by forward selection."""
+    names = list(full_fit.design_names)
+    d = full_fit.design
+    mask_beta = np.array([n in names for n in full_fit.beta_names])
+    y = full_fit.residuals.reshape(-1) + d @ full_fit.beta[mask_beta]
+    n = len(y)
+    scale = np.linalg.norm(d, axis=0)
+    scale[scale == 0] = 1.0
+    ds = d / scale
+    gram = ds.T @ ds
+    dy = ds.T @ y
+    yy = float(y @ y)
+    sigma = _sigma(full_fit)
+    if sigma is not None:
+        h = ds.T @ (sigma @ ds)
+        tr_sigma = float(sigma.diagonal().sum())
+    base = [i for i, nm in enumerate(names) if nm not in components]
+    pool = [nm for nm in components if nm in names]
+    kept: list[str] = []
+    limit = threshold(n)
+    next_best, next_stat = None, 0.0
+    def last(comps: list[str]) -> tuple[float, float] | None:
+        """(value, Wald statistic) of the last of ``comps`` fitted with the base and the others."""
+        cols = base + [names.index(k) for k in comps]
+        g = gram[np.ix_(cols, cols)]
+        try:
+            g_inv = np.linalg.inv(g)
+        except np.linalg.LinAlgError:
+            return None
+        b = g_inv @ dy[cols]
+        rss = max(yy - 2.0 * float(b @ dy[cols]) + float(b @ g @ b), 0.0)
+        if sigma is not None:
+            meat = h[np.ix_(cols, cols)]
+            expected = tr_sigma - float(np.trace(g_inv @ meat))
+            cov = g_inv @ meat @ g_inv * (max(1.0, rss / expected) if expected > 0 else 1.0)
+        else:
+            cov = g_inv * rss / max(n - len(cols), 1)
+        var = float(cov[-1, -1])
+        if not var > 0:
+            return None
+        return float(b[-1] / math.sqrt(var)), float(b[-1] ** 2 / var)
+
+    rounds = 0
+    while pool:
+        best, best_stat = None, -1.0
+        for c in pool:
+            got = last([*kept, c])
+            if got is None or got[0] < -WRONG_SIGN_STD:
+                continue
+            if got[1] > best_stat:
+                best, best_stat = c, got[1]
+        if best is None:
+            break
+        if best_stat <= limit:
+            next_best, next_stat = best, best_stat
+            break
+        kept.append(best)
+        pool.remove(best)
+        # backward: a component kept earlier that the later ones make redundant goes
+        while len(kept) > 1:
+            worst, worst_stat = None, math.inf
+            for k in kept[:-1]:
+                t = last([*(x for x in kept if x != k), k])
+                stat = -1.0 if t is None or t[0] < -WRONG_SIGN_STD else t[1]
+                if stat < worst_stat:
+                    worst, worst_stat = k, stat
+            if worst is None or worst_stat > limit:
+                break
+            kept.remove(worst)
+            pool.append(worst)
+        rounds += 1
+        if rounds > 3 * len(components):      # never cycle
+            break
+    return Selection(effect, tuple(kept), next_best, next_stat)
+
+
+def threshold(n: int) -> float:
+    """Wald statistic a component needs: p < SELECT_P and delta BIC < SELECT_DELTA_BIC."""
+    return max(float(scipy.stats.chi2.isf(SELECT_P, 1)), math.log(max(n, 2)) - SELECT_DELTA_BIC)
+
+
+def confirm_selection(sel: Selection, fit_with, *, n: int) -> Selection:
+    """Backward check in the fit's own form (the selection ran on the first-order
+    linearisation): drop the weakest kept component while it fails the test."""
+    from dataclasses import replace
+
+    kept = list(sel.kept)
+    limit = threshold(n)
+    while kept:
+        fit = fit_with(tuple(kept))
+        stats = []
+        for name in kept:
+            i = fit.beta_names.index(name)
+            var = float(fit.beta_cov[i, i])
+            z = fit.beta[i] / math.sqrt(var) if var > 0 else 0.0
+            stats.append(-1.0 if z < -WRONG_SIGN_STD else z * z)
+        weakest = int(np.argmin(stats))
+        if stats[weakest] > limit:
+            break
+        kept.pop(weakest)
+    return replace(sel, kept=tuple(kept))
