@@ -18,7 +18,9 @@ secant form by default) and tested against the model:
   The dispersion makes a candidate that only soaks up part of another missing
   effect's residual "not significant", as in an F test.
 * **BIC** of the same Gaussian likelihood: ``delta_bic = -W + q ln n`` (n the
-  number of deflection components); negative favours the effect.
+  number of deflection components); negative favours the effect. The fits are
+  generalised least squares weighted by the noise covariance
+  (identify/static.py), so W is the likelihood ratio of the nested models.
 
 Without repeated readings the noise level is unknown: the tests then assume
 the structure of tracker noise (deflections of one marker share the reference
@@ -244,13 +246,18 @@ def _embedding(base: StaticFit, aug: StaticFit) -> tuple[float, float | None, fl
     prediction) and test lambda = 0 (Wald); delta BIC at lambda = 1."""
     nz = _noise(base)
     d = (aug.predicted - base.predicted).reshape(-1)
+    r = base.residuals.reshape(-1)
+    if base.whitening is not None:      # in the whitened metric the noise is white
+        d, r = base.whiten(d), base.whiten(r)
     d_perp = d - nz.basis @ (nz.basis.T @ d)
     dd = float(d_perp @ d_perp)
-    r = base.residuals.reshape(-1)
     if dd <= 0.0:
         return 0.0, 1.0, 0.0
     lam = float(d_perp @ r) / dd
-    var = float(d_perp @ (nz.cov @ d_perp)) / dd**2 * _dispersion(aug)
+    if base.whitening is not None:
+        var = 1.0 / dd * _dispersion(aug)
+    else:
+        var = float(d_perp @ (nz.cov @ d_perp)) / dd**2 * _dispersion(aug)
     stat = lam**2 / var
     p = float(scipy.stats.chi2.sf(stat, 1))
     dbic = -(2.0 * lam - 1.0) / var
@@ -258,9 +265,7 @@ def _embedding(base: StaticFit, aug: StaticFit) -> tuple[float, float | None, fl
 
 
 def _dispersion(fit: StaticFit) -> float:
-    if fit.expected_rss is None or fit.expected_rss <= 0:
-        return 1.0
-    return max(1.0, fit.rss / fit.expected_rss)
+    return fit.dispersion
 
 
 def _evidence(effect, params: Sequence[Parameter], fallback: str) -> str:

@@ -64,10 +64,13 @@ def forward_select(full_fit, effect: str, components: tuple[str, ...]) -> Select
     scale = np.linalg.norm(d, axis=0)
     scale[scale == 0] = 1.0
     ds = d / scale
+    white = full_fit.whitening is not None
+    if white:        # GLS: in the whitened metric the noise is white, the covariance (X'X)^-1
+        ds, y = full_fit.whiten(ds), full_fit.whiten(y)
     gram = ds.T @ ds
     dy = ds.T @ y
     yy = float(y @ y)
-    sigma = _sigma(full_fit)
+    sigma = None if white else _sigma(full_fit)
     if sigma is not None:
         h = ds.T @ (sigma @ ds)
         tr_sigma = float(sigma.diagonal().sum())
@@ -86,7 +89,9 @@ def forward_select(full_fit, effect: str, components: tuple[str, ...]) -> Select
             return None
         b = g_inv @ dy[cols]
         rss = max(yy - 2.0 * float(b @ dy[cols]) + float(b @ g @ b), 0.0)
-        if sigma is not None:
+        if white:
+            cov = g_inv * max(1.0, rss / max(n - len(cols), 1))
+        elif sigma is not None:
             meat = h[np.ix_(cols, cols)]
             expected = tr_sigma - float(np.trace(g_inv @ meat))
             cov = g_inv @ meat @ g_inv * (max(1.0, rss / expected) if expected > 0 else 1.0)

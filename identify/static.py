@@ -286,6 +286,29 @@ class StaticFit:
     selections: tuple = ()
     #: the effects fitted (selectable ones restricted to the kept parameters)
     effects: tuple = field(default=(), repr=False)
+    #: per-pose (row indices, lower Cholesky factor of the noise covariance) of a
+    #: GLS fit; None for an unweighted one
+    whitening: tuple | None = field(default=None, repr=False)
+    #: residual sum of squares in the whitened metric (chi-square with n - p
+    #: degrees of freedom under noise alone); None for an unweighted fit
+    rss_whitened: float | None = None
+
+    @property
+    def dispersion(self) -> float:
+        """How much more than noise the fit leaves (>= 1)."""
+        if self.rss_whitened is not None:
+            return max(1.0, self.rss_whitened / max(self.n - self.n_params, 1))
+        if self.expected_rss is None or self.expected_rss <= 0:
+            return 1.0
+        return max(1.0, self.rss / self.expected_rss)
+
+    def whiten(self, v: np.ndarray) -> np.ndarray:
+        """``L^-1 v`` (rows of the deflection components) for a GLS fit."""
+        return _whiten(self.whitening, v)
+
+    def unwhiten(self, v: np.ndarray) -> np.ndarray:
+        """``L v`` for a GLS fit."""
+        return _unwhiten(self.whitening, v)
 
     def parameter(self, name: str) -> Parameter:
         for p in self.parameters:
@@ -525,6 +548,28 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
     return blocks
 
 
+def _cholesky_blocks(blocks) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    out = []
+    for rows, cov in blocks:
+        jitter = 1e-12 * float(np.trace(cov)) / max(len(cov), 1)
+        out.append((rows, np.linalg.cholesky(cov + jitter * np.eye(len(cov)))))
+    return tuple(out)
+
+
+def _whiten(whitening, v: np.ndarray) -> np.ndarray:
+    out = np.empty_like(v, dtype=float)
+    for rows, chol in whitening:
+        out[rows] = scipy.linalg.solve_triangular(chol, v[rows], lower=True)
+    return out
+
+
+def _unwhiten(whitening, v: np.ndarray) -> np.ndarray:
+    out = np.empty_like(v, dtype=float)
+    for rows, chol in whitening:
+        out[rows] = chol @ v[rows]
+    return out
+
+
 def _select_columns(a: np.ndarray, names: Sequence[str],
                     later: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Column scales and the mask of identifiable columns (pivoted QR on the
@@ -563,8 +608,16 @@ def _lstsq(a: np.ndarray, y: np.ndarray, w: np.ndarray | None) -> np.ndarray:
 
 def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
                     model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
-                    form: str = "exact", max_iter: int = 30, tol: float = 1e-10) -> StaticFit:
-    """Fit the static model ``model`` (effect names) to a table or dataset."""
+                    form: str = "exact", max_iter: int = 30, tol: float = 1e-10,
+                    weighting: str = "gls") -> StaticFit:
+    """Fit the static model ``model`` (effect names, or effects restricted to
+    some parameters) to a table or dataset.
+
+    ``weighting``: ``gls`` (default) weights the residuals by the noise
+    covariance the repeated readings give (generalised least squares: the
+    variance of the parameters reaches the Cramér-Rao bound); ``ols`` is plain
+    least squares with the sandwich covariance. Without repeated readings the
+    fit is ordinary least squares either way."""
     if torque not in TORQUE_SOURCES:
         raise InputError(f"must be current or force, got {torque!r}", argument="torque")
     if form not in FORMS:
@@ -640,23 +693,59 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     if w is not None:
         w = w / np.sqrt(np.mean(w ** 2))
     beta[mask] = _lstsq(a[:, mask] / scale[mask], y, w) / scale[mask]
-    iterations = 1
-    if exact or tau_dependent or iterative:
-        for iterations in range(2, max_iter + 2):
+    state = {"ctx": ctx, "bases": bases, "tau": tau}
+
+    def gauss_newton(beta: np.ndarray, whitening) -> tuple[np.ndarray, int]:
+        """Iterate to the (weighted) least-squares solution from ``beta``."""
+        iterations = 0
+        for iterations in range(1, max_iter + 1):
             if tau_dependent:
                 theta_states = np.array([robot.theta(ds.q[ds.state_pose[s]]) for s in range(ds.n_states)])
-                theta_states = theta_states + bases[0] @ beta
-                tau = _torques(pr, theta_states)
+                theta_states = theta_states + state["bases"][0] @ beta
+                state["tau"] = _torques(pr, theta_states)
             if tau_dependent or iterative:
-                ctx = _context(pr, tau, beta if iterative else None)
-                bases = _bases(pr, ctx)
-            pred, a = _evaluate(pr, beta, bases, exact=exact)
+                state["ctx"] = _context(pr, state["tau"], beta if iterative else None)
+                state["bases"] = _bases(pr, state["ctx"])
+            pred, a = _evaluate(pr, beta, state["bases"], exact=exact)
             r = y - pred.reshape(-1)
+            x = a[:, mask] / scale[mask]
+            if whitening is not None:
+                x, r = _whiten(whitening, x), _whiten(whitening, r)
             step = np.zeros_like(beta)
-            step[mask] = _lstsq(a[:, mask] / scale[mask], r, w) / scale[mask]
+            step[mask] = (np.linalg.lstsq(x, r, rcond=None)[0] if whitening is not None
+                          else _lstsq(x, r, w)) / scale[mask]
             beta = beta + step
+            if not (exact or tau_dependent or iterative):
+                break                       # linear: one solve is the solution
             if np.max(np.abs(step[mask] * scale[mask])) < tol * max(1.0, float(np.max(np.abs(y)))):
                 break
+        return beta, iterations
+
+    def noise_blocks(beta: np.ndarray):
+        sensitivity = np.tile(beta[:6], (ds.n_states, 1))
+        offset = 0
+        for eff in effects:
+            k = len(eff.parameters)
+            if eff.torque_sensitivity is not None:
+                sensitivity = sensitivity + eff.torque_sensitivity(state["ctx"], beta[offset:offset + k])
+            offset += k
+        return _noise_blocks(pr, beta, state["bases"], sensitivity)
+
+    iterations = 1
+    if exact or tau_dependent or iterative:
+        beta, it = gauss_newton(beta, None)
+        iterations += it
+    blocks = noise_blocks(beta)
+    whitening = None
+    if blocks is not None and weighting == "gls" and w is None:
+        # generalised least squares: weighted by the noise covariance the fit knows
+        # (tracker noise, shared references, current noise through the compliance)
+        whitening = _cholesky_blocks(blocks)
+        beta, it = gauss_newton(beta, whitening)
+        iterations += it
+        blocks = noise_blocks(beta)
+        whitening = _cholesky_blocks(blocks)
+    ctx, bases, tau = state["ctx"], state["bases"], state["tau"]
     pred, a = _evaluate(pr, beta, bases, exact=exact)
     resid = ds.dP - pred
     r = resid.reshape(-1)
@@ -668,16 +757,22 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     sv = np.linalg.svd(scaled, compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv.size and sv[-1] > 0 else float("inf")
     w2 = np.ones(n) if w is None else w ** 2
-    m_inv = np.linalg.pinv(a_k.T @ a_k if w is None else a_k.T @ (w2[:, None] * a_k))
-    sensitivity = np.tile(beta[:6], (ds.n_states, 1))
-    offset = 0
-    for eff in effects:
-        k = len(eff.parameters)
-        if eff.torque_sensitivity is not None:
-            sensitivity = sensitivity + eff.torque_sensitivity(ctx, beta[offset:offset + k])
-        offset += k
-    blocks = _noise_blocks(pr, beta, bases, sensitivity)
-    if blocks is not None:
+    rss_w = None
+    if whitening is not None:
+        aw = _whiten(whitening, scaled)
+        rw = _whiten(whitening, r)
+        rss_w = float(rw @ rw)
+        m_inv_s = np.linalg.pinv(aw.T @ aw)
+        inflation = max(1.0, rss_w / max(n - p, 1))
+        cov_k = m_inv_s / np.outer(scale[mask], scale[mask]) * inflation
+        # what noise alone leaves in the (unweighted) residual: tr(L (I - QQ') L')
+        qw = np.linalg.svd(aw, full_matrices=False)[0][:, : p]
+        lq = _unwhiten(whitening, qw)
+        trace_sigma = sum(float(np.trace(c)) for _, c in blocks)
+        expected = trace_sigma - float((lq * lq).sum())
+        noise_floor = float(np.sqrt(max(expected, 0.0) / n))
+    elif blocks is not None:
+        m_inv = np.linalg.pinv(a_k.T @ a_k if w is None else a_k.T @ (w2[:, None] * a_k))
         meat = np.zeros((p, p))
         trace_sigma = 0.0
         cross = 0.0             # trace(H Sigma), H = A M A^T W the weighted hat matrix
@@ -696,6 +791,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         cov_k = m_inv @ meat @ m_inv * inflation
         noise_floor = float(np.sqrt(max(expected, 0.0) / n))
     else:
+        m_inv = np.linalg.pinv(a_k.T @ a_k if w is None else a_k.T @ (w2[:, None] * a_k))
         expected = None
         s2 = (rss if w is None else float(r @ (w2 * r))) / max(n - p, 1)
         cov_k = m_inv * s2
@@ -732,4 +828,4 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
                      expected_rss=expected, condition_number=cond, iterations=iterations, dataset=ds,
                      design=a_k, noise_blocks=None if blocks is None else tuple(blocks),
                      design_names=tuple(nm for nm, m in zip(beta_names, mask) if m), selections=tuple(selections),
-                     effects=effects)
+                     effects=effects, whitening=whitening, rss_whitened=rss_w)

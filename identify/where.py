@@ -80,11 +80,15 @@ class _Noise:
 
 
 def _noise(fit: StaticFit) -> _Noise:
-    """The noise algebra of a fit that has a noise model (repeated readings)."""
+    """The noise algebra of a fit that has a noise model (repeated readings).
+
+    For a GLS fit the residual is ``L (I - QQ') L^-1 e`` (``Sigma = LL'``, ``Q``
+    an orthonormal basis of the whitened design): its covariance is
+    ``L (I - QQ') L'``; ``basis`` is then the whitened basis ``Q``."""
     if fit.noise_blocks is None:
         raise ValueError("the fit has no noise model (no repeated readings)")
     n = fit.n
-    a = fit.design
+    a = fit.design if fit.whitening is None else fit.whiten(fit.design)
     if a.shape[1]:
         u, s, _ = np.linalg.svd(a, full_matrices=False)
         basis = u[:, s > s[0] * 1e-12]
@@ -97,6 +101,11 @@ def _noise(fit: StaticFit) -> _Noise:
     order[rows] = np.arange(len(rows))
     cov = stacked[order][:, order]
     diag = cov.diagonal()
+    if fit.whitening is not None:
+        lq = fit.unwhiten(basis)
+        resid_var = diag - np.einsum("ij,ij->i", lq, lq)
+        mean = float(resid_var.sum())
+        return _Noise(cov, basis, resid_var, mean, 2.0 * mean**2 / max(n - basis.shape[1], 1))
     sb = cov @ basis                        # Sigma Q
     bsb = basis.T @ sb                      # Q' Sigma Q
     resid_var = diag - np.einsum("ij,ij->i", basis, sb)
@@ -112,6 +121,8 @@ def excess_p_value(fit: StaticFit) -> float | None:
     chi-square matched to its mean and variance); None without repeats."""
     if fit.noise_blocks is None:
         return None
+    if fit.rss_whitened is not None:       # GLS: chi-square with n - p degrees of freedom
+        return float(scipy.stats.chi2.sf(fit.rss_whitened, max(fit.n - fit.n_params, 1)))
     nz = _noise(fit)
     g = nz.var / (2.0 * nz.mean)
     h = 2.0 * nz.mean**2 / nz.var
