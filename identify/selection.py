@@ -4,7 +4,7 @@ An effect with many possible components (a spring at the base and at the end of
 every link, two axes each) keeps only those the data support: starting from
 the model without them, the component whose addition has the largest Wald
 statistic is added when it passes the diagnosis' own test (p < 0.01 and
-delta BIC < -10, cli.md) and its value has the physical sign, and the rest are
+delta BIC < -10, docs/cli.md) and its value has the physical sign, and the rest are
 tested again, until none passes.
 
 The tests run on the linearisation of the fit with every component (its design
@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse
 import scipy.stats
 
-#: the test of a component (cli.md's verdict rule)
+#: the test of a component (docs/cli.md's verdict rule)
 SELECT_P = 0.01
 SELECT_DELTA_BIC = -10.0
 #: a component this many std below zero has the wrong sign and is not kept

@@ -1,7 +1,7 @@
 """nonlinear_stiffness: gear stiffness that changes with the torque it carries.
 
 Gear makers publish torque-stiffness curves: a strain-wave or cycloid gear is
-softer at small torque and stiffer at large (hardening), physics.md's
+softer at small torque and stiffer at large (hardening), docs/physics.md's
 ``dtau/dtheta = k0 (1 + |tau| / T)``. Integrated, the twist of joint ``j`` is
 
     theta_j = c_j g(tau_j, h_j),   g(tau, h) = sign(tau) ln(1 + h |tau|) / h,
