@@ -323,7 +323,7 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
         kin_names = ()
     fit = identify_static(robot, ds0, model=static_model, torque=torque, form=form)
     ds = fit.dataset
-    effects = tuple(get_effect(n) for n in static_model)
+    effects = fit.effects or tuple(get_effect(n) for n in static_model)   # as fitted (selected components)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     pr = _Problem(robot, ds, effects, torque, form, "complementary_stiffness" in static_model, frames)
     tau = _torques(pr, None)
