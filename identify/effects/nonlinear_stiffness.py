@@ -78,6 +78,9 @@ def _sensitivity(ctx: StaticContext, values: np.ndarray) -> np.ndarray:
 
 
 def _refusal(ctx: StaticContext) -> str | None:
+    if ctx.torque_source == "force":
+        return ("with force-based torques a stiffness law cannot be told from static friction taking part of "
+                "each load (both bend the deflection-load line); test it with the currents")
     if not np.any(visible_joints(ctx)):
         return ("no joint's torque changes over a range the noise can resolve, so a stiffness that changes "
                 "with the torque cannot show; add loads that span a torque range")
