@@ -548,11 +548,20 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
     return blocks
 
 
-def _cholesky_blocks(blocks) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+def _cholesky_blocks(blocks) -> tuple[tuple[np.ndarray, np.ndarray], ...] | None:
+    """Cholesky factors of the noise covariance blocks, or None when the data carry
+    no noise to weight by (noise-free data: every block zero): the fit is then
+    unweighted."""
     out = []
     for rows, cov in blocks:
-        jitter = 1e-12 * float(np.trace(cov)) / max(len(cov), 1)
-        out.append((rows, np.linalg.cholesky(cov + jitter * np.eye(len(cov)))))
+        trace = float(np.trace(cov))
+        if not np.isfinite(trace) or trace <= 0.0:
+            return None
+        jitter = 1e-12 * trace / max(len(cov), 1)
+        try:
+            out.append((rows, np.linalg.cholesky(cov + jitter * np.eye(len(cov)))))
+        except np.linalg.LinAlgError:
+            return None
     return tuple(out)
 
 
@@ -741,10 +750,11 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         # generalised least squares: weighted by the noise covariance the fit knows
         # (tracker noise, shared references, current noise through the compliance)
         whitening = _cholesky_blocks(blocks)
-        beta, it = gauss_newton(beta, whitening)
-        iterations += it
-        blocks = noise_blocks(beta)
-        whitening = _cholesky_blocks(blocks)
+        if whitening is not None:
+            beta, it = gauss_newton(beta, whitening)
+            iterations += it
+            blocks = noise_blocks(beta)
+            whitening = _cholesky_blocks(blocks)
     ctx, bases, tau = state["ctx"], state["bases"], state["tau"]
     pred, a = _evaluate(pr, beta, bases, exact=exact)
     resid = ds.dP - pred

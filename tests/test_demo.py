@@ -38,6 +38,6 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
     # plain words first, the numbers after, no jargon in the words
     found = text.index("What the demo found")
     words = text[found:text.index("The numbers", found)]
-    assert "link_compliance" in words and "the arm links bend" in words and "%" in words
+    assert "link_compliance" in words and "no joint spring can mimic" in words and "%" in words
     assert not any(j in words for j in ("ΔBIC", "rms", "TPDO", "exact form", "p ="))
     assert "true" in text[text.index("The numbers", found):]
