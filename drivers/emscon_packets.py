@@ -15,6 +15,7 @@ the ES_Command; answers and results add an ES_ResultStatus.
 
 from __future__ import annotations
 
+import contextlib
 import select
 import socket
 import struct
@@ -160,10 +161,8 @@ class PacketSocket:
         return bool(ready)
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(OSError):    # the peer may have closed it already
             self.sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
         self.sock.close()
 
 

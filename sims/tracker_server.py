@@ -13,6 +13,7 @@ Fault injection (tests): :meth:`SimTracker.break_beam`, :meth:`drop_lines`,
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import select
@@ -295,10 +296,8 @@ class SimTracker:
                 return None
 
         def close(c=conn):
-            try:
+            with contextlib.suppress(OSError):    # the client may have closed it already
                 c.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
             c.close()
 
         session = _Session(self, conn.sendall, recv, close, f"tcp{addr[1]}")
