@@ -28,7 +28,15 @@ reply never answers a newer request.
 ``t_ns`` of a streamed sample is the tracker's own measurement time mapped
 onto ``time.monotonic_ns()`` (offset = the smallest receive delay seen), so
 samples are not bunched by network buffering; a single measurement is stamped
-at the middle of its request and reply.
+at the middle of its request and reply. Two things keep the stamps strictly
+increasing on the tracker's grid when lines arrive late (a loaded host reads a
+backlog of lines at once): the lines of one read share its receive time, so
+the offset is taken from the newest of them before any is stamped (each older
+one would otherwise see a larger delay, and the smallest-delay rule would
+stamp them all with the one receive time); and when a later line shows a
+smaller delay than the stamps so far assumed, the offset in use slews towards
+it by at most half the tracker's interval per sample (:data:`MAX_SLEW`), never
+stepping back behind a sample already delivered.
 """
 
 from __future__ import annotations
@@ -58,6 +66,9 @@ MAX_BAD_LINES = 10
 LINE_BYTES = 72
 #: the fastest stream the protocol allows
 MAX_RATE_HZ = 1000.0
+#: the largest share of the tracker's interval between two samples by which the offset in use
+#: may move back towards a smaller receive delay (< 1: the stamps stay strictly increasing)
+MAX_SLEW = 0.5
 
 
 class _TcpTransport:
@@ -131,7 +142,10 @@ class _StreamState:
         self.bad_in_row = 0
         self.blocked = 0
         self.blocked_reason = ""
+        #: the smallest receive delay seen (host time - tracker time) [ns]
         self.offset_ns: int | None = None
+        #: the offset the stamps use: the smallest delay, reached by slewing (module docstring)
+        self.applied_offset_ns: int | None = None
         self.last_t_us: int | None = None
         self.last_line_ns = time.monotonic_ns()
         self.reconnected = False
@@ -214,9 +228,9 @@ class LineTracker(Tracker):
                 self._check_silence(now)
                 continue
             self._buffer += data
-            while b"\n" in self._buffer:
-                raw, self._buffer = self._buffer.split(b"\n", 1)
-                self._on_line(raw + b"\n", now)
+            if b"\n" in self._buffer:
+                *lines, self._buffer = self._buffer.split(b"\n")
+                self._on_lines([raw + b"\n" for raw in lines], now)
             if len(self._buffer) > 4096:
                 self._buffer = b""
                 self._on_bad_line(ProtocolError("tracker: no line end in 4096 bytes"))
@@ -230,22 +244,46 @@ class LineTracker(Tracker):
             state.stream.fail(DeviceTimeout(f"tracker: no line for {self.timeout_s:g} s while streaming"))
             self._state = None
 
-    def _on_line(self, raw: bytes, rx_ns: int) -> None:
-        try:
-            body = decode_line(raw)
-        except ProtocolError as exc:
-            self._on_bad_line(exc)
-            return
+    def _on_lines(self, lines: list[bytes], rx_ns: int) -> None:
+        """The lines of one read, all received at ``rx_ns``, in order."""
         state = self._state
-        if body.startswith("M ") and state is not None:
+        items: list[str | Measurement | ProtocolError] = []
+        for raw in lines:
             try:
-                m = parse_measurement(body)
+                body = decode_line(raw)
+                items.append(parse_measurement(body) if body.startswith("M ") and state is not None else body)
             except ProtocolError as exc:
-                self._on_bad_line(exc)
-                return
-            self._on_measurement(state, m, rx_ns)
+                items.append(exc)
+        if state is not None:      # the newest measurement of the read has its smallest delay
+            newest = [m.t_us for m in items if isinstance(m, Measurement)]
+            if newest:
+                self._observe_delay(state, rx_ns - max(newest) * 1000)
+        for item in items:
+            if isinstance(item, ProtocolError):
+                self._on_bad_line(item)
+            elif isinstance(item, Measurement):
+                if self._state is state:        # a failed stream takes no more lines
+                    self._on_measurement(state, item, rx_ns)
+            else:
+                self._replies.put((item, rx_ns))
+
+    @staticmethod
+    def _observe_delay(state: _StreamState, delay_ns: int) -> None:
+        if state.offset_ns is None or delay_ns < state.offset_ns:
+            state.offset_ns = delay_ns
+        if state.applied_offset_ns is None:
+            state.applied_offset_ns = state.offset_ns
+
+    @staticmethod
+    def _stamp(state: _StreamState, device_ns: int, previous_device_ns: int | None) -> int:
+        """``device_ns`` on the host's clock, the offset in use slewed towards the smallest delay."""
+        if previous_device_ns is not None and state.applied_offset_ns > state.offset_ns:
+            step = min(state.applied_offset_ns - state.offset_ns,
+                       int(MAX_SLEW * max(device_ns - previous_device_ns, 0)))
+            state.applied_offset_ns -= step
         else:
-            self._replies.put((body, rx_ns))
+            state.applied_offset_ns = state.offset_ns
+        return device_ns + state.applied_offset_ns
 
     def _on_bad_line(self, exc: ProtocolError) -> None:
         state = self._state
@@ -284,12 +322,10 @@ class LineTracker(Tracker):
         state.reconnected = False
         state.bad_since_good = 0
         state.next_seq = m.seq + 1
-        state.last_t_us = m.t_us
+        previous_us, state.last_t_us = state.last_t_us, m.t_us
         device_ns = m.t_us * 1000
-        offset = rx_ns - device_ns
-        if state.offset_ns is None or offset < state.offset_ns:
-            state.offset_ns = offset
-        t_ns = device_ns + state.offset_ns
+        self._observe_delay(state, rx_ns - device_ns)
+        t_ns = self._stamp(state, device_ns, None if previous_us is None else previous_us * 1000)
         if m.status != STATUS_OK:
             reason = "beam broken" if m.status == "BEAM_BROKEN" else "no target"
             if state.blocked and state.blocked_reason != reason:

@@ -193,6 +193,79 @@ def test_line_stream_is_stamped_with_the_trackers_clock(line_tracker):
     assert line_tracker.measure().seq > seq[-1]                            # the stream has stopped
 
 
+class LatePeer:
+    """A line-protocol tracker on 127.0.0.1 whose first ``late`` lines reach the host in one
+    write, ``delay_s`` after the newest of them was measured (what a loaded host that reads
+    a backlog at once sees), the rest on time. It records the instant of each measurement
+    on the host's monotonic clock (the test shares the clock)."""
+
+    def __init__(self, rate_hz: float, lines: int, late: int, delay_s: float) -> None:
+        import threading
+
+        self.rate_hz, self.lines, self.late, self.delay_s = rate_hz, lines, late, delay_s
+        self.measured_ns: dict[int, int] = {}
+        self._server = socket.create_server(("127.0.0.1", 0))
+        self.port = self._server.getsockname()[1]
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        conn, _ = self._server.accept()
+        with conn, conn.makefile("rb") as lines_in:
+            for raw in lines_in:
+                words = raw.split(b"*")[0].decode().split()
+                if words[0] == "TARGET":
+                    conn.sendall(encode_line(f"OK TARGET {words[1]}"))
+                elif words[0] == "STREAM":
+                    conn.sendall(encode_line(f"OK STREAM {words[1]}"))
+                    self._stream(conn)
+                elif words[0] == "STOP":
+                    conn.sendall(encode_line("OK STOP"))
+                    return
+
+    def _stream(self, conn) -> None:
+        t0 = time.monotonic_ns()
+        period_ns = int(1e9 / self.rate_hz)
+
+        def line(k: int) -> bytes:
+            self.measured_ns[k + 1] = t0 + k * period_ns
+            return encode_line(Measurement(k + 1, k * period_ns // 1000, "R1", (1.0, 2.0, 0.5), "OK").body())
+
+        time.sleep(((self.late - 1) * period_ns) / 1e9 + self.delay_s)
+        conn.sendall(b"".join(line(k) for k in range(self.late)))
+        for k in range(self.late, self.lines):
+            time.sleep(max(0.0, (t0 + k * period_ns - time.monotonic_ns()) / 1e9))
+            conn.sendall(line(k))
+
+    def close(self) -> None:
+        self._server.close()
+
+
+def test_a_late_backlog_is_stamped_on_the_trackers_grid():
+    """Lines read at once are not stamped with their one receive time (the duplicate t_ns a
+    loaded machine showed), and the stamps never step back when later lines arrive faster."""
+    rate, period_ns = 200.0, 5_000_000
+    peer = LatePeer(rate, lines=120, late=6, delay_s=0.04)
+    tracker = tracker_for(f"tracker+tcp://127.0.0.1:{peer.port}", timeout_s=1.0)
+    try:
+        with tracker.stream(rate) as stream:
+            batch = stream.read_for(0.55)
+    finally:
+        tracker.close()
+        peer.close()
+    samples = batch.samples
+    assert not batch.gaps and len(samples) >= 100 and [s.seq for s in samples[:6]] == [1, 2, 3, 4, 5, 6]
+    t = np.array([s.t_ns for s in samples], dtype=np.int64)
+    dt = np.diff(t)
+    assert np.all(dt[:5] == period_ns), dt[:5]                      # the backlog on the tracker's grid
+    assert np.all(dt >= period_ns // 2), dt.min()                   # slewed, never a step back
+    late = t - np.array([peer.measured_ns[s.seq] for s in samples])
+    assert np.all(late >= 0)                                        # never stamped before it was measured
+    assert late[0] >= 0.04e9                                        # the backlog's delay, at first ...
+    assert late[-1] < 0.01e9                                        # ... slewed out to the smallest one
+    assert np.mean(dt[-50:] == period_ns) > 0.5, dt[-50:]
+
+
 def test_serial_tracker_on_a_pty(world):
     sim = SimTracker(world)
     path = sim.serve_pty()
