@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import pathlib
 
 from elastocal.commands._flags import add_aliased, add_json, add_seed
 from elastocal.errors import InputError
