@@ -1,7 +1,9 @@
 """Typed errors shared by every part of elastocal.
 
-The CLI maps :class:`InputError` to exit code 2 and :class:`DeviceError` (and
-its subclasses) to exit code 1, printing ``str(error)`` as one line.
+The CLI maps :class:`InputError` (a bad file, table, flag or config value, and
+every refusal the data decide: :class:`EffectRefused`, :class:`UnidentifiableError`)
+to exit code 2 and :class:`DeviceError` (and its subclasses) to exit code 1,
+printing ``str(error)`` as one line.
 """
 
 from __future__ import annotations
@@ -83,8 +85,11 @@ class EffectRefused(InputError):
                          argument=argument)
 
 
-class UnidentifiableError(ElastocalError):
-    """The data cannot determine the requested parameters."""
+class UnidentifiableError(InputError):
+    """The data cannot determine the requested parameters (too few measurements for
+    the model, parameters the data cannot separate): a refusal the data decide, so
+    bad input like any other (the CLI exits 2 with its one line); ``source`` names
+    the data when the library knows them."""
 
 
 class DeviceError(ElastocalError):

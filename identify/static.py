@@ -690,7 +690,8 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     bases = _bases(pr, ctx)
     y = ds.dP.reshape(-1)
     if y.size < len(beta_names):
-        raise UnidentifiableError(f"{y.size} deflection components cannot determine {len(beta_names)} parameters")
+        raise UnidentifiableError(f"{y.size} deflection components cannot determine the model's {len(beta_names)} "
+                                  "parameters (measure more poses, loads or markers)", source=ds.source)
 
     # first-order linear solve: starting point, and the answer for form=first-order
     _, a = _evaluate(pr, np.zeros(len(beta_names)), bases, exact=False)

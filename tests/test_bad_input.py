@@ -592,3 +592,21 @@ def test_a_corrupt_length_field_in_a_log_is_one_line_not_a_memory_error(data, tm
     bad.write_bytes(bytes(raw[:-100]))               # the same in a file without its end
     rc, _, err = run_cli(capsys, ["identify", bad])
     assert rc in (0, 2) and "Traceback" not in err and "MemoryError" not in err
+
+
+@pytest.mark.parametrize("command", ["identify", "diagnose"])
+def test_data_that_cannot_determine_the_model_exit_2_naming_the_table(data, tmp_path, capsys, command):
+    """Too few deflections for the model's parameters is a refusal the data decide
+    (UnidentifiableError): bad input, exit 2, one line naming the table, nothing written."""
+    rows = _csv_rows(data / "static.csv")
+    col = rows[0].index("marker")
+    first_pose = rows[1][0]
+    one = tmp_path / "one_marker.csv"
+    _write_rows(one, [rows[0]] + [r for r in rows[1:] if r[0] == first_pose and r[col] == rows[1][col]])
+    argv = [command, "--robot", data / "robot.toml", "--static", one]
+    if command == "identify":
+        argv += ["--out", tmp_path / "cal.json"]
+    rc, out, err = run_cli(capsys, argv)
+    assert_refused(rc, err, f"elastocal {command}: {one}: 3 deflection components cannot determine the model's 6 "
+                            "parameters")
+    assert out == "" and not (tmp_path / "cal.json").exists()
