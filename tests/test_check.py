@@ -207,3 +207,19 @@ def test_check_command_input_errors(cell, capsys):
     assert "bad.csv" in err and err.count("\n") == 1
     assert main(base + ["--static", str(cell / "bad.csv"), "--sim"]) == 2
     assert "not with --static" in capsys.readouterr().err
+
+
+def test_yes_on_a_cell_nobody_simulates_is_refused_before_anything_is_written(cell, capsys):
+    """`--yes` answers prompts only for simulated devices (`--sim`, or a cell `sim serve` wrote, whose
+    load rig hangs the loads); on any other cell it is refused with one line, and the check's folder
+    beside the history is not created."""
+    (cell / "plan.toml").write_text(_check_plan())
+    assert main(["history", "add", "--cell", str(cell / "cell.toml"), "--calibration", str(cell / "cal.json"),
+                 "--plan", str(cell / "plan.toml")]) == 0
+    capsys.readouterr()
+    assert main(["check", "--cell", str(cell / "cell.toml"), "--yes"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--yes: --yes answers the prompts of simulated devices only" in err
+    assert not (cell / "checks").exists()
+    assert main(["check", "--cell", str(cell / "cell.toml"), "--yes", "--sim", "--unattended"]) == 2
+    assert "give one" in capsys.readouterr().err and not (cell / "checks").exists()

@@ -1,52 +1,133 @@
-"""Every command of the README's "Try every command on simulated data" block runs, as
-written, in an empty folder with only simulated data (the view is started and stopped)."""
+"""Every command of the README's "Try every command on simulated data" blocks runs, as
+written, in an empty folder with only simulated data: the offline block in this process
+(the view is started and stopped), the shop-floor block against a simulated cell served
+by `elastocal sim serve` in a process of its own, as the README starts it."""
 
+import json
 import pathlib
+import re
 import shlex
+import subprocess
+import sys
+import time
 
 import pytest
 
 from elastocal.cli import main
 
 README = pathlib.Path(__file__).parents[1] / "README.md"
+SECTION = "## Try every command on simulated data"
 
 
-def readme_block() -> list[list[str]]:
+def readme_blocks() -> list[list[list[str]]]:
+    """The ```bash blocks of the section, each a list of argv (without `elastocal`)."""
     text = README.read_text(encoding="utf-8")
-    section = text[text.index("## Try every command on simulated data"):]
-    body = section[section.index("```bash") + len("```bash"):]
-    body = body[:body.index("```")]
-    commands = []
-    for line in body.strip().splitlines():
-        argv = shlex.split(line, comments=True)
-        assert argv[0] == "elastocal", line
-        commands.append(argv[1:])
-    return commands
+    section = text[text.index(SECTION) + len(SECTION):]
+    section = section[:section.index("\n## ")]
+    blocks = []
+    for body in re.findall(r"```bash\n(.*?)```", section, flags=re.S):
+        commands = []
+        for line in body.strip().splitlines():
+            argv = shlex.split(line, comments=True)
+            assert argv[0] == "elastocal", line
+            commands.append(argv[1:])
+        blocks.append(commands)
+    return blocks
 
 
-def test_the_block_covers_the_offline_workflows():
-    names = {argv[0] for argv in readme_block()}
-    assert names >= {"sim", "identify", "diagnose", "report", "export", "history", "geometry", "plan",
-                     "validate", "robot", "view"}
+def workflow_commands() -> set[str]:
+    """The commands of the README's Workflows table."""
+    text = README.read_text(encoding="utf-8")
+    table = text[text.index("## Workflows"):]
+    table = table[:table.index("\n\n", table.index("| --- |"))]
+    return set(re.findall(r"`elastocal (\w+)", table))
+
+
+def test_the_blocks_cover_every_workflow_of_the_readme():
+    offline, devices = readme_blocks()
+    names = {argv[0] for argv in offline + devices}
+    # import reads a tracker software's export, fleet a plant of cells (their own docs and tests)
+    assert workflow_commands() - {"import", "fleet"} <= names, workflow_commands() - names
+    assert {"devices", "calibrate", "check", "schedule", "compensate"} <= names
+    assert devices[0][:2] == ["sim", "serve"] and devices[0][-1] == "&"    # served in the background
+
+
+def _view(argv: list[str]) -> None:
+    """`view` serves until Ctrl-C: build its page on a free port, then stop it."""
+    from elastocal.cli import build_parser
+    from elastocal.commands.view import ViewPage, build_view
+
+    args = build_parser("view")[0].parse_args(argv)
+    args.notes = []
+    page = ViewPage(build_view(args), port=0)
+    assert page.url.startswith("http://127.0.0.1:")
+    page.stop()
 
 
 @pytest.mark.slow
-def test_every_readme_workflow_runs_from_simulated_data(tmp_path, monkeypatch, capsys):
+def test_every_offline_readme_workflow_runs_from_simulated_data(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    for argv in readme_block():
-        if argv[0] == "view":     # serves until Ctrl-C: build its page on a free port, then stop it
-            from elastocal.cli import build_parser
-            from elastocal.commands.view import ViewPage, build_view
-
-            args = build_parser("view")[0].parse_args(argv)
-            args.notes = []
-            page = ViewPage(build_view(args), port=0)
-            assert page.url.startswith("http://127.0.0.1:")
-            page.stop()
+    for argv in readme_blocks()[0]:
+        if argv[0] == "view":
+            _view(argv)
             continue
         code = main(argv)
         out = capsys.readouterr()
         assert code == 0, (argv, out.err)
     for f in ("sim/report.html", "sim/cal.json", "sim/export/static.csv", "drift.png", "runs/sweep.csv",
-              "plan.toml", "abs/cal.json", "calibrated.toml", "calibrated.urdf", "history.sqlite"):
+              "plan.toml", "abs/cal.json", "calibrated.toml", "calibrated.urdf", "history.sqlite",
+              "path/path.csv", "path/compensated.csv", "path/compensated.src", "path/compensated.mod"):
         assert (tmp_path / f).stat().st_size > 0, f
+    header = (tmp_path / "path/compensated.csv").read_text().splitlines()[0].split(",")
+    assert header[:7] == ["t", "q1", "q2", "q3", "q4", "q5", "q6"] and "qc1" in header and "dz" in header
+
+
+@pytest.mark.slow
+def test_every_shop_floor_readme_workflow_runs_on_the_served_simulated_cell(tmp_path, monkeypatch, capsys):
+    """The second block as written: `sim serve ... &` in its own process, then devices, calibrate,
+    plan, calibrate, identify, history add, check, schedule install and history against it."""
+    monkeypatch.chdir(tmp_path)
+    serve, *commands = readme_blocks()[1]
+    cell = tmp_path / serve[serve.index("--write-cell") + 1]
+    server = subprocess.Popen([sys.executable, "-m", "elastocal", *serve[:-1]], cwd=tmp_path,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120.0
+        while not cell.exists():
+            assert server.poll() is None, server.communicate()
+            assert time.monotonic() < deadline, "sim serve wrote no cell config in 120 s"
+            time.sleep(0.2)
+        capsys.readouterr()
+        outputs = {}
+        for argv in commands:
+            code = main(argv)
+            out = capsys.readouterr()
+            assert code == 0, (argv, out.err[-2000:])
+            outputs[argv[0]] = out.out
+        assert server.poll() is None, "the served cell stopped during the workflows"
+    finally:
+        server.terminate()           # SIGTERM: sim serve stops serving and exits 0
+        try:
+            rc = server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            raise
+    assert rc == 0
+    # what each step must have done
+    assert "devices: drive J1, drive J2, drive J3, drive J4, drive J5, drive J6, tracker, controller" \
+        in outputs["devices"]
+    assert "(6/6 steps, completed)" in outputs["calibrate"], outputs["calibrate"]
+    cal = json.loads((tmp_path / "cell-cal.json").read_text())
+    # the served cell is the default simulated HH-150: k2 and k3 as its truth (docs/robots.md), within 1 %
+    from elastocal.sims.cell import CellTruth
+
+    truth = CellTruth().stiffness
+    for j in (2, 3):
+        assert cal["parameters"][f"k{j}"]["value"] == pytest.approx(truth[j - 1], rel=0.01)
+    assert outputs["check"].startswith("HOLDS"), outputs["check"]
+    assert "recorded as check 1 of calibration 1" in outputs["check"]
+    assert list((tmp_path / "checks").glob("check-*.mcap"))
+    service = (tmp_path / "units/elastocal-check.service").read_text()
+    assert f"-m elastocal check --cell {cell}" in service and "--db cell-history.sqlite" in service
+    assert "OnCalendar=Mon *-*-* 06:00:00" in (tmp_path / "units/elastocal-check.timer").read_text()
+    assert "1 calibration(s), 1 check(s)" in outputs["history"]

@@ -107,6 +107,13 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
                          "of the cell config", source="--plan")
     if plan.check is None:
         raise InputError("the plan has no [check] section", source=plan.source)
+    # the flags are checked before anything is written (the checks/ folder included)
+    if args.yes and not args.sim and not config.sim.get("load_url"):
+        raise InputError("--yes answers the prompts of simulated devices only; add --sim (or use the cell "
+                         "`elastocal sim serve --write-cell` wrote), or let a person answer", source="--yes")
+    if args.yes and args.unattended:
+        raise InputError("--yes answers prompts, --unattended runs without them: give one", source="--unattended")
+    ui = AutoUI(sys.stderr, quiet=args.json) if args.yes else TerminalUI(sys.stderr)
     if args.out:
         out = pathlib.Path(args.out)
     elif db is not None:
@@ -114,12 +121,6 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
         out.parent.mkdir(exist_ok=True)
     else:
         raise InputError("give --out for the check's log (no history folder to put it in)", source="--out")
-    if args.yes and not args.sim:
-        raise InputError("--yes answers the prompts of simulated devices only; add --sim, or let a person answer",
-                         source="--yes")
-    ui = AutoUI(sys.stderr, quiet=args.json) if args.yes else TerminalUI(sys.stderr)
-    if args.yes and args.unattended:
-        raise InputError("--yes answers prompts, --unattended runs without them: give one", source="--unattended")
     outcome = run_calibration(config, plan, out, yes=args.yes, ui=ui, procedures=("check",), simulate=args.sim,
                               overwrite=args.force, unattended=unattended(args))
     if outcome.status != "completed":

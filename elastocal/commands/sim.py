@@ -1,4 +1,4 @@
-"""`elastocal sim static|runs|serve`: datasets from the simulated cell, or simulated devices."""
+"""`elastocal sim static|runs|path|serve`: datasets from the simulated cell, a process path, or simulated devices."""
 
 from __future__ import annotations
 
@@ -8,9 +8,13 @@ import json
 from elastocal.commands._flags import add_aliased, add_json, add_seed
 from elastocal.errors import InputError
 
+#: Yang's process wrench (Table 8: 1500 N along z): the default of ``sim path``; the same as
+#: elastocal.compensation.validate.YANG_WRENCH, kept here so that --help imports no compensation code
+YANG_WRENCH = (0.0, 0.0, 1500.0)
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    sub = parser.add_subparsers(dest="sim_command", metavar="{static,runs,serve}")
+    sub = parser.add_subparsers(dest="sim_command", metavar="{static,runs,path,serve}")
     sub.required = True
     for name, text in (("static", "a static before/after-load experiment: robot.toml, static.csv, truth.json"),
                        ("runs", "friction runs and joint-2 sweeps: robot.toml, runs.csv, truth.json")):
@@ -41,6 +45,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                 "truth.json lists their lines")
             p.add_argument("--shared-currents", action="store_true",
                            help="one drive reading per repeat for all its marker rows (docs/formats.md §2)")
+    text = ("a process path to compensate: robot.toml and path.csv, Yang's line x 1.2 -> 1.8 m at z 0.116 m, "
+            "10 mm/s, under a constant process wrench (default 1500 N up)")
+    path = sub.add_parser("path", help=text, description=text)
+    path.add_argument("--out", required=True, help="output directory")
+    path.add_argument("--wrench", metavar="FX,FY,FZ[,MX,MY,MZ]", default=",".join(str(v) for v in YANG_WRENCH),
+                      help="the process wrench on the load point for every sample, base axes [N, N*m] "
+                           "(default 0,0,1500: Yang's friction stir welding force)")
+    path.add_argument("--step", type=float, default=0.005, metavar="M",
+                      help="distance between path points [m] (default 0.005)")
+    path.add_argument("--force", action="store_true", help="overwrite the files of an earlier path in --out")
+    add_json(path)
     serve = sub.add_parser("serve", help="serve simulated devices on loopback and a CAN bus",
                            description="serve simulated devices on 127.0.0.1 and a CAN bus on the loopback "
                                        "interface (udp_loopback on a port of its own, so other processes on this "
@@ -129,9 +144,44 @@ def _robot(args):
     return load_robot(args.robot) if args.robot else bundled_robot()
 
 
+def _path(args: argparse.Namespace) -> int:
+    """``elastocal sim path``: the bundled robot and Yang's process path under a constant wrench."""
+    import numpy as np
+
+    from elastocal.commands.plan import numbers
+    from elastocal.commands._outputs import Outputs, check_folder
+    from elastocal.compensation.files import write_path
+    from elastocal.compensation.ik import PlannedPath, yang_path
+    from elastocal.identify.robot import bundled_robot
+
+    wrench = np.array(numbers(args.wrench, (3, 6), "--wrench") + (0.0,) * 3)[:6]
+    if not (np.isfinite(args.step) and 0.0005 <= args.step <= 0.1):
+        raise InputError(f"must be between 0.0005 and 0.1 m, got {args.step}", source="--step")
+    out = check_folder(args.out, "--out")
+    outputs = Outputs(force=args.force)
+    for name in ("robot.toml", "path.csv"):
+        outputs.add(out / name, "--out", in_folder=True)
+    robot = bundled_robot()
+    planned = yang_path(robot, step_m=args.step)
+    planned = PlannedPath(t=planned.t, q=planned.q, wrench=np.tile(wrench, (len(planned), 1)))
+    outputs.make_folder(out)
+    with outputs:
+        outputs.temp(out / "robot.toml").write_text(robot.to_toml(), encoding="utf-8")
+        write_path(outputs.temp(out / "path.csv"), planned)
+    written = {"robot": str(out / "robot.toml"), "path": str(out / "path.csv"), "points": len(planned)}
+    if args.json:
+        print(json.dumps(written))
+    else:
+        print(f"wrote robot  {written['robot']}")
+        print(f"wrote path   {written['path']} ({len(planned)} points, wrench {', '.join(f'{v:g}' for v in wrench)})")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     if args.sim_command == "serve":
         return _serve(args)
+    if args.sim_command == "path":
+        return _path(args)
     from elastocal.commands._outputs import Outputs, check_folder
     from elastocal.sims.cell import HIDDEN_EFFECTS, CellTruth
     from elastocal.sims.runs import RUN_HIDDEN
