@@ -31,6 +31,12 @@ APPLICATION = "elastocal.history"
 #: a check's estimate of a parameter enters the drift only when its own
 #: relative std is below this (a short check does not determine every joint)
 MAX_CHECK_RELATIVE_STD = 0.02
+#: a calibrated value whose std is larger than this share of it (or that the calibration marks
+#: ``"determined": false``, identify/evidence.py) is not determined by its data (a joint the poses
+#: hardly load): its drift is marked as such, never shown as a finding
+DETERMINED_RELATIVE_STD = 0.1
+#: the friction tolerance of a recorded check that does not state its own (`check --friction-tolerance`)
+DEFAULT_FRICTION_TOLERANCE = 0.2
 
 _SCHEMA = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -114,6 +120,24 @@ class Drift:
     check_verdict: tuple[str, ...]
     check_unexplained_m: np.ndarray    # rms of measured - predicted deflection; NaN without static data
     check_noise_floor_m: np.ndarray
+    #: (n_calibrations, n_parameters): whether the calibration determines the value (:func:`is_determined`)
+    calibration_determined: np.ndarray
+    #: (n_checks, 6): each joint's friction along the check's runs, measured / predicted - 1; NaN where
+    #: the check did not measure it
+    check_friction_relative: np.ndarray
+    #: (n_checks, 6): the joints whose friction failed the check (significant and beyond its tolerance)
+    check_friction_failed: np.ndarray
+    #: (n_checks,): the relative friction change each check tolerated (NaN without friction)
+    check_friction_tolerance: np.ndarray
+
+
+def is_determined(p: Mapping[str, Any]) -> bool:
+    """Whether a calibrated parameter (formats.md §4) is determined by its data: not marked
+    ``"determined": false``, with a finite std within :data:`DETERMINED_RELATIVE_STD` of its value."""
+    value, std = p.get("value"), p.get("std")
+    if p.get("determined") is False or not isinstance(value, (int, float)) or not isinstance(std, (int, float)):
+        return False
+    return math.isfinite(std) and std <= DETERMINED_RELATIVE_STD * abs(value)
 
 
 def clean(obj):
@@ -280,6 +304,7 @@ class History:
             units.append(unit)
         cv = np.full((len(cals), len(names)), np.nan)
         cs = np.full((len(cals), len(names)), np.nan)
+        cd = np.zeros((len(cals), len(names)), dtype=bool)
         for i, rec in enumerate(cals):
             for j, n in enumerate(names):
                 p = rec.calibration.parameters.get(n)
@@ -287,12 +312,17 @@ class History:
                     cv[i, j] = float(p["value"])
                     std = p.get("std")
                     cs[i, j] = float(std) if isinstance(std, (int, float)) else math.nan
+                    cd[i, j] = is_determined(p)
         kv = np.full((len(checks), len(names)), np.nan)
         unexplained = np.full(len(checks), np.nan)
         floor = np.full(len(checks), np.nan)
+        friction_rel = np.full((len(checks), 6), np.nan)
+        friction_failed = np.zeros((len(checks), 6), dtype=bool)
+        friction_tol = np.full(len(checks), np.nan)
         by_id = {rec.id: rec.calibration for rec in cals}
         for i, rec in enumerate(checks):
             _friction_drift(rec.result, by_id.get(rec.calibration_id), names, kv[i])
+            friction_tol[i] = _friction_levels(rec.result, rec.verdict, friction_rel[i], friction_failed[i])
             defl = rec.result.get("deflection") if isinstance(rec.result, Mapping) else None
             if not isinstance(defl, Mapping):
                 continue
@@ -311,7 +341,9 @@ class History:
                      calibration_value=cv, calibration_std=cs,
                      check_time_ns=np.array([r.time_ns for r in checks], dtype=np.int64), check_value=kv,
                      check_verdict=tuple(r.verdict for r in checks), check_unexplained_m=unexplained,
-                     check_noise_floor_m=floor)
+                     check_noise_floor_m=floor, calibration_determined=cd,
+                     check_friction_relative=friction_rel, check_friction_failed=friction_failed,
+                     check_friction_tolerance=friction_tol)
 
 
 #: friction parameters of joint j, which a check's UV/VU runs see together (the mean friction along its path)
@@ -339,6 +371,35 @@ def _friction_drift(result: object, calibration: Calibration | None, names: Sequ
                 row[names.index(name)] = float(p["value"]) * measured / predicted
 
 
+def _friction_levels(result: object, verdict: str, relative: np.ndarray, failed: np.ndarray) -> float:
+    """A check's friction per joint (measured / predicted - 1) and the joints that failed it: significant
+    at the check's level (alpha over the joints) and beyond its tolerance, as identify/check.py decides;
+    a record without p-values fails a joint beyond the tolerance of a check that asked to recalibrate.
+    Returns the tolerance (NaN when the check has no friction)."""
+    friction = result.get("friction") if isinstance(result, Mapping) else None
+    if not isinstance(friction, Mapping) or not isinstance(friction.get("joints"), Mapping):
+        return math.nan
+    joints = friction["joints"]
+    tolerance = friction.get("tolerance")
+    tolerance = float(tolerance) if isinstance(tolerance, (int, float)) else DEFAULT_FRICTION_TOLERANCE
+    alpha = friction.get("alpha")
+    for joint, f in joints.items():
+        if not (isinstance(f, Mapping) and str(joint).isdigit() and 1 <= int(joint) <= len(relative)):
+            continue
+        measured, predicted = f.get("measured"), f.get("predicted")
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (measured, predicted)) or not predicted:
+            continue
+        j = int(joint) - 1
+        relative[j] = measured / predicted - 1.0
+        beyond = abs(relative[j]) > float(tolerance)
+        p = f.get("p_value")
+        if isinstance(p, (int, float)) and isinstance(alpha, (int, float)):
+            failed[j] = beyond and p < alpha / max(len(joints), 1)
+        else:
+            failed[j] = beyond and verdict == "recalibrate"
+    return tolerance
+
+
 def drift_summary(drift: Drift) -> dict:
     """Per parameter: first calibrated value, last calibrated value, last check
     estimate, and the latest evidence (a check after the last calibration,
@@ -356,72 +417,27 @@ def drift_summary(drift: Drift) -> dict:
         latest = later[-1] if later else last_cal
         out[name] = {"unit": drift.units[j], "first": first, "last_calibration": last_cal,
                      "last_check": checked[-1][1] if checked else None, "latest": latest,
-                     "change": latest / first - 1.0 if first else None}
+                     "change": latest / first - 1.0 if first else None,
+                     # the change is a finding only when the first and the last calibration determine the value
+                     "determined": bool(drift.calibration_determined[known[0], j]
+                                        and drift.calibration_determined[known[-1], j])}
     return out
 
 
 def plot_drift(drift: Drift, path: str | pathlib.Path) -> None:
-    """Write the drift plot (PNG or SVG by suffix), :func:`drift_figure`."""
+    """Write the drift plot (PNG or SVG by suffix): :func:`elastocal.acquisition.drift_plot.drift_figure`."""
     path = pathlib.Path(path)
     if path.suffix.lower() not in (".png", ".svg"):
         raise InputError("the drift plot is written as .png or .svg", source=str(path))
     if not len(drift.calibration_time_ns):
         raise InputError("the history holds no calibration to plot", source=str(path))
+    from elastocal.acquisition.drift_plot import drift_figure
+
     drift_figure(drift).savefig(path, dpi=110)
 
 
 def drift_figure(drift: Drift):
-    """The drift plot: the joint stiffness and other parameters relative to the
-    first calibration (calibrations with their std, checks as open markers,
-    friction from the checks' runs among them), and each check's unexplained
-    deflection against its noise floor, coloured by verdict; every check is
-    marked on every panel, a check without static poses on the checks panel's axis."""
-    from matplotlib.figure import Figure
+    """The drift plot (:mod:`elastocal.acquisition.drift_plot`)."""
+    from elastocal.acquisition.drift_plot import drift_figure as figure
 
-    def days(t_ns: np.ndarray) -> np.ndarray:
-        return np.asarray(t_ns, dtype=np.int64).astype("datetime64[ns]")
-
-    stiff = [j for j, n in enumerate(drift.names) if n.startswith("k") and n[1:].isdigit()]
-    other = [j for j in range(len(drift.names)) if j not in stiff]
-    panels = [("joint stiffness", stiff)] + ([("other parameters", other)] if other else []) + [("checks", None)]
-    fig = Figure(figsize=(9.0, 2.8 * len(panels)), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(len(panels), 1, sharex=True))
-    tc, tk = days(drift.calibration_time_ns), days(drift.check_time_ns)
-    colours = ["tab:green" if v == "holds" else "tab:red" for v in drift.check_verdict]
-    for ax, (title, cols) in zip(axes, panels):
-        for t, c in zip(tk, colours):       # every check, on every panel, whatever it could measure
-            ax.axvline(t, color=c, lw=0.6, alpha=0.4, zorder=0)
-        if cols is None:
-            if len(tk):
-                static = np.isfinite(drift.check_unexplained_m)
-                ax.scatter(tk[static], drift.check_unexplained_m[static] * 1e6,
-                           c=[c for c, s_ in zip(colours, static) if s_], zorder=3, label="unexplained (rms)")
-                ax.plot(tk, drift.check_noise_floor_m * 1e6, "k--", lw=0.8, label="noise floor")
-                if np.any(~static):   # checks without static poses (friction runs only): on the axis
-                    ax.scatter(tk[~static], np.zeros(int(np.sum(~static))), marker="^",
-                               c=[c for c, s_ in zip(colours, static) if not s_], zorder=3,
-                               label="no static poses (runs only)")
-                ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
-            ax.set_ylabel("deflection [µm]")
-            ax.set_title("checks: green holds, red recalibrate", fontsize=10)
-            continue
-        for j in cols:
-            base = drift.calibration_value[0, j]
-            if not np.isfinite(base) or base == 0:
-                finite = drift.calibration_value[np.isfinite(drift.calibration_value[:, j]), j]
-                if not finite.size:
-                    continue
-                base = finite[0]
-            rel = (drift.calibration_value[:, j] / base - 1.0) * 100.0
-            err = drift.calibration_std[:, j] / abs(base) * 100.0
-            line = ax.errorbar(tc, rel, yerr=np.nan_to_num(err), marker="o", ms=4, capsize=2, label=drift.names[j])
-            if len(tk) and np.any(np.isfinite(drift.check_value[:, j])):
-                ax.plot(tk, (drift.check_value[:, j] / base - 1.0) * 100.0, "o", mfc="none",
-                        color=line[0].get_color(), ms=5)
-        ax.axhline(0.0, color="grey", lw=0.6)
-        ax.set_ylabel("change from first [%]")
-        ax.set_title(f"{title}: calibrations (filled, ±1 std) and checks (open)", fontsize=10)
-        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # outside: hides no point
-    axes[-1].set_xlabel("time (UTC)")
-    fig.autofmt_xdate()
-    return fig
+    return figure(drift)

@@ -98,11 +98,6 @@ def record_results(results: Sequence[LogResult], *, now_ns: int) -> Recorded:
 
 
 # --------------------------------------------------------------- plant drift
-#: a calibrated value whose std is larger than this share of it is not determined by its data
-#: (a joint the poses hardly load): its drift is reported as such, never as a finding
-DETERMINED_RELATIVE_STD = 0.1
-
-
 @dataclass(frozen=True)
 class CellDrift:
     """One cell of the plant: its history summed up (``error`` when it has none or it cannot be read)."""
@@ -131,15 +126,6 @@ class CellDrift:
         moved = [(n, c) for n, _, _, _, c, d in self.drift
                  if d and n not in exclude and c is not None and math.isfinite(c)]
         return max(moved, key=lambda nc: abs(nc[1])) if moved else None
-
-
-def _determined(drift, name: str) -> bool:
-    """Whether the first and the last calibration both determine ``name``."""
-    j = drift.names.index(name)
-    values, stds = drift.calibration_value[:, j], drift.calibration_std[:, j]
-    known = [i for i, v in enumerate(values) if math.isfinite(v)]
-    return all(math.isfinite(stds[i]) and stds[i] <= DETERMINED_RELATIVE_STD * abs(values[i])
-               for i in (known[0], known[-1]))
 
 
 def find_cell_configs(paths: Sequence[str | pathlib.Path]) -> list[pathlib.Path]:
@@ -184,7 +170,7 @@ def cell_drift(cell_config: pathlib.Path) -> CellDrift:
         return CellDrift(**base, history=str(config.history), error=str(exc))
     summary = drift_summary(drift_data)
     drift = tuple((name, str(p["unit"]), float(p["first"]), float(p["latest"]), p["change"],
-                   _determined(drift_data, name)) for name, p in summary.items())
+                   p["determined"]) for name, p in summary.items())
     return CellDrift(**base, history=str(config.history), robot=cals[-1].robot if cals else "",
                      calibrations=len(cals), last_calibration=cals[-1].time if cals else None, drift=drift,
                      checks=len(checks), checks_failed=sum(c.verdict == "recalibrate" for c in checks),

@@ -156,3 +156,153 @@ def test_history_command_add_and_show(tmp_path, capsys):
     assert "no history database" in err and err.count("\n") == 1
     assert main(["history", "--db", str(tmp_path / "empty.sqlite")]) == 2
     assert "history add" in capsys.readouterr().err
+
+
+# ------------------------------------------------------- the drift plot on a simulated history
+@pytest.fixture(scope="module")
+def simulated_history(tmp_path_factory):
+    """A cell's history as `elastocal check` records it, from the simulated cell: a calibration
+    (12 poses under 2 loads, UV/VU friction runs) that leaves k1 undetermined, then checks of an
+    unchanged cell, joint 2 10 % softer, joint-3 Coulomb friction 50 % up, two runs-only checks
+    whose friction failed, and a recorded check whose joint-3 friction reads -101.7 %."""
+    import dataclasses
+
+    from elastocal.acquisition.history import clean
+    from elastocal.identify.calibration import calibration_from_fit
+    from elastocal.identify.check import check_calibration
+    from elastocal.identify.runs import identify_runs
+    from elastocal.identify.static import identify_static
+    from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
+    from elastocal.sims.static import StaticPlan, simulate_static
+
+    friction = ("coulomb_friction", "viscous_friction", "load_dependent_friction")
+    robot = bundled_robot()
+    truth = default_run_truth(CellTruth())
+    fit = identify_static(robot, simulate_static(robot, truth, seed=1, plan=StaticPlan(n_poses=12, n_loads=2)))
+    obj = fit.to_json()
+    runs = identify_runs(robot, simulate_runs(robot, truth, seed=2, sweeps=None, friction=FrictionPlan(samples=120)),
+                         model=("joint_stiffness", *friction))
+    obj["parameters"].update(runs.to_json()["parameters"])
+    obj["model"] = obj["model"] + list(friction)
+    cal = calibration_from_fit(robot.name, obj, created="2026-01-05T08:00:00Z")
+    assert cal.parameters["k1"].get("determined") is False     # what the plot must not show as a finding
+
+    def scaled(name, joint, factor):
+        v = getattr(truth, name).copy()
+        v[joint - 1] *= factor
+        return dataclasses.replace(truth, **{name: v})
+
+    cases = [(truth, True), (scaled("stiffness", 2, 0.9), True), (scaled("coulomb", 3, 1.5), True),
+             (scaled("coulomb", 3, 0.3), False), (scaled("coulomb", 2, 1.6), False)]
+    check_run = FrictionPlan(speeds_rad_s=(0.1,), loads=(("0", (0.0,) * 6),), samples=100)
+    db = tmp_path_factory.mktemp("history") / "history.sqlite"
+    results = []
+    with History(db) as h:
+        cid = h.add_calibration(cal, time_ns=T0)
+        for i, (case, static) in enumerate(cases):
+            res = check_calibration(
+                robot, cal, runs=simulate_runs(robot, case, seed=530 + i, sweeps=None, friction=check_run),
+                static=simulate_static(robot, case, seed=30 + i, plan=StaticPlan(n_poses=3, n_loads=1))
+                if static else None)
+            results.append(clean(res.to_json()))
+            h.add_check(calibration_id=cid, time_ns=T0 + (i + 1) * DAY_NS, verdict=res.verdict, reasons=res.reasons,
+                        result=results[-1])
+        odd = json.loads(json.dumps(results[3]))           # friction measured against the calibration's sign
+        odd["friction"]["joints"]["3"].update(measured=-0.017 * odd["friction"]["joints"]["3"]["predicted"])
+        h.add_check(calibration_id=cid, time_ns=T0 + 6 * DAY_NS, verdict="recalibrate", reasons=("friction",),
+                    result=odd)
+        results.append(odd)
+        drift = h.drift()
+    return drift, results, db
+
+
+def _inside(ax, xy_display: np.ndarray) -> np.ndarray:
+    """Which display points lie inside the axes box (its edges included)."""
+    box = ax.get_window_extent()
+    return ((xy_display[:, 0] >= box.x0 - 0.5) & (xy_display[:, 0] <= box.x1 + 0.5)
+            & (xy_display[:, 1] >= box.y0 - 0.5) & (xy_display[:, 1] <= box.y1 + 0.5))
+
+
+def test_drift_plot_draws_every_check_point_inside_its_panel(simulated_history, tmp_path):
+    """Every value drawn lies inside its panel (a -101.7 % point too), no legend covers a panel, the
+    undetermined k1 does not set the stiffness scale, and each friction failure is drawn (filled red),
+    joint by joint, exactly where the checks failed."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import PathCollection
+
+    from elastocal.acquisition.history import drift_figure
+
+    drift, results, db = simulated_history
+    fig = drift_figure(drift)
+    FigureCanvasAgg(fig).draw()
+    titles = [ax.get_title() for ax in fig.axes]
+    stiff, other, friction, checks = fig.axes
+    assert titles[2].startswith("friction") and titles[3].startswith("checks")
+    n_points = 0
+    for ax in fig.axes:
+        for line in ax.lines:
+            x, y = line.get_xdata(), line.get_ydata()
+            if line.get_marker() in ("None", None, "", "_", "|") or len(x) == 0:   # lines, error bar caps
+                continue
+            xy = line.get_transform().transform(np.column_stack([ax.convert_xunits(x), y]).astype(float))
+            assert _inside(ax, xy).all(), (ax.get_title(), line.get_label(), y)
+            n_points += len(x)
+        for coll in ax.collections:          # scatter markers (error bars may leave a panel: see drift_plot.py)
+            offsets = coll.get_offsets()
+            if isinstance(coll, PathCollection) and len(offsets):
+                xy = coll.get_offset_transform().transform(np.asarray(offsets, dtype=float))
+                assert _inside(ax, xy).all(), (ax.get_title(), coll.get_label())
+                n_points += len(offsets)
+        legend = ax.get_legend()
+        assert legend is not None
+        box = legend.get_window_extent()
+        assert fig.bbox.x0 <= box.x0 and box.x1 <= fig.bbox.x1 + 1 and fig.bbox.y0 <= box.y0 <= fig.bbox.y1
+        for other_ax in fig.axes:             # beside its panel, over none
+            assert not box.overlaps(other_ax.get_window_extent()), (ax.get_title(), other_ax.get_title())
+            if other_ax is not ax:
+                assert not box.overlaps(other_ax.get_legend().get_window_extent())
+    assert n_points > 40
+    # every check is on the checks panel: its deflection, or (runs only) on the axis
+    assert sum(len(c.get_offsets()) for c in checks.collections) == len(results) == 6
+    # the stiffness scale follows the values: the 10 % softer joint 2 stands out, k1 (std ~300 %) is an x
+    lo, hi = stiff.get_ylim()
+    assert hi - lo < 40.0
+    k2_checks = [line for line in stiff.lines if line.get_marker() == "o" and line.get_mfc() == "none"
+                 and line.get_color() == stiff.get_legend_handles_labels()[0][1][0].get_color()]
+    assert k2_checks and min(np.min(line.get_ydata()) for line in k2_checks) == pytest.approx(-10.0, abs=2.5)
+    assert any(label.startswith("k1 (x: not determined)") for label in stiff.get_legend_handles_labels()[1])
+    # friction: the failed (check, joint) pairs are exactly the checks' own
+    expected = set()
+    for i, res in enumerate(results):
+        fr = res["friction"]
+        level = fr.get("alpha", 0.0) / len(fr["joints"])
+        for joint, f in fr["joints"].items():
+            rel = f["measured"] / f["predicted"] - 1.0
+            if f["p_value"] < level and abs(rel) > fr["tolerance"]:
+                expected.add((i, int(joint), round(rel * 100.0, 6)))
+    assert {(i, j) for i, j, _ in expected} == {(2, 3), (3, 3), (4, 2), (5, 3)}
+    failed = [line for line in friction.lines if line.get_label() == "failed the check"]
+    assert len(failed) == 1 and failed[0].get_mfc() != "none"
+    check_days = (drift.check_time_ns - drift.check_time_ns[0]) // DAY_NS
+    drawn = {(int(round(float(friction.convert_xunits(x) - friction.convert_xunits(
+        drift.check_time_ns[0].astype("datetime64[ns]"))))), round(float(y), 6))
+        for x, y in zip(failed[0].get_xdata(), failed[0].get_ydata())}
+    assert drawn == {(int(check_days[i]), rel) for i, _, rel in expected}
+    assert any(abs(rel + 101.7) < 1e-9 for _, _, rel in expected)
+    # and the history command writes it, marking k1's drift as no finding
+    assert main(["history", "--db", str(db), "--plot", str(tmp_path / "drift.png")]) == 0
+    assert (tmp_path / "drift.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_an_undetermined_calibration_is_no_drift_finding(simulated_history, capsys):
+    drift, _, db = simulated_history
+    from elastocal.acquisition.history import drift_summary
+
+    summary = drift_summary(drift)
+    assert summary["k1"]["determined"] is False and summary["k2"]["determined"] is True
+    assert main(["history", "--db", str(db)]) == 0
+    out = capsys.readouterr().out
+    assert "k1" in out and "(n/d: a calibration does not determine it, no finding)" in out
+    assert main(["history", "--db", str(db), "--json"]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    assert obj["drift"]["k1"]["determined"] is False and obj["drift"]["fc3"]["determined"] is True

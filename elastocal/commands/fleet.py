@@ -72,7 +72,8 @@ class _Progress:
 
 
 def _history(args: argparse.Namespace) -> int:
-    from elastocal.fleet.plant import DETERMINED_RELATIVE_STD, plant_drift
+    from elastocal.acquisition.history import DETERMINED_RELATIVE_STD   # the history's rule (is_determined)
+    from elastocal.fleet.plant import plant_drift
 
     for flag in ("out", "record", "scheduler", "workers", "cell"):
         if getattr(args, flag):

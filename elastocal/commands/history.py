@@ -167,7 +167,9 @@ def _show(args: argparse.Namespace, db: pathlib.Path) -> int:
         for name, p in params.items():
             if p["change"] is None:
                 continue
-            lines.append(f"  {name:<5} {p['first']:.6g} -> {p['latest']:.6g} {p['unit']} ({p['change'] * 100:+.2f} %)")
+            change = (f"({p['change'] * 100:+.2f} %)" if p["determined"] else
+                      "(n/d: a calibration does not determine it, no finding)")
+            lines.append(f"  {name:<5} {p['first']:.6g} -> {p['latest']:.6g} {p['unit']} {change}")
     if args.plot:
         lines.append(f"drift plot: {args.plot}")
     print("\n".join(lines))
