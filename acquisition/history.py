@@ -132,7 +132,7 @@ class Drift:
 
 
 def is_determined(p: Mapping[str, Any]) -> bool:
-    """Whether a calibrated parameter (formats.md §4) is determined by its data: not marked
+    """Whether a calibrated parameter (docs/formats.md §4) is determined by its data: not marked
     ``"determined": false``, with a finite std within :data:`DETERMINED_RELATIVE_STD` of its value."""
     value, std = p.get("value"), p.get("std")
     if p.get("determined") is False or not isinstance(value, (int, float)) or not isinstance(std, (int, float)):
