@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from elastocal.compensation.chain import Angles, BatchedChain
 from elastocal.errors import InputError
 from elastocal.identify.calibration import Calibration
 from elastocal.identify.robot import LOAD_FRAME, Robot
@@ -134,15 +135,31 @@ def unmodelled_effects(cal: Calibration) -> dict[str, list[str]]:
     return out
 
 
+#: samples per block of the batched evaluation (work arrays stay in the processor's cache)
+BLOCK_SAMPLES = 1024
+#: the fixed points are first solved at every WARM_STRIDE-th sample along the path, and the others
+#: start from the deflection interpolated between those (a warm start from their neighbours)
+WARM_STRIDE = 16
+
+
+def _blocks(n: int) -> list[slice]:
+    return [slice(i, min(i + BLOCK_SAMPLES, n)) for i in range(0, n, BLOCK_SAMPLES)]
+
+
 class StaticKernel:
-    """Work buffers (one Pinocchio Data) for the static model, evaluated over
-    arrays of configurations (n, 6). Pinocchio is called per configuration;
-    the compensator and the fixed-point updates are vectorised."""
+    """The static model evaluated over whole paths: configurations (n, 6) in, arrays out.
+
+    The kinematics and statics run batched over blocks of samples (:class:`BatchedChain`, from
+    the robot's Pinocchio model); the fixed points are iterated for all samples of a block at
+    once, each sample until its own step is below ``FIXED_POINT_TOL_RAD``, warm-started from its
+    neighbours along the path. The cosines and sines of the planned angles are computed once
+    per path; the small deflections from them by their Taylor series."""
 
     def __init__(self, model: CompensationModel) -> None:
         self.m = model
         self.pmodel = model.robot.model
         self.data = self.pmodel.createData()
+        self.chain = BatchedChain(self.pmodel)
         self.fid = model.robot.frame_id(LOAD_FRAME)
         self.tool_fid = model.robot.frame_id(model.tool)
         self.offsets = model.robot.offsets
@@ -152,20 +169,96 @@ class StaticKernel:
         self.gravity = model.uses_gravity
         self.with_compensator = model.uses_compensator
 
-    def jacobians(self, theta: np.ndarray) -> np.ndarray:
-        """Load-point Jacobians (n, 6, 6), LOCAL_WORLD_ALIGNED."""
-        out = np.empty((len(theta), 6, 6))
-        for i, th in enumerate(theta):
-            out[i] = pin.computeFrameJacobian(self.pmodel, self.data, th, self.fid, pin.LOCAL_WORLD_ALIGNED)
-        return out
+    # ------------------------------------------------------ (6, n) arrays
+    def _torque(self, ang: Angles, wrench: np.ndarray | None, *, positions_of: int | None = None
+                ) -> tuple[np.ndarray, np.ndarray | None]:
+        """``J^T W - g - M e2`` (6, n) at ``ang`` for the wrench (6, n) (None: none), and the
+        positions (3, n) of frame ``positions_of``."""
+        force, moment = (None, None) if wrench is None else (wrench[:3], wrench[3:])
+        tau, pos = self.chain.torque(ang, gravity=self.gravity, force=force, moment=moment, frame_id=self.fid,
+                                     positions_of=positions_of)
+        if self.with_compensator:
+            tau[1] -= self.spec.torque(ang.theta[1] - self.offset2, self.m.compensator)
+        return tau, pos
 
-    def positions(self, theta: np.ndarray) -> np.ndarray:
-        """Tool-point positions (n, 3) in the base frame (the load point unless the model names a tool)."""
-        out = np.empty((len(theta), 3))
-        for i, th in enumerate(theta):
-            pin.forwardKinematics(self.pmodel, self.data, th)
-            out[i] = pin.updateFramePlacement(self.pmodel, self.data, self.tool_fid).translation
-        return out
+    def _iterate(self, base: Angles, wrench: np.ndarray | None, theta: np.ndarray, first: np.ndarray) -> None:
+        """Fixed points ``theta = base + c ⊙ tau(theta, W)`` of the samples (6, n) in place, from
+        ``theta``; ``first`` numbers the samples in the path (for the error)."""
+        c = self.c[:, None]
+        active = np.arange(theta.shape[1])
+        ang, w, th = base, wrench, theta
+        for _ in range(MAX_FIXED_POINT_ITER):
+            with np.errstate(all="ignore"):
+                new = ang.theta + c * self._torque(ang.near(th), w)[0]
+            bad = ~np.all(np.isfinite(new), axis=0) | np.any(np.abs(new) > 1e3, axis=0)
+            if np.any(bad):
+                raise NotConverged(int(first[active[np.argmax(bad)]]))
+            step = np.max(np.abs(new - th), axis=0)
+            theta[:, active] = new
+            going = step >= FIXED_POINT_TOL_RAD
+            if not np.any(going):
+                return
+            if not np.all(going):
+                active, keep = active[going], np.flatnonzero(going)
+                ang, th = ang.take(keep), new[:, keep]
+                w = None if w is None else w[:, keep]
+            else:
+                th = new
+        raise NotConverged(int(first[active[0]]))
+
+    def _solve(self, base: Angles, wrench: np.ndarray | None, theta: np.ndarray, samples: np.ndarray) -> None:
+        """:meth:`_iterate` block by block (``samples``: the path index of each column)."""
+        for b in _blocks(theta.shape[1]):
+            block = theta[:, b]
+            self._iterate(_part(base, b), None if wrench is None else wrench[:, b], block, samples[b])
+            theta[:, b] = block
+
+    def fixed_points(self, base: Angles, wrench: np.ndarray | None, start: np.ndarray) -> np.ndarray:
+        """Link angles (6, n) at the fixed points ``theta = base + c ⊙ tau(theta, W)`` along the path.
+
+        Every WARM_STRIDE-th sample (and the last) is solved from ``start``; the others start from
+        ``start`` plus the correction interpolated between those, their neighbours along the path."""
+        n = start.shape[1]
+        theta = np.array(start, dtype=float)
+        index = np.arange(n)
+        if n <= 2 * WARM_STRIDE:
+            self._solve(base, wrench, theta, index)
+            return theta
+        coarse = np.unique(np.append(index[::WARM_STRIDE], n - 1))
+        fine = np.setdiff1d(index, coarse, assume_unique=True)
+        solved = theta[:, coarse]
+        self._solve(base.take(coarse), None if wrench is None else wrench[:, coarse], solved, coarse)
+        correction = solved - theta[:, coarse]
+        guess = theta[:, fine] + np.array([np.interp(fine, coarse, row) for row in correction])
+        self._solve(base.take(fine), None if wrench is None else wrench[:, fine], guess, fine)
+        theta[:, coarse] = solved
+        theta[:, fine] = guess
+        return theta
+
+    # ------------------------------------------------------ (n, 6) arrays
+    def base_angles(self, q: np.ndarray) -> Angles:
+        """The planned link angles ``q + offset`` (6, n) with their cosines and sines."""
+        return Angles.of((q + self.offsets).T)
+
+    def jacobians(self, theta: np.ndarray, base: Angles | None = None) -> np.ndarray:
+        """Load-point Jacobians (n, 6, 6), LOCAL_WORLD_ALIGNED; ``base``: angles near ``theta``
+        whose cosines and sines are known."""
+        th = theta.T
+        out = np.empty((6, 6, th.shape[1]))
+        for b in _blocks(th.shape[1]):
+            ang = Angles.of(th[:, b]) if base is None else _part(base, b).near(th[:, b])
+            out[:, :, b] = self.chain.jacobian(ang, self.fid)[0]
+        return np.moveaxis(out, 2, 0)
+
+    def positions(self, theta: np.ndarray, base: Angles | None = None) -> np.ndarray:
+        """Tool-point positions (n, 3) in the base frame (the load point unless the model names a
+        tool); ``base``: angles near ``theta`` whose cosines and sines are known."""
+        th = theta.T
+        out = np.empty((3, th.shape[1]))
+        for b in _blocks(th.shape[1]):
+            ang = Angles.of(th[:, b]) if base is None else _part(base, b).near(th[:, b])
+            out[:, b] = self.chain.positions(ang, self.tool_fid)
+        return out.T
 
     def nominal_targets(self, q: np.ndarray, *, tol: float = 1e-12, max_iter: int = 50) -> np.ndarray:
         """Link angles (n, 6) at which the calibrated robot's tool frame has the
@@ -193,44 +286,36 @@ class StaticKernel:
             out[i] = theta
         return out
 
-    def passive_torque(self, theta: np.ndarray) -> np.ndarray:
-        """``-g(theta) - M e2`` (n, 6): the load torque without external wrench."""
-        tau = np.zeros((len(theta), 6))
-        if self.gravity:
-            for i, th in enumerate(theta):
-                tau[i] = -pin.computeGeneralizedGravity(self.pmodel, self.data, th)
-        if self.with_compensator:
-            tau[:, 1] -= self.spec.torque(theta[:, 1] - self.offset2, self.m.compensator)
-        return tau
+    def torque(self, theta: np.ndarray, wrench: np.ndarray, base: Angles | None = None) -> np.ndarray:
+        """Full static load torque ``J^T W - g - M e2`` (n, 6); ``base``: angles near ``theta``
+        whose cosines and sines are known."""
+        th = theta.T
+        w = _soa(wrench)
+        out = np.empty_like(th)
+        for b in _blocks(th.shape[1]):
+            ang = Angles.of(th[:, b]) if base is None else _part(base, b).near(th[:, b])
+            out[:, b] = self._torque(ang, None if w is None else w[:, b])[0]
+        return out.T
 
-    def torque(self, theta: np.ndarray, wrench: np.ndarray) -> np.ndarray:
-        """Full static load torque ``J^T W - g - M e2`` (n, 6)."""
-        tau = self.passive_torque(theta)
-        loaded = np.any(wrench != 0.0, axis=1)
-        if np.any(loaded):
-            jac = self.jacobians(theta[loaded])
-            tau[loaded] += np.einsum("nij,ni->nj", jac, wrench[loaded])
-        return tau
+    def equilibrium(self, q: np.ndarray, wrench: np.ndarray, start: np.ndarray | None = None,
+                    base: Angles | None = None) -> np.ndarray:
+        """Link angles (n, 6) at the fixed points ``theta = q + offset + c ⊙ tau(theta, W)``,
+        from ``start`` (default ``q + offset``); ``base``: :meth:`base_angles` of ``q``."""
+        base = self.base_angles(q) if base is None else base
+        w = _soa(wrench)
+        if not self.gravity and w is None:
+            return base.theta.T.copy()
+        start = base.theta if start is None else np.asarray(start, dtype=float).T
+        return self.fixed_points(base, w, start).T
 
-    def equilibrium(self, q: np.ndarray, wrench: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
-        """Link angles (n, 6) at the fixed points ``theta = q + offset + c ⊙ tau(theta, W)``."""
-        base = q + self.offsets
-        theta = base.copy() if start is None else np.array(start, dtype=float)
-        if not self.gravity and not np.any(wrench):
-            return base
-        active = np.arange(len(q))
-        for _ in range(MAX_FIXED_POINT_ITER):
-            with np.errstate(all="ignore"):
-                new = base[active] + self.c * self.torque(theta[active], wrench[active])
-            diverged = ~np.all(np.isfinite(new), axis=1) | np.any(np.abs(new) > 1e3, axis=1)
-            if np.any(diverged):
-                raise NotConverged(int(active[np.argmax(diverged)]))
-            step = np.max(np.abs(new - theta[active]), axis=1)
-            theta[active] = new
-            active = active[step >= FIXED_POINT_TOL_RAD]
-            if active.size == 0:
-                return theta
-        raise NotConverged(int(active[0]))
+
+def _soa(wrench: np.ndarray) -> np.ndarray | None:
+    """The wrench (n, 6) as (6, n) rows, None when it is zero everywhere."""
+    return np.ascontiguousarray(wrench.T) if np.any(wrench) else None
+
+
+def _part(ang: Angles, b: slice) -> Angles:
+    return Angles(ang.theta[:, b], ang.cos[:, b], ang.sin[:, b])
 
 
 class NotConverged(InputError):

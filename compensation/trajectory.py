@@ -107,28 +107,29 @@ def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray,
     reference = default_reference(model) if reference is None else reference
     q, w = _check_inputs(model, q, wrench, form, reference)
     k = StaticKernel(model)
+    base = k.base_angles(q)               # cos/sin of the planned angles, once for the path
     plan = q + k.offsets
     if reference == "nominal":
         target = k.nominal_targets(q)
         # first order: the torques at the planned configuration (Yang); exact: at the target
-        cmd = target - k.offsets - k.c * k.torque(plan if form == "first-order" else target, w)
-        theta_loaded = k.equilibrium(q, w, start=target + (q - cmd))
-        deflection = k.positions(theta_loaded) - k.positions(target)
+        cmd = target - k.offsets - k.c * k.torque(plan if form == "first-order" else target, w, base)
+        theta_loaded = k.equilibrium(q, w, start=target + (q - cmd), base=base)
+        deflection = k.positions(theta_loaded, base) - k.positions(target, base)
         return CompensatedPath(form=form, reference=reference, q_planned=q, wrench=w, q_command=cmd,
                                theta_target=target, tcp_deflection=deflection)
-    target = k.equilibrium(q, np.zeros_like(w)) if reference == "unloaded" else plan
+    target = k.equilibrium(q, np.zeros_like(w), base=base) if reference == "unloaded" else plan
     if form == "first-order":
-        jac = k.jacobians(plan)
+        jac = k.jacobians(plan, base)
         if reference == "unloaded":
             dtheta = k.c * np.einsum("nij,ni->nj", jac, w)
         else:
-            dtheta = k.c * k.torque(plan, w)
+            dtheta = k.c * k.torque(plan, w, base)
         cmd = q - dtheta
         deflection = np.einsum("nij,nj->ni", jac[:, :3], dtheta)
     else:
-        cmd = target - k.offsets - k.c * k.torque(target, w)
-        theta_loaded = k.equilibrium(q, w, start=target + (q - cmd))
-        deflection = k.positions(theta_loaded) - k.positions(target)
+        cmd = target - k.offsets - k.c * k.torque(target, w, base)
+        theta_loaded = k.equilibrium(q, w, start=target + (q - cmd), base=base)
+        deflection = k.positions(theta_loaded, base) - k.positions(target, base)
     return CompensatedPath(form=form, reference=reference, q_planned=q, wrench=w, q_command=cmd,
                            theta_target=target, tcp_deflection=deflection)
 
@@ -137,5 +138,6 @@ def predicted_residual(model: CompensationModel, path: CompensatedPath) -> np.nd
     """Load-point deviation from the target (n, 3) [m] the model predicts when the
     compensated commands run under the process wrench."""
     k = StaticKernel(model)
-    theta = k.equilibrium(path.q_command, path.wrench, start=path.theta_target)
-    return k.positions(theta) - k.positions(path.theta_target)
+    base = k.base_angles(path.q_command)
+    theta = k.equilibrium(path.q_command, path.wrench, start=path.theta_target, base=base)
+    return k.positions(theta, base) - k.positions(path.theta_target, base)
