@@ -171,36 +171,35 @@ class BatchedChain:
         """Base-frame position (3, n) of frame ``frame_id`` (a frame on the last joint)."""
         return state.o[-1] + np.matmul(self._frames[frame_id], state.rot)
 
-    def positions(self, ang: Angles, frame_id: int) -> np.ndarray:
-        """Base-frame positions (3, n) of frame ``frame_id``."""
-        return self.position(self.state(ang), frame_id)
-
     # ------------------------------------------------------------ statics
-    def torque(self, ang: Angles, *, gravity: bool, force: np.ndarray | None = None,
-               moment: np.ndarray | None = None, frame_id: int | None = None,
-               positions_of: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    def torque(self, state: ChainState, *, force: np.ndarray | None = None, moment: np.ndarray | None = None,
+               frame_id: int | None = None) -> np.ndarray:
         """``J_f^T W - g(theta)`` (6, n) for the wrench ``force``, ``moment`` (3, n) on frame
-        ``frame_id`` in base axes (without ``force``: ``-g`` alone; without ``gravity``: no ``g``),
-        and the positions (3, n) of frame ``positions_of`` (None when not asked for)."""
-        st = self.state(ang, masses=gravity)
+        ``frame_id`` in base axes (without ``force``: ``-g`` alone); gravity when the state
+        carries the mass moments (:meth:`state` with ``masses``)."""
         v = None
-        if gravity and st.mc is not None:
-            v = self._gravity_cross @ (st.mc - self._total_mass[:, None, None] * st.o)
+        if state.mc is not None:
+            v = self._gravity_cross @ (state.mc - self._total_mass[:, None, None] * state.o)
         if force is not None:
-            p = self.position(st, frame_id)
-            w = _cross(p[None] - st.o, force[None]) + moment[None]
+            w = _cross(self.position(state, frame_id)[None] - state.o, force[None])
+            w += moment[None]
             v = w if v is None else v + w
-        pos = None if positions_of is None else self.position(st, positions_of)
         if v is None:
-            return np.zeros((self.nq, ang.theta.shape[1])), pos
-        return st.z[:, 0] * v[:, 0] + st.z[:, 1] * v[:, 1] + st.z[:, 2] * v[:, 2], pos
+            return np.zeros((self.nq, state.o.shape[2]))
+        z = state.z
+        return z[:, 0] * v[:, 0] + z[:, 1] * v[:, 1] + z[:, 2] * v[:, 2]
 
-    def jacobian(self, ang: Angles, frame_id: int) -> tuple[np.ndarray, np.ndarray]:
+    def point_velocity(self, state: ChainState, frame_id: int, rate: np.ndarray) -> np.ndarray:
+        """``J_p(theta) rate`` (3, n): the motion of frame ``frame_id``'s origin for joint motions
+        ``rate`` (6, n) (a small deflection: the point's first-order displacement)."""
+        r = self.position(state, frame_id)[None] - state.o
+        return _cross(state.z * rate[:, None, :], r).sum(axis=0)
+
+    def jacobian(self, state: ChainState, frame_id: int) -> np.ndarray:
         """LOCAL_WORLD_ALIGNED Jacobians (6, 6, n) of frame ``frame_id``: rows 0-2 the velocity of
-        its origin in base axes, rows 3-5 the angular velocity; and its positions (3, n)."""
-        st = self.state(ang)
-        p = self.position(st, frame_id)
+        its origin in base axes, rows 3-5 the angular velocity."""
+        p = self.position(state, frame_id)
         jac = np.empty((6, self.nq, p.shape[1]))
-        jac[:3] = np.moveaxis(_cross(st.z, p[None] - st.o), 0, 1)
-        jac[3:] = np.moveaxis(st.z, 0, 1)
-        return jac, p
+        jac[:3] = np.moveaxis(_cross(state.z, p[None] - state.o), 0, 1)
+        jac[3:] = np.moveaxis(state.z, 0, 1)
+        return jac

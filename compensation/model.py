@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from elastocal.compensation.chain import Angles, BatchedChain
+from elastocal.compensation.chain import Angles, BatchedChain, ChainState
 from elastocal.errors import InputError
 from elastocal.identify.calibration import Calibration
 from elastocal.identify.robot import LOAD_FRAME, Robot
@@ -170,20 +170,22 @@ class StaticKernel:
         self.with_compensator = model.uses_compensator
 
     # ------------------------------------------------------ (6, n) arrays
-    def _torque(self, ang: Angles, wrench: np.ndarray | None, *, positions_of: int | None = None
-                ) -> tuple[np.ndarray, np.ndarray | None]:
-        """``J^T W - g - M e2`` (6, n) at ``ang`` for the wrench (6, n) (None: none), and the
-        positions (3, n) of frame ``positions_of``."""
-        force, moment = (None, None) if wrench is None else (wrench[:3], wrench[3:])
-        tau, pos = self.chain.torque(ang, gravity=self.gravity, force=force, moment=moment, frame_id=self.fid,
-                                     positions_of=positions_of)
-        if self.with_compensator:
+    def _torque(self, ang: Angles, wrench: np.ndarray | None, *, gravity: bool = True
+                ) -> tuple[np.ndarray, ChainState]:
+        """``J^T W - g - M e2`` (6, n) at ``ang`` for the wrench (6, n) (None: none; without
+        ``gravity`` only ``J^T W``), and the chain's state there."""
+        passive = gravity and self.gravity
+        st = self.chain.state(ang, masses=passive)
+        tau = self.chain.torque(st, force=None if wrench is None else wrench[:3],
+                                moment=None if wrench is None else wrench[3:], frame_id=self.fid)
+        if passive and self.with_compensator:
             tau[1] -= self.spec.torque(ang.theta[1] - self.offset2, self.m.compensator)
-        return tau, pos
+        return tau, st
 
     def _iterate(self, base: Angles, wrench: np.ndarray | None, theta: np.ndarray, first: np.ndarray) -> None:
         """Fixed points ``theta = base + c ⊙ tau(theta, W)`` of the samples (6, n) in place, from
-        ``theta``; ``first`` numbers the samples in the path (for the error)."""
+        ``theta``, each sample until its step is below the tolerance; ``first`` numbers the
+        samples in the path (for the error)."""
         c = self.c[:, None]
         active = np.arange(theta.shape[1])
         ang, w, th = base, wrench, theta
@@ -209,9 +211,7 @@ class StaticKernel:
     def _solve(self, base: Angles, wrench: np.ndarray | None, theta: np.ndarray, samples: np.ndarray) -> None:
         """:meth:`_iterate` block by block (``samples``: the path index of each column)."""
         for b in _blocks(theta.shape[1]):
-            block = theta[:, b]
-            self._iterate(_part(base, b), None if wrench is None else wrench[:, b], block, samples[b])
-            theta[:, b] = block
+            self._iterate(_part(base, b), None if wrench is None else wrench[:, b], theta[:, b], samples[b])
 
     def fixed_points(self, base: Angles, wrench: np.ndarray | None, start: np.ndarray) -> np.ndarray:
         """Link angles (6, n) at the fixed points ``theta = base + c ⊙ tau(theta, W)`` along the path.
@@ -220,16 +220,20 @@ class StaticKernel:
         ``start`` plus the correction interpolated between those, their neighbours along the path."""
         n = start.shape[1]
         theta = np.array(start, dtype=float)
-        index = np.arange(n)
         if n <= 2 * WARM_STRIDE:
-            self._solve(base, wrench, theta, index)
+            self._solve(base, wrench, theta, np.arange(n))
             return theta
-        coarse = np.unique(np.append(index[::WARM_STRIDE], n - 1))
-        fine = np.setdiff1d(index, coarse, assume_unique=True)
+        coarse = np.append(np.arange(0, n - 1, WARM_STRIDE), n - 1)
+        is_fine = np.ones(n, dtype=bool)
+        is_fine[coarse] = False
+        fine = np.flatnonzero(is_fine)
         solved = theta[:, coarse]
         self._solve(base.take(coarse), None if wrench is None else wrench[:, coarse], solved, coarse)
+        # linear interpolation between the solved neighbours coarse[k] <= i < coarse[k + 1]
+        k = fine // WARM_STRIDE
+        t = (fine - coarse[k]) / (coarse[k + 1] - coarse[k])
         correction = solved - theta[:, coarse]
-        guess = theta[:, fine] + np.array([np.interp(fine, coarse, row) for row in correction])
+        guess = theta[:, fine] + correction[:, k] * (1.0 - t) + correction[:, k + 1] * t
         self._solve(base.take(fine), None if wrench is None else wrench[:, fine], guess, fine)
         theta[:, coarse] = solved
         theta[:, fine] = guess
@@ -246,8 +250,7 @@ class StaticKernel:
         th = theta.T
         out = np.empty((6, 6, th.shape[1]))
         for b in _blocks(th.shape[1]):
-            ang = Angles.of(th[:, b]) if base is None else _part(base, b).near(th[:, b])
-            out[:, :, b] = self.chain.jacobian(ang, self.fid)[0]
+            out[:, :, b] = self.chain.jacobian(self.chain.state(_angles(th, b, base)), self.fid)
         return np.moveaxis(out, 2, 0)
 
     def positions(self, theta: np.ndarray, base: Angles | None = None) -> np.ndarray:
@@ -256,9 +259,50 @@ class StaticKernel:
         th = theta.T
         out = np.empty((3, th.shape[1]))
         for b in _blocks(th.shape[1]):
-            ang = Angles.of(th[:, b]) if base is None else _part(base, b).near(th[:, b])
-            out[:, b] = self.chain.positions(ang, self.tool_fid)
+            out[:, b] = self.chain.position(self.chain.state(_angles(th, b, base)), self.tool_fid)
         return out.T
+
+    def torque(self, theta: np.ndarray, wrench: np.ndarray, base: Angles | None = None, *,
+               with_positions: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Full static load torque ``J^T W - g - M e2`` (n, 6) (and with ``with_positions`` the
+        tool-point positions (n, 3) there); ``base``: angles near ``theta`` whose cosines and
+        sines are known."""
+        th = theta.T
+        w = _soa(wrench)
+        out = np.empty_like(th)
+        pos = np.empty((3, th.shape[1])) if with_positions else None
+        for b in _blocks(th.shape[1]):
+            out[:, b], st = self._torque(_angles(th, b, base), None if w is None else w[:, b])
+            if pos is not None:
+                pos[:, b] = self.chain.position(st, self.tool_fid)
+        return (out.T, pos.T) if with_positions else out.T
+
+    def first_order(self, base: Angles, wrench: np.ndarray, *, passive: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Yang's first-order correction at the planned angles ``base``, in one pass: the joint
+        deflections ``c ⊙ J^T W`` (with ``passive`` ``c ⊙ (J^T W - g - M e2)``) (n, 6) and the
+        load-point displacement ``J_p dtheta`` (n, 3) they make."""
+        w = _soa(wrench)
+        n = base.theta.shape[1]
+        dtheta = np.zeros((6, n))
+        moved = np.zeros((3, n))
+        if w is None and not (passive and self.gravity):
+            return dtheta.T, moved.T
+        for b in _blocks(n):
+            tau, st = self._torque(_part(base, b), None if w is None else w[:, b], gravity=passive)
+            dtheta[:, b] = self.c[:, None] * tau
+            moved[:, b] = self.chain.point_velocity(st, self.fid, dtheta[:, b])
+        return dtheta.T, moved.T
+
+    def equilibrium(self, q: np.ndarray, wrench: np.ndarray, start: np.ndarray | None = None,
+                    base: Angles | None = None) -> np.ndarray:
+        """Link angles (n, 6) at the fixed points ``theta = q + offset + c ⊙ tau(theta, W)``,
+        from ``start`` (default ``q + offset``); ``base``: :meth:`base_angles` of ``q``."""
+        base = self.base_angles(q) if base is None else base
+        w = _soa(wrench)
+        if not self.gravity and w is None:
+            return base.theta.T.copy()
+        start = base.theta if start is None else np.asarray(start, dtype=float).T
+        return self.fixed_points(base, w, start).T
 
     def nominal_targets(self, q: np.ndarray, *, tol: float = 1e-12, max_iter: int = 50) -> np.ndarray:
         """Link angles (n, 6) at which the calibrated robot's tool frame has the
@@ -286,28 +330,6 @@ class StaticKernel:
             out[i] = theta
         return out
 
-    def torque(self, theta: np.ndarray, wrench: np.ndarray, base: Angles | None = None) -> np.ndarray:
-        """Full static load torque ``J^T W - g - M e2`` (n, 6); ``base``: angles near ``theta``
-        whose cosines and sines are known."""
-        th = theta.T
-        w = _soa(wrench)
-        out = np.empty_like(th)
-        for b in _blocks(th.shape[1]):
-            ang = Angles.of(th[:, b]) if base is None else _part(base, b).near(th[:, b])
-            out[:, b] = self._torque(ang, None if w is None else w[:, b])[0]
-        return out.T
-
-    def equilibrium(self, q: np.ndarray, wrench: np.ndarray, start: np.ndarray | None = None,
-                    base: Angles | None = None) -> np.ndarray:
-        """Link angles (n, 6) at the fixed points ``theta = q + offset + c ⊙ tau(theta, W)``,
-        from ``start`` (default ``q + offset``); ``base``: :meth:`base_angles` of ``q``."""
-        base = self.base_angles(q) if base is None else base
-        w = _soa(wrench)
-        if not self.gravity and w is None:
-            return base.theta.T.copy()
-        start = base.theta if start is None else np.asarray(start, dtype=float).T
-        return self.fixed_points(base, w, start).T
-
 
 def _soa(wrench: np.ndarray) -> np.ndarray | None:
     """The wrench (n, 6) as (6, n) rows, None when it is zero everywhere."""
@@ -316,6 +338,11 @@ def _soa(wrench: np.ndarray) -> np.ndarray | None:
 
 def _part(ang: Angles, b: slice) -> Angles:
     return Angles(ang.theta[:, b], ang.cos[:, b], ang.sin[:, b])
+
+
+def _angles(theta: np.ndarray, b: slice, base: Angles | None) -> Angles:
+    """Block ``b`` of the angles ``theta`` (6, n), from the cos/sin of ``base`` when given."""
+    return Angles.of(theta[:, b]) if base is None else _part(base, b).near(theta[:, b])
 
 
 class NotConverged(InputError):

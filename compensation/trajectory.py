@@ -119,17 +119,14 @@ def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray,
                                theta_target=target, tcp_deflection=deflection)
     target = k.equilibrium(q, np.zeros_like(w), base=base) if reference == "unloaded" else plan
     if form == "first-order":
-        jac = k.jacobians(plan, base)
-        if reference == "unloaded":
-            dtheta = k.c * np.einsum("nij,ni->nj", jac, w)
-        else:
-            dtheta = k.c * k.torque(plan, w, base)
+        # one pass at the planned angles: c ⊙ J^T W (unloaded) or c ⊙ tau(q, W) (rigid), and J_p dtheta
+        dtheta, deflection = k.first_order(base, w, passive=reference == "rigid")
         cmd = q - dtheta
-        deflection = np.einsum("nij,nj->ni", jac[:, :3], dtheta)
     else:
-        cmd = target - k.offsets - k.c * k.torque(target, w, base)
+        tau, at_target = k.torque(target, w, base, with_positions=True)
+        cmd = target - k.offsets - k.c * tau
         theta_loaded = k.equilibrium(q, w, start=target + (q - cmd), base=base)
-        deflection = k.positions(theta_loaded, base) - k.positions(target, base)
+        deflection = k.positions(theta_loaded, base) - at_target
     return CompensatedPath(form=form, reference=reference, q_planned=q, wrench=w, q_command=cmd,
                            theta_target=target, tcp_deflection=deflection)
 
