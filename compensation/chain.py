@@ -57,6 +57,24 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      a[..., 0, :] * b[..., 1, :] - a[..., 1, :] * b[..., 0, :]), axis=-2)
 
 
+def _cross_component(a: np.ndarray, b: np.ndarray, ax: int) -> np.ndarray:
+    """Component ``ax`` of the row-wise cross product of (..., 3, n) arrays."""
+    i, j = (ax + 1) % 3, (ax + 2) % 3
+    return a[..., i, :] * b[..., j, :] - a[..., j, :] * b[..., i, :]
+
+
+def _signed_permutation(rotation: np.ndarray, tol: float = 1e-14) -> tuple[tuple, tuple] | None:
+    """``(p, sign)`` when column b of ``rotation`` is ``sign_b e_{p_b}`` to within ``tol`` (the
+    placements of modified-DH robots, alpha a multiple of 90 degrees), else None."""
+    p = np.argmax(np.abs(rotation), axis=0)
+    sign = np.sign(rotation[p, np.arange(3)])
+    exact = np.zeros((3, 3))
+    exact[p, np.arange(3)] = sign
+    if len(set(p.tolist())) != 3 or np.max(np.abs(rotation - exact)) > tol:
+        return None
+    return tuple(int(k) for k in p), tuple(float(g) for g in sign)
+
+
 @dataclass(frozen=True, eq=False)
 class Angles:
     """Joint angles ``theta`` (6, n) with their cosines and sines."""
@@ -114,17 +132,16 @@ class BatchedChain:
                 raise ValueError(f"the batched chain needs a serial chain of revolute joints, joint {i} is {kind}")
             axis = np.array(_AXES[kind] if kind in _AXES else jm.axis, dtype=float)
             turns.append(_to_z(axis / np.linalg.norm(axis)))
-        self._turns = turns
         # placements in the turned frames: R'_i = T_{i-1}^T R_i T_i, t'_i = T_{i-1}^T t_i
-        self._rot_t = np.array([(turns[i - 1].T @ model.jointPlacements[i].rotation @ turns[i]).T
-                                for i in range(1, njoints + 1)])
+        rotations = [turns[i - 1].T @ model.jointPlacements[i].rotation @ turns[i] for i in range(1, njoints + 1)]
+        self._rot_t = np.array([r.T for r in rotations])
+        self._perm = [_signed_permutation(r) for r in rotations]
         self._trans = np.array([turns[i - 1].T @ model.jointPlacements[i].translation for i in range(1, njoints + 1)])
         self._mass = np.array([model.inertias[i].mass for i in range(1, njoints + 1)])
         self._com = np.array([turns[i].T @ model.inertias[i].lever for i in range(1, njoints + 1)])
         self._total_mass = np.cumsum(self._mass[::-1])[::-1]          # sum of m_i over i >= j
         self._has_mass = bool(np.any(self._mass > 0.0))
-        g = np.array(model.gravity.linear, dtype=float)
-        self._gravity_cross = -pin.skew(g)                            # v x g = G v
+        self._gravity = np.array(model.gravity.linear, dtype=float)
         # the frames on the last joint (the flange, the load point, the markers): their origins there
         self._frames = {fid: turns[-1].T @ frame.placement.translation for fid, frame in enumerate(model.frames)
                         if frame.parentJoint == njoints}
@@ -137,23 +154,34 @@ class BatchedChain:
         z = np.empty((last, 3, n))
         o = np.empty((last, 3, n))
         mc = np.empty((last, 3, n)) if masses and self._has_mass else None
-        rot = None
+        rot = np.broadcast_to(np.eye(3)[:, :, None], (3, 3, n))
+        tmp = np.empty((3, n))
         for i in range(last):
-            if rot is None:
-                a = np.broadcast_to(self._rot_t[i].T[:, :, None], (3, 3, n))
-                o[i] = self._trans[i][:, None]
+            if i == 0:
+                o[0] = self._trans[0][:, None]
             else:
-                a = self._rot_t[i] @ rot          # row r of the product: R'_i^T applied to rot's row r
                 np.matmul(self._trans[i], rot, out=o[i])
                 o[i] += o[i - 1]
             c, s = ang.cos[i], ang.sin[i]
             new = np.empty((3, 3, n))
-            np.multiply(a[:, 0], c, out=new[:, 0])
-            new[:, 0] += a[:, 1] * s
-            np.multiply(a[:, 1], c, out=new[:, 1])
-            new[:, 1] -= a[:, 0] * s
-            new[:, 2] = a[:, 2]
-            z[i] = a[:, 2]
+            perm = self._perm[i]
+            if perm is None:                       # a = rot R'_i (row r: R'_i^T applied to rot's row r)
+                a = self._rot_t[i] @ rot
+                a0, a1, a2, c0, s0, c1, s1 = a[:, 0], a[:, 1], a[:, 2], c, s, c, s
+            else:                                  # R'_i a signed permutation: a[:, b] = sign_b rot[:, p_b]
+                (p0, p1, p2), (g0, g1, g2) = perm
+                a0, a1 = rot[:, p0], rot[:, p1]
+                c0, s0, c1, s1 = (c, s, c, s) if g0 > 0 and g1 > 0 else (g0 * c, g0 * s, g1 * c, g1 * s)
+                a2 = rot[:, p2] if g2 > 0 else -rot[:, p2]
+            # new = a Rz(theta_i)
+            np.multiply(a0, c0, out=new[:, 0])
+            np.multiply(a1, s1, out=tmp)
+            new[:, 0] += tmp
+            np.multiply(a1, c1, out=new[:, 1])
+            np.multiply(a0, s0, out=tmp)
+            new[:, 1] -= tmp
+            new[:, 2] = a2
+            z[i] = a2
             if mc is not None:
                 if self._mass[i] > 0.0:
                     np.matmul(self._com[i], new, out=mc[i])
@@ -176,18 +204,25 @@ class BatchedChain:
                frame_id: int | None = None) -> np.ndarray:
         """``J_f^T W - g(theta)`` (6, n) for the wrench ``force``, ``moment`` (3, n) on frame
         ``frame_id`` in base axes (without ``force``: ``-g`` alone); gravity when the state
-        carries the mass moments (:meth:`state` with ``masses``)."""
-        v = None
+        carries the mass moments (:meth:`state` with ``masses``).
+
+        ``tau_j = sum_a [g_a (z_j x x_j)_a + f_a (z_j x (p - o_j))_a + m_a z_ja]`` with
+        ``x_j = sum_i m_i c_i - (sum_i m_i) o_j``: only the components of ``g``, ``f`` and
+        ``m`` that are not zero everywhere are evaluated."""
+        z, o = state.z, state.o
+        tau = np.zeros((self.nq, o.shape[2]))
         if state.mc is not None:
-            v = self._gravity_cross @ (state.mc - self._total_mass[:, None, None] * state.o)
+            x = state.mc - self._total_mass[:, None, None] * o
+            for ax in np.flatnonzero(self._gravity):
+                tau += self._gravity[ax] * _cross_component(z, x, ax)
         if force is not None:
-            w = _cross(self.position(state, frame_id)[None] - state.o, force[None])
-            w += moment[None]
-            v = w if v is None else v + w
-        if v is None:
-            return np.zeros((self.nq, state.o.shape[2]))
-        z = state.z
-        return z[:, 0] * v[:, 0] + z[:, 1] * v[:, 1] + z[:, 2] * v[:, 2]
+            r = self.position(state, frame_id)[None] - o
+            for ax in range(3):
+                if np.any(force[ax]):
+                    tau += force[ax] * _cross_component(z, r, ax)
+                if np.any(moment[ax]):
+                    tau += moment[ax] * z[:, ax]
+        return tau
 
     def point_velocity(self, state: ChainState, frame_id: int, rate: np.ndarray) -> np.ndarray:
         """``J_p(theta) rate`` (3, n): the motion of frame ``frame_id``'s origin for joint motions

@@ -217,7 +217,8 @@ class StaticKernel:
         """Link angles (6, n) at the fixed points ``theta = base + c ⊙ tau(theta, W)`` along the path.
 
         Every WARM_STRIDE-th sample (and the last) is solved from ``start``; the others start from
-        ``start`` plus the correction interpolated between those, their neighbours along the path."""
+        ``start`` plus the correction interpolated between those, their neighbours along the path
+        (on a dense path most of them then need one iteration, which confirms the tolerance)."""
         n = start.shape[1]
         theta = np.array(start, dtype=float)
         if n <= 2 * WARM_STRIDE:
@@ -229,11 +230,7 @@ class StaticKernel:
         fine = np.flatnonzero(is_fine)
         solved = theta[:, coarse]
         self._solve(base.take(coarse), None if wrench is None else wrench[:, coarse], solved, coarse)
-        # linear interpolation between the solved neighbours coarse[k] <= i < coarse[k + 1]
-        k = fine // WARM_STRIDE
-        t = (fine - coarse[k]) / (coarse[k + 1] - coarse[k])
-        correction = solved - theta[:, coarse]
-        guess = theta[:, fine] + correction[:, k] * (1.0 - t) + correction[:, k + 1] * t
+        guess = theta[:, fine] + _interpolate(solved - theta[:, coarse], coarse, fine)
         self._solve(base.take(fine), None if wrench is None else wrench[:, fine], guess, fine)
         theta[:, coarse] = solved
         theta[:, fine] = guess
@@ -329,6 +326,21 @@ class StaticKernel:
                                  "as the drawing does (singular or out of reach)")
             out[i] = theta
         return out
+
+
+def _interpolate(values: np.ndarray, coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:
+    """``values`` (6, len(coarse)) at the samples ``coarse`` (every WARM_STRIDE-th and the last)
+    interpolated to the samples ``fine`` between them: cubic through the four nearest where they
+    are evenly spaced, linear between the two nearest at the ends."""
+    k = fine // WARM_STRIDE                                 # coarse[k] < i < coarse[k + 1]
+    t = (fine - coarse[k]) / (coarse[k + 1] - coarse[k])
+    lo, hi = np.maximum(k - 1, 0), np.minimum(k + 2, len(coarse) - 1)
+    cubic = (k >= 1) & (hi == k + 2) & (coarse[hi] - coarse[lo] == 3 * WARM_STRIDE)
+    w0 = np.where(cubic, -t * (t - 1.0) * (t - 2.0) / 6.0, 0.0)
+    w1 = np.where(cubic, (t + 1.0) * (t - 1.0) * (t - 2.0) / 2.0, 1.0 - t)
+    w2 = np.where(cubic, -(t + 1.0) * t * (t - 2.0) / 2.0, t)
+    w3 = np.where(cubic, (t + 1.0) * t * (t - 1.0) / 6.0, 0.0)
+    return values[:, lo] * w0 + values[:, k] * w1 + values[:, k + 1] * w2 + values[:, hi] * w3
 
 
 def _soa(wrench: np.ndarray) -> np.ndarray | None:
