@@ -1,0 +1,173 @@
+"""Batched compensation (issue 15, part 2): the batched chain against Pinocchio, and every
+compensated path identical to the per-point implementation it replaced.
+
+``tests/data/compensation_reference.npz`` holds the results of the per-point Pinocchio
+implementation (commit 39d2c42, one ``computeFrameJacobian``/``computeGeneralizedGravity``
+call per sample and iteration), made by ``tests/helpers/make_compensation_reference.py``
+before the batched kernel replaced it: 7 models (gravity and compensator, no compensator,
+no masses, the URDF robot, a marker as tool, a geometric calibration with the nominal
+reference), both forms, every reference, commands, targets, predicted deflections and
+predicted residuals.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import pathlib
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from elastocal.compensation.chain import TAYLOR_LIMIT_RAD, Angles, BatchedChain
+from elastocal.compensation.model import BLOCK_SAMPLES, WARM_STRIDE, CompensationModel, NotConverged, StaticKernel
+from elastocal.compensation.trajectory import compensate_path, predicted_residual
+from elastocal.identify import kinematics as kin
+from elastocal.identify.robot import LOAD_FRAME, bundled_robot_path, load_robot
+from elastocal.sims.cell import CellTruth
+
+HERE = pathlib.Path(__file__).parent
+REFERENCE = HERE / "data" / "compensation_reference.npz"
+
+
+def _reference_cases():
+    spec = importlib.util.spec_from_file_location("make_compensation_reference",
+                                                  HERE / "helpers" / "make_compensation_reference.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.cases()
+
+
+def _robots(robot):
+    rng = np.random.default_rng(7)
+    names = kin.parameter_names(robot, robot.marker_names)
+    geometry = kin.corrected_robot(robot, names, rng.normal(size=len(names)) * 2e-4)
+    return {"dh": robot, "urdf": load_robot(bundled_robot_path("hh150_urdf")), "geometry": geometry}
+
+
+@pytest.mark.parametrize("which", ["dh", "urdf", "geometry", "links"])
+def test_batched_chain_equals_pinocchio(robot, which):
+    """Positions, J^T W - g and Jacobians of every frame on the last joint, to 1e-12, on random
+    configurations; ``links`` is the link-spring model (10 joints, unaligned axes)."""
+    rob = robot if which == "links" else _robots(robot)[which]
+    model = rob.link_model if which == "links" else rob.model
+    data = model.createData()
+    chain = BatchedChain(model)
+    rng = np.random.default_rng(3)
+    n = 50
+    theta = rng.uniform(-np.pi, np.pi, (n, model.nq))
+    wrench = rng.normal(size=(n, 6)) * np.array([800, 800, 800, 80, 80, 80])
+    ang = Angles.of(theta.T)
+    state = chain.state(ang, masses=True)
+    fid = model.getFrameId(LOAD_FRAME)
+    tau = chain.torque(state, force=wrench[:, :3].T, moment=wrench[:, 3:].T, frame_id=fid)
+    frames = [f for f in range(len(model.frames)) if model.frames[f].parentJoint == model.njoints - 1]
+    assert len(frames) >= 5                                 # flange, load point and the markers
+    for i in range(n):
+        jac = pin.computeFrameJacobian(model, data, theta[i], fid, pin.LOCAL_WORLD_ALIGNED)
+        want = jac.T @ wrench[i] - pin.computeGeneralizedGravity(model, data, theta[i])
+        np.testing.assert_allclose(tau[:, i], want, rtol=0, atol=1e-12 * max(1.0, np.abs(want).max()))
+        pin.framesForwardKinematics(model, data, theta[i])
+        for f in frames:
+            np.testing.assert_allclose(chain.position(state, f)[:, i], data.oMf[f].translation, rtol=0, atol=1e-14)
+    jac = chain.jacobian(chain.state(ang), fid)
+    for i in range(0, n, 7):
+        want = pin.computeFrameJacobian(model, data, theta[i], fid, pin.LOCAL_WORLD_ALIGNED)
+        np.testing.assert_allclose(jac[:, :, i], want, rtol=0, atol=1e-14)
+    rate = rng.normal(size=(model.nq, n)) * 1e-3
+    np.testing.assert_allclose(chain.point_velocity(state, fid, rate),
+                               np.einsum("ijn,jn->in", jac[:3], rate), rtol=0, atol=1e-15)
+
+
+def test_gravity_alone_and_no_masses(robot):
+    from dataclasses import replace
+
+    bare = replace(robot, joints=tuple(replace(j, mass=0.0) for j in robot.joints))
+    theta = np.random.default_rng(4).uniform(-2, 2, (20, 6))
+    for rob in (robot, bare):
+        model, data = rob.model, rob.model.createData()
+        chain = BatchedChain(model)
+        tau = chain.torque(chain.state(Angles.of(theta.T), masses=True))
+        want = -np.array([pin.computeGeneralizedGravity(model, data, th) for th in theta])
+        np.testing.assert_allclose(tau.T, want, rtol=0, atol=1e-11)
+    assert not np.any(tau)                                  # no masses, no wrench: no torque
+
+
+def test_angles_near_a_base_are_numpys_cos_and_sin():
+    rng = np.random.default_rng(5)
+    base = Angles.of(rng.uniform(-np.pi, np.pi, (6, 1000)))
+    for spread in (1e-9, 1e-4, TAYLOR_LIMIT_RAD):
+        theta = base.theta + rng.uniform(-spread, spread, base.theta.shape)
+        near = base.near(theta)
+        np.testing.assert_allclose(near.cos, np.cos(theta), rtol=0, atol=4e-16)
+        np.testing.assert_allclose(near.sin, np.sin(theta), rtol=0, atol=4e-16)
+    far = base.near(base.theta + 0.5)                      # beyond the series: numpy's own
+    np.testing.assert_array_equal(far.cos, np.cos(base.theta + 0.5))
+
+
+def test_every_case_is_identical_to_the_per_point_implementation():
+    """Results identical to the implementation before issue 15 to 1e-9 (rad, m); they agree to
+    about 1e-15."""
+    ref = np.load(REFERENCE)
+    checked = 0
+    worst = 0.0
+    for name, (model, q, w) in _reference_cases().items():
+        np.testing.assert_array_equal(ref[f"{name}/q"], q)
+        np.testing.assert_array_equal(ref[f"{name}/wrench"], np.broadcast_to(w, q.shape))
+        refs = ("unloaded", "rigid") + (("nominal",) if model.nominal is not None else ())
+        for form in ("exact", "first-order"):
+            for reference in refs:
+                path = compensate_path(model, q, w, form=form, reference=reference)
+                key = f"{name}/{form}/{reference}"
+                got = {"q_command": path.q_command, "theta_target": path.theta_target,
+                       "tcp_deflection": path.tcp_deflection, "residual": predicted_residual(model, path)}
+                for what, value in got.items():
+                    diff = np.abs(value - ref[f"{key}/{what}"]).max()
+                    assert diff <= 1e-9, (key, what, diff)
+                    worst = max(worst, diff)
+                    checked += 1
+    assert checked == 4 * (6 * 4 + 6)
+    assert worst < 1e-12
+
+
+def _dense(robot, n):
+    from elastocal.compensation.ik import yang_path
+
+    coarse = yang_path(robot, step_m=0.02)
+    s, s_new = np.linspace(0, 1, len(coarse)), np.linspace(0, 1, n)
+    return np.column_stack([np.interp(s_new, s, coarse.q[:, j]) for j in range(6)])
+
+
+def test_warm_start_and_blocks_do_not_change_the_result(robot):
+    """A path longer than a block, solved warm-started, equals every sample solved alone from a
+    cold start (the per-sample iteration of the fixed point), and the samples' order does not matter."""
+    truth = CellTruth()
+    model = CompensationModel(robot, truth.stiffness, truth.compensator)
+    n = BLOCK_SAMPLES + 3 * WARM_STRIDE + 5
+    q = _dense(robot, n)
+    w = np.array([0.0, 0.0, 1500.0, 0.0, 0.0, 0.0]) + np.sin(np.arange(n) / 50.0)[:, None] * 300.0
+    path = compensate_path(model, q, w)
+    k = StaticKernel(model)
+    some = np.r_[0, 1, WARM_STRIDE - 1, WARM_STRIDE, BLOCK_SAMPLES - 1, BLOCK_SAMPLES, BLOCK_SAMPLES + 7, n - 2, n - 1]
+    alone = np.array([k.equilibrium(q[i:i + 1], np.zeros((1, 6)))[0] for i in some])
+    np.testing.assert_allclose(path.theta_target[some], alone, rtol=0, atol=1e-13)
+    loaded = np.array([k.equilibrium(path.q_command[i:i + 1], w[i:i + 1])[0] for i in some])
+    np.testing.assert_allclose(loaded, path.theta_target[some], rtol=0, atol=1e-13)   # the commands work
+    order = np.random.default_rng(6).permutation(n)
+    shuffled = compensate_path(model, q[order], w[order])
+    np.testing.assert_allclose(shuffled.q_command, path.q_command[order], rtol=0, atol=1e-13)
+    np.testing.assert_allclose(shuffled.tcp_deflection, path.tcp_deflection[order], rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("bad", [[3], [WARM_STRIDE * 3], [40, WARM_STRIDE * 2], [BLOCK_SAMPLES + 9, BLOCK_SAMPLES + 20]])
+def test_a_load_too_large_names_the_first_sample_without_a_fixed_point(robot, bad):
+    truth = CellTruth()
+    model = CompensationModel(robot, truth.stiffness, truth.compensator)
+    n = BLOCK_SAMPLES + 100
+    q = _dense(robot, n)
+    w = np.tile([0.0, 0.0, 1500.0, 0.0, 0.0, 0.0], (n, 1))
+    w[bad, 1] = -4e7
+    with pytest.raises(NotConverged) as err:
+        compensate_path(model, q, w)
+    assert err.value.sample == min(bad)
+    assert f"at sample {min(bad) + 1} of the path" in str(err.value)
