@@ -7,9 +7,11 @@ Every static table holds the absolute marker positions in the tracker's frame
     p_tracker = R · FK(θ) · p_marker + t,   θ = q + offset + Δθ_kin + Δθ_elastic
 
 with FK from Pinocchio on the robot rebuilt from the corrected DH table
-(identify/kinematics.py), ``Δθ_elastic`` from the static effects' bases (the
-joint springs carry the absolute torques ``ξ i``, so the gravity sag is in the
-model) and ``R, t`` the registration (identify/registration.py). A loaded
+(identify/kinematics.py), ``Δθ_elastic`` and the located compliance from the
+static effects' bases per state (``Effect.absolute``: the joint springs carry the
+absolute torques ``ξ i``, the link springs and a tilting base the moments of the
+robot's weight and of the whole load, so the gravity sag is in the model; a drift
+moves every reading) and ``R, t`` the registration (identify/registration.py). A loaded
 state's reading is its reference's plus the deflection, so fitting the absolute
 positions of all states fits the absolute positions and the deflections
 together; the readings are weighted by their noise (the tracker's repeatability
@@ -46,6 +48,7 @@ import scipy.linalg
 
 from elastocal.errors import InputError
 from elastocal.identify import kinematics as kin
+from elastocal.identify.blas import one_blas_thread
 from elastocal.identify.effects import get_effect
 from elastocal.identify.registration import Registration, kabsch, register
 from elastocal.identify.robot import ACTUATED_IN_LINK_MODEL, MARKER_PREFIX, SPRINGS_IN_LINK_MODEL, Robot
@@ -53,7 +56,7 @@ from elastocal.identify.static import (
     Parameter,
     StaticDataset,
     StaticFit,
-    _bases,
+    _absolute_bases,
     _context,
     _kinematics,
     _Problem,
@@ -181,7 +184,7 @@ class AbsoluteFit:
 class _Setup:
     robot: Robot
     ds: StaticDataset          # deflections in base axes (the static fit's)
-    bases: tuple[np.ndarray, np.ndarray, np.ndarray]
+    bases: tuple[np.ndarray, np.ndarray, np.ndarray]    # per state: theta, links, add (S, M, 3, p)
     frames: tuple[str, ...]
     kin_names: tuple[str, ...]
     rot0: np.ndarray
@@ -189,10 +192,6 @@ class _Setup:
     whiten: tuple[np.ndarray, ...]      # per state: inverse Cholesky factor of its (3M, 3M) covariance
     chol: tuple[np.ndarray, ...]
     y: np.ndarray                       # (S, M, 3) measured, tracker frame
-    #: thermal drift's parameter columns and each reading's time from the first [s]: drift moves
-    #: every absolute reading (the deflection model has it between loaded and reference only)
-    drift_cols: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
-    drift_t: np.ndarray | None = None
     kin_columns: kin.Columns | None = None
 
 
@@ -234,16 +233,9 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
             _, jk = kin.position_jacobian(robot, theta, markers, st.kin_names, st.kin_columns,
                                           dlink[s] if np.any(dlink[s]) else None)
             jac[s, :, :, n_el + 6:] = jk
-    for d in range(ds.n_deflections):
-        s, m = ds.defl_state[d], ds.defl_marker[d]
-        pos[s, m] += b_add[d] @ beta
-        if jacobian:
-            jac[s, m, :, :n_el] += b_add[d]
-    if st.drift_cols.size:
-        pos += st.drift_t[:, :, None] * beta[st.drift_cols]
-        if jacobian:
-            for k, col in enumerate(st.drift_cols):
-                jac[:, :, k, col] += st.drift_t
+    pos += b_add @ beta
+    if jacobian:
+        jac[..., :n_el] += b_add
     turned = pos @ turn.T
     out = (turned + dt) @ st.rot0.T + st.t0
     if jacobian:
@@ -298,6 +290,7 @@ def _whitened(st: _Setup, r: np.ndarray, jac: np.ndarray | None):
     return rw, jw
 
 
+@one_blas_thread
 def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
                       model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
                       form: str = "exact", max_iter: int = 30,
@@ -328,27 +321,18 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     pr = _Problem(robot, ds, effects, torque, form, "complementary_stiffness" in static_model, frames)
     tau = _torques(pr, None)
     iterative = any(e.iterative for e in effects)
-    bases = _bases(pr, _context(pr, tau, fit.beta if iterative else None))
+    bases = _absolute_bases(pr, _context(pr, tau, fit.beta if iterative else None))
     n_el = len(fit.beta_names)
-    drift_cols = np.zeros(0, dtype=int)
-    drift_t = None
-    if "thermal_drift" in static_model:     # drift moves every reading, not only the loaded ones
-        first = fit.beta_names.index(get_effect("thermal_drift").parameters[0])
-        drift_cols = np.arange(first, first + 3)
-        b_add = bases[2].copy()
-        b_add[:, :, drift_cols] = 0.0
-        bases = (bases[0], bases[1], b_add)
-        drift_t = ds0.abs_t - np.nanmin(ds0.abs_t)
     el_mask = _elastic_mask(fit, effects)
     y = ds0.abs_xyz
 
     # start: the deflection fit's elasticity, registered in closed form
-    st0 = _Setup(robot, ds, bases, frames, (), np.eye(3), np.zeros(3), (), (), y, drift_cols, drift_t)
+    st0 = _Setup(robot, ds, bases, frames, (), np.eye(3), np.zeros(3), (), (), y)
     base_p, _ = _model(st0, fit.beta, np.zeros(3), np.zeros(3), np.zeros(0), jacobian=False)
     start = kabsch(base_p.reshape(-1, 3), y.reshape(-1, 3), ds0.abs_n.reshape(-1)) or reg
     chols, whitens, known = _noise(robot, ds, torque, fit.beta[:6], start.rotation, frames)
     st = _Setup(robot, ds, bases, frames, kin_names, start.rotation, start.translation, whitens, chols, y,
-                drift_cols, drift_t, kin.columns(kin_names, ds.markers))
+                kin.columns(kin_names, ds.markers))
     x_full = np.concatenate([fit.beta, np.zeros(6), np.zeros(len(kin_names))])
     all_names = (*fit.beta_names, *FRAME_NAMES, *kin_names)
     pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True)

@@ -27,11 +27,20 @@ import pinocchio as pin
 
 from elastocal.errors import InputError
 from elastocal.identify import kinematics as kin
+from elastocal.identify.blas import one_blas_thread
 from elastocal.identify.calibration import Calibration
 from elastocal.identify.effects import get_effect
 from elastocal.identify.registration import Registration, kabsch, nominal_positions
 from elastocal.identify.robot import MARKER_PREFIX, Robot
-from elastocal.identify.static import StaticDataset, _bases, _context, _Problem, _torques, build_dataset
+from elastocal.identify.static import (
+    StaticDataset,
+    _absolute_bases,
+    _context,
+    _Problem,
+    _torques,
+    absolute_positions,
+    build_dataset,
+)
 from elastocal.identify.tables import StaticTable
 
 #: effects of a measuring session: not carried to other data
@@ -141,14 +150,8 @@ def predicted_base_positions(robot: Robot, calibration: Calibration, ds: StaticD
     pr = _Problem(rob, ds, effects, calibration.torque, "exact", "complementary_stiffness" in model, frames)
     tau = _torques(pr, None)
     iterative = any(e.iterative for e in effects)
-    b_theta, b_links, b_add = _bases(pr, _context(pr, tau, beta if iterative else None))
-    dtheta, dlink = b_theta @ beta, b_links @ beta
-    out = np.empty((ds.n_states, len(ds.markers), 3))
-    for s in range(ds.n_states):
-        th10 = rob.theta_links(rob.theta(ds.q[ds.state_pose[s]]) + dtheta[s], dlink[s])
-        out[s] = rob.positions(th10, list(ds.markers), links=True)
-    out[ds.defl_state, ds.defl_marker] += b_add @ beta
-    return out
+    bases = _absolute_bases(pr, _context(pr, tau, beta if iterative else None))
+    return absolute_positions(rob, ds, frames, beta, bases)
 
 
 def _noise_floor(robot: Robot, calibration: Calibration, ds: StaticDataset, rotation: np.ndarray) -> float | None:
@@ -163,6 +166,7 @@ def _noise_floor(robot: Robot, calibration: Calibration, ds: StaticDataset, rota
     return float(np.sqrt(sum(np.sum(c ** 2) for c in chols) / ds.abs_xyz.size))
 
 
+@one_blas_thread
 def validate(robot: Robot, calibration: Calibration, data: StaticTable | StaticDataset, *,
              keep_frame: bool = False, calibration_name: str = "") -> Validation:
     """Nominal and calibrated model against the data (module docstring)."""

@@ -174,7 +174,9 @@ def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
         model, config = robot.link_model, robot.theta_links(theta, link_angles)
         ids = [0, *(int(k) + 1 for k in ACTUATED_IN_LINK_MODEL)]
         first = [ids[i - 1] + 1 for i in range(1, nj + 1)]
-    data = model.createData()
+    from elastocal.identify.static import _work_data     # one Data per model and thread, reused
+
+    data = _work_data(model)
     pin.forwardKinematics(model, data, config)
     pin.updateFramePlacements(model, data)
     pos = np.array([data.oMf[model.getFrameId(MARKER_PREFIX + m)].translation for m in markers])

@@ -33,6 +33,7 @@ import pinocchio as pin
 import scipy.linalg
 
 from elastocal.errors import EffectRefused, InputError, UnidentifiableError
+from elastocal.identify.blas import one_blas_thread
 from elastocal.identify.effects import get_effect
 from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext
 from elastocal.identify.robot import (
@@ -278,8 +279,8 @@ class StaticFit:
     design: np.ndarray | None = field(default=None, repr=False)
     #: per-pose (row indices, covariance) of the deflection noise; None without repeats
     noise_blocks: tuple[tuple[np.ndarray, np.ndarray], ...] | None = field(default=None, repr=False)
-    #: (S, M, 3) the model's absolute marker positions of every state, base frame
-    absolute_base: np.ndarray | None = field(default=None, repr=False)
+    #: what the model's absolute marker positions are computed from, on demand (absolute_base)
+    absolute_model: tuple | None = field(default=None, repr=False)
     #: beta names of the design's columns
     design_names: tuple[str, ...] = ()
     #: what the data support of each selectable effect (identify/selection.py)
@@ -292,6 +293,14 @@ class StaticFit:
     #: residual sum of squares in the whitened metric (chi-square with n - p
     #: degrees of freedom under noise alone); None for an unweighted fit
     rss_whitened: float | None = None
+
+    @property
+    def absolute_base(self) -> np.ndarray | None:
+        """(S, M, 3) the model's absolute marker positions of every state, base frame."""
+        if self.absolute_model is None:
+            return None
+        pr, beta, ctx = self.absolute_model
+        return _absolute_base(pr, beta, ctx)
 
     @property
     def dispersion(self) -> float:
@@ -372,6 +381,7 @@ def _context(pr: _Problem, tau: np.ndarray, estimate: np.ndarray | None = None) 
     delta_tau = tau - tau[ds.state_ref]
     delta_link = np.zeros((ds.n_states, 4))
     delta_wrench = np.zeros((ds.n_states, 6))
+    wrench = np.zeros((ds.n_states, 6))
     for pi in range(len(ds.pose_ids)):
         states = np.flatnonzero(ds.state_pose == pi)
         theta10 = robot.theta_links(robot.theta(ds.q[pi]))
@@ -388,11 +398,14 @@ def _context(pr: _Problem, tau: np.ndarray, estimate: np.ndarray | None = None) 
                 dw = ds.state_wrench[s] - ds.state_wrench[ds.state_ref[s]]
             delta_link[s] = j_spr.T @ dw
             delta_wrench[s] = dw
+            # the whole wrench: with currents the change is all they show (the reference carries none)
+            wrench[s] = dw if pr.torque == "current" else ds.state_wrench[s]
     torque_noise = None
     if ds.sigma_current is not None and pr.torque == "current":
         torque_noise = robot.torque_constants * ds.sigma_current / np.sqrt(ds.state_n_currents)[:, None]
     return StaticContext(tau=tau, delta_tau=delta_tau, delta_link_moment=delta_link,
-                         delta_wrench=delta_wrench, torque_noise=torque_noise, robot=robot, dataset=ds,
+                         delta_wrench=delta_wrench, wrench=wrench, torque_noise=torque_noise, robot=robot,
+                         dataset=ds,
                          state_is_reference=ds.state_ref == np.arange(ds.n_states),
                          deflection_dt=ds.defl_dt, n_deflections=ds.n_deflections, torque_source=pr.torque,
                          form=pr.form, estimate=estimate,
@@ -480,18 +493,31 @@ def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.nd
     return pred, a.reshape(-1, a.shape[2])
 
 
-def _absolute_base(pr: _Problem, beta: np.ndarray, bases) -> np.ndarray:
-    """Base positions (S, M, 3) of every state's markers under the fitted model
-    (the joint angles carry the absolute torques; additive terms on the loaded states)."""
-    robot, ds = pr.robot, pr.ds
+def _absolute_bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The model's bases per state for absolute positions (Effect.absolute): theta (S, 6, p),
+    links (S, 4, p) and add (S, M, 3, p)."""
+    parts = [eff.absolute(ctx) for eff in pr.effects if eff.parameters]
+    return (np.concatenate([b.theta for b in parts], axis=2), np.concatenate([b.links for b in parts], axis=2),
+            np.concatenate([b.add for b in parts], axis=3))
+
+
+def absolute_positions(robot: Robot, ds: StaticDataset, frames: Sequence[str], beta: np.ndarray,
+                       bases: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """Base positions (S, M, 3) of every state's markers under a model's absolute bases
+    (:func:`_absolute_bases`): the joint angles carry the absolute torques, the link springs
+    and the located compliance the moments of gravity and of the load."""
     b_theta, b_links, b_add = bases
     dtheta, dlink = b_theta @ beta, b_links @ beta
-    out = np.empty((ds.n_states, len(pr.frames), 3))
+    out = np.empty((ds.n_states, len(frames), 3))
     for s in range(ds.n_states):
         th10 = robot.theta_links(robot.theta(ds.q[ds.state_pose[s]]) + dtheta[s], dlink[s])
-        out[s] = _kinematics(robot, th10, pr.frames)[0]
-    out[ds.defl_state, ds.defl_marker] += b_add @ beta
-    return out
+        out[s] = _kinematics(robot, th10, frames)[0]
+    return out + b_add @ beta
+
+
+def _absolute_base(pr: _Problem, beta: np.ndarray, ctx: StaticContext) -> np.ndarray:
+    """Base positions (S, M, 3) of every state's markers under the fitted model."""
+    return absolute_positions(pr.robot, pr.ds, pr.frames, beta, _absolute_bases(pr, ctx))
 
 
 def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
@@ -615,6 +641,7 @@ def _lstsq(a: np.ndarray, y: np.ndarray, w: np.ndarray | None) -> np.ndarray:
     return np.linalg.lstsq(a * w[:, None], y * w, rcond=None)[0]
 
 
+@one_blas_thread
 def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
                     model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
                     form: str = "exact", max_iter: int = 30, tol: float = 1e-10,
@@ -832,7 +859,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
                 continue
             params.append(Parameter(names_out[i], float(values[i]), float(abs(own_std[i])), units[i]))
     return StaticFit(model=names, torque=torque, form=form, parameters=tuple(params),
-                     absolute_base=_absolute_base(pr, beta, bases),
+                     absolute_model=(pr, beta, ctx),
                      unidentifiable=tuple(unident), beta_names=beta_names, beta=beta, beta_cov=cov,
                      predicted=pred, residuals=resid, rms=float(np.sqrt(rss / n)),
                      max=float(np.max(np.abs(r))), n=n, rss=rss, n_params=p, noise_floor=noise_floor,

@@ -7,6 +7,16 @@ a :class:`StaticContext` (one row per load state ``s`` and per deflection ``d``)
 * ``links``  (S, 4, p): rotation of the four link springs (link_compliance);
 * ``add``    (D, 3, p): a term added to deflection d directly (tracker drift).
 
+The absolute model (identify/absolute.py) needs each state's own positions, not
+only their differences: :meth:`Effect.absolute` gives the same three bases per
+state (``add`` per state and marker, (S, M, 3, p)). By default they are the
+static ones (the angle and link bases of a state, the additive term of a
+deflection on its loaded state); an effect whose static basis holds only the
+change from the reference (the link springs carry the change of the load's
+moment, the drift the time between two readings) declares ``absolute_basis``
+with what the absolute readings carry (the moment of gravity and of the whole
+load, the time since the first reading).
+
 An effect the given data cannot show returns the reason from ``static_refusal``;
 the fit then refuses it with that reason instead of reporting a number the data
 do not hold. A basis column that is exactly zero marks a parameter these data
@@ -54,6 +64,9 @@ class StaticContext:
     delta_wrench: np.ndarray | None = None
     #: (S, 6) std of each state's gear torque from current noise [N·m] (None without repeats)
     torque_noise: np.ndarray | None = None
+    #: (S, 6) the external wrench on the load point of each state, base axes (with currents:
+    #: the change from the reference recovered from them, the reference carrying none)
+    wrench: np.ndarray | None = None
     #: the robot and the dataset, for effects whose basis needs the geometry
     #: (located compliance: frames and marker positions at each pose)
     robot: object = None
@@ -73,6 +86,16 @@ class StaticBasis:
     add: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class AbsoluteBasis:
+    """The static bases per state (module docstring): ``theta`` (S, 6, p), ``links``
+    (S, 4, p), ``add`` (S, M, 3, p) added to the base position of each state's markers."""
+
+    theta: np.ndarray | None = None
+    links: np.ndarray | None = None
+    add: np.ndarray | None = None
+
+
 @dataclass(frozen=True, eq=False)
 class Effect:
     """One physical effect: its parameters, the data that shows it, its words."""
@@ -84,6 +107,9 @@ class Effect:
     explanation: str                  # one sentence a user understands
     evidence: str                     # what the residual looks like when it is missing
     static_basis: Optional[Callable[[StaticContext], StaticBasis]] = None
+    #: what the absolute readings of each state carry, when it is not the static basis
+    #: placed on the loaded states (module docstring; :meth:`absolute`)
+    absolute_basis: Optional[Callable[[StaticContext], AbsoluteBasis]] = None
     #: why the given static data cannot show the effect (None when it can)
     static_refusal: Optional[Callable[[StaticContext], Optional[str]]] = None
     #: model value -> reported value and its derivative (for the std)
@@ -140,6 +166,7 @@ class Effect:
         idx = [full.index(n) for n in keep]
         names = tuple(full[i] for i in idx)
         inner = base.static_basis
+        inner_absolute = base.absolute_basis
         sens = base.torque_sensitivity
 
         def basis(ctx: StaticContext) -> StaticBasis:
@@ -147,6 +174,12 @@ class Effect:
             return StaticBasis(theta=None if b.theta is None else b.theta[..., idx],
                                links=None if b.links is None else b.links[..., idx],
                                add=None if b.add is None else b.add[..., idx])
+
+        def absolute(ctx: StaticContext) -> AbsoluteBasis:
+            b = inner_absolute(ctx)
+            return AbsoluteBasis(theta=None if b.theta is None else b.theta[..., idx],
+                                 links=None if b.links is None else b.links[..., idx],
+                                 add=None if b.add is None else b.add[..., idx])
 
         def sensitivity(ctx: StaticContext, values: np.ndarray) -> np.ndarray:
             v = np.zeros(len(full))
@@ -156,10 +189,28 @@ class Effect:
         from dataclasses import replace
 
         out = replace(base, parameters=names, units=tuple(base.units[i] for i in idx), static_basis=basis,
+                      absolute_basis=None if inner_absolute is None else absolute,
                       torque_sensitivity=None if sens is None else sensitivity, selected_from=full,
                       report_names=None if base.report_names is None else tuple(base.report_names[i] for i in idx))
         object.__setattr__(out, "_unrestricted", base)
         return out
+
+    def absolute(self, ctx: StaticContext) -> AbsoluteBasis:
+        """The bases per state of the absolute model, full-sized (module docstring)."""
+        ds = ctx.dataset
+        p = len(self.parameters)
+        n_states, n_markers = len(ctx.tau), len(ds.markers)
+        b = self.absolute_basis(ctx) if self.absolute_basis is not None else None
+        if b is None:
+            s = self.static_basis(ctx) if self.static_basis is not None else StaticBasis()
+            add = None
+            if s.add is not None:
+                add = np.zeros((n_states, n_markers, 3, p))
+                add[ds.defl_state, ds.defl_marker] = s.add
+            b = AbsoluteBasis(theta=s.theta, links=s.links, add=add)
+        return AbsoluteBasis(theta=np.zeros((n_states, 6, p)) if b.theta is None else b.theta,
+                             links=np.zeros((n_states, 4, p)) if b.links is None else b.links,
+                             add=np.zeros((n_states, n_markers, 3, p)) if b.add is None else b.add)
 
     def reported(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.report is None:

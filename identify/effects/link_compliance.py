@@ -14,7 +14,13 @@ the link model's passive joints), the others enter to first order in their
 small rotation: the marker moves by ``dphi x (p_marker - o_l)``.
 
 The moments come from the change of the external wrench (with currents,
-recovered from the joint torques, ``W = J_f^{-T} Gamma``). The effect is
+recovered from the joint torques, ``W = J_f^{-T} Gamma``). Absolute positions
+(identify/absolute.py) see the whole moment each state puts on a location: the
+gravity of the links beyond it (the robot description's masses) and the whole
+external wrench, so an unloaded pose sags and its base tilts under the robot's
+own weight too (:func:`_absolute_basis`). The compensator's force is internal
+to the base and acts on link 2 in the plane of joint 2's motion, so it adds no
+moment about the normal axes at link 1's end either. The effect is
 ``selectable``: a fit keeps only the components the data support (forward
 selection with the diagnosis' own test, identify/selection.py), and the answer
 says where the compliance is.
@@ -22,17 +28,22 @@ says where the compliance is.
 
 from __future__ import annotations
 
+import functools
+from types import MappingProxyType
+from typing import Mapping
+
 import numpy as np
 import pinocchio as pin
 
 from elastocal.identify.effects.base import (
+    AbsoluteBasis,
     Effect,
     StaticBasis,
     StaticContext,
     strongest,
     wrong_sign,
 )
-from elastocal.identify.robot import LINK_SPRINGS, LOAD_FRAME, MARKER_PREFIX
+from elastocal.identify.robot import LINK_SPRINGS, LOAD_FRAME, MARKER_PREFIX, SPRINGS_IN_LINK_MODEL
 
 #: locations: 0 the base, 1..5 the distal ends of links 1..5 (the flange coincides with the
 #: joint-6 frame of a DH robot, so a spring there would be joint 5 and 6 springs over again)
@@ -48,9 +59,17 @@ def _normal_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return normal(axis)
 
 
-def location_frames(robot, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+def location_frames(robot, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, Mapping[str, np.ndarray]]:
     """Origins (L, 3) and component axes (L, 2, 3) of the locations in base axes
-    at joint angles ``theta``, and the positions of the load point and markers."""
+    at joint angles ``theta``, and the positions of the load point and markers
+    (read-only: remembered per robot and pose, as every fit of a pose asks again)."""
+    return _frames_at(robot, np.asarray(theta, dtype=float).tobytes())
+
+
+@functools.lru_cache(maxsize=1024)
+def _frames_at(robot, theta_bytes: bytes):
+    """:func:`location_frames` of a robot (immutable) at the angles ``theta_bytes``."""
+    theta = np.frombuffer(theta_bytes, dtype=float)
     model = robot.model
     data = model.createData()
     theta = np.asarray(theta, dtype=float)
@@ -68,7 +87,9 @@ def location_frames(robot, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, d
         axes[l, 1] = frame.rotation @ v
     points = {name: data.oMf[model.getFrameId(name)].translation.copy()
               for name in [LOAD_FRAME, *(MARKER_PREFIX + m for m in robot.marker_names)]}
-    return origins, axes, points
+    for a in (origins, axes, *points.values()):
+        a.setflags(write=False)
+    return origins, axes, MappingProxyType(points)
 
 
 def _basis(ctx: StaticContext) -> StaticBasis:
@@ -99,6 +120,54 @@ def _basis(ctx: StaticContext) -> StaticBasis:
         arm = np.cross(u[None, :, :], p_m[:, None, :] - o[None, :, :])                       # (n, K, 3)
         add[np.ix_(defl, np.arange(3), located)] = np.transpose(arm * m_axis[:, :, None], (0, 2, 1))
     return StaticBasis(links=links, add=add)
+
+
+def gravity_moments(robot, theta: np.ndarray, origins: np.ndarray) -> np.ndarray:
+    """(L, 3) moment of the weight of everything beyond each location about its
+    origin, base axes [N·m] (the subtree of joint ``l + 1``; zero without masses)."""
+    out = np.zeros((len(LOCATIONS), 3))
+    if not robot.has_masses:
+        return out
+    model = robot.model
+    data = model.createData()
+    pin.centerOfMass(model, data, np.asarray(theta, dtype=float), True)     # subtree CoMs in their joint's frame
+    g = np.array(robot.gravity)
+    for l in LOCATIONS:
+        com = data.oMi[l + 1].act(data.com[l + 1])
+        out[l] = np.cross(com - origins[l], data.mass[l + 1] * g)
+    return out
+
+
+def _absolute_basis(ctx: StaticContext) -> AbsoluteBasis:
+    """Per state: the link springs' angles and the located rotations' marker motions
+    under the whole moment at each location (module docstring), at the commanded pose."""
+    robot, ds = ctx.robot, ctx.dataset
+    p = len(PARAMETERS)
+    n_states, n_markers = len(ctx.tau), len(ds.markers)
+    links = np.zeros((n_states, 4, p))
+    add = np.zeros((n_states, n_markers, 3, p))
+    located = [k for k, name in enumerate(PARAMETERS) if name not in _IN_LINK_MODEL]
+    loc_of = np.array([int(PARAMETERS[k][2]) for k in located])
+    axis_of = np.array(["xy".index(PARAMETERS[k][3]) for k in located])
+    spring_cols = [PARAMETERS.index(name) for name in LINK_SPRINGS]
+    for pi in range(len(ds.pose_ids)):
+        states = np.flatnonzero(ds.state_pose == pi)
+        theta = robot.theta(ds.q[pi])
+        th10 = robot.theta_links(theta)
+        j_spr = robot.jacobians(th10, [LOAD_FRAME], links=True)[0][:, SPRINGS_IN_LINK_MODEL]
+        g_spr = robot.gravity_torque(th10, links=True)[SPRINGS_IN_LINK_MODEL] if robot.has_masses else np.zeros(4)
+        w = ctx.wrench[states]                                          # (n, 6)
+        # the load torque of each spring, J^T W - g (docs/formats.md's sign)
+        links[np.ix_(states, np.arange(4), spring_cols)] = (w @ j_spr - g_spr)[:, :, None] * np.eye(4)[None]
+        origins, axes, points = location_frames(robot, theta)
+        o, u = origins[loc_of], axes[loc_of, axis_of]                    # (K, 3)
+        lever = points[LOAD_FRAME][None, :] - o
+        m_axis = w[:, 3:] @ u.T + w[:, :3] @ np.cross(u, lever).T        # (n, K): the load's moment
+        m_axis = m_axis + np.sum(u * gravity_moments(robot, theta, origins)[loc_of], axis=1)[None, :]
+        p_m = np.array([points[MARKER_PREFIX + m] for m in ds.markers])  # (M, 3)
+        arm = np.cross(u[None, :, :], p_m[:, None, :] - o[None, :, :])   # (M, K, 3)
+        add[np.ix_(states, np.arange(n_markers), np.arange(3), located)] = np.einsum("mkc,sk->smck", arm, m_axis)
+    return AbsoluteBasis(links=links, add=add)
 
 
 _PLACE = {0: "the base"}
@@ -135,6 +204,7 @@ EFFECT = Effect(
     explanation="the structure gives way at the base or in the links, which no joint spring can mimic",
     evidence="lateral deflection follows the moment the load puts on the base or on a link",
     static_basis=_basis,
+    absolute_basis=_absolute_basis,
     describe=_describe,
     plausibility=_plausibility,
     selectable=True,

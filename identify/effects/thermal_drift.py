@@ -4,14 +4,15 @@ Parameters vx, vy, vz [m/s] in the tracker (base) frame; deflection d gains
 v * (t_loaded - t_reference), the mean times of the loaded and reference
 readings. Needs the time column of the static table. Typical causes: the room,
 the tracker or the robot base warming up (a few tenths of a millimetre per hour
-in the first hour).
+in the first hour). Absolute positions (identify/absolute.py) see it in every
+reading: v times the time since the table's first reading.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext
+from elastocal.identify.effects.base import AbsoluteBasis, Effect, StaticBasis, StaticContext
 
 #: drift faster than this is no room warming up (typical: tenths of a mm/h) [m/s]
 MAX_DRIFT_M_S = 5e-3 / 3600.0
@@ -22,6 +23,16 @@ def _basis(ctx: StaticContext) -> StaticBasis:
     for axis in range(3):
         add[:, axis, axis] = ctx.deflection_dt
     return StaticBasis(add=add)
+
+
+def _absolute_basis(ctx: StaticContext) -> AbsoluteBasis:
+    t = ctx.dataset.abs_t
+    if t is None or not np.any(np.isfinite(t)):
+        return AbsoluteBasis()
+    add = np.zeros((*t.shape, 3, 3))
+    for axis in range(3):
+        add[:, :, axis, axis] = t - np.nanmin(t)
+    return AbsoluteBasis(add=add)
 
 
 def _refusal(ctx: StaticContext) -> str | None:
@@ -55,6 +66,7 @@ EFFECT = Effect(
     explanation="the tracker's readings creep with time as the room or the robot warms up",
     evidence="deflections grow with the time between the reference and the loaded readings",
     static_basis=_basis,
+    absolute_basis=_absolute_basis,
     static_refusal=_refusal,
     describe=_describe,
     plausibility=_plausibility,
