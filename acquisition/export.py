@@ -251,6 +251,17 @@ class ExportResult:
     incomplete_steps: tuple[str, ...]
 
 
+def tracker_position_from_log(contents: LogContents) -> tuple[float, float, float] | None:
+    """Where the cell.toml the log carries says the tracker stands (``[tracker]
+    base_p_tracker``, base coordinates [m]), or None when it does not say."""
+    if contents.cell is None:
+        return None
+    from elastocal.drivers.config import parse_cell_config
+
+    cell = parse_cell_config(contents.cell.text, source=f"{contents.path} ({lf.TOPIC_CELL})")
+    return None if cell.tracker is None else cell.tracker.base_p_tracker
+
+
 def export_files(contents: LogContents) -> dict[str, str | StaticTable | RunTable | None]:
     """What an export of a log writes: file name -> its text or table (None:
     the log has none, e.g. no static experiment)."""

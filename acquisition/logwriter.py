@@ -46,19 +46,22 @@ def _opt(x: float) -> float | None:
 
 
 def write_log_from_tables(path: str | pathlib.Path, robot: Robot, *, static: StaticTable | None = None,
-                          runs: RunTable | None = None, overwrite: bool = True) -> None:
+                          runs: RunTable | None = None, overwrite: bool = True, cell_text: str | None = None) -> None:
     """Write a log whose export gives back ``static`` and ``runs`` (datasets made
     without devices, e.g. ``elastocal sim``): one reading window per static row
     holding exactly that row's tracker sample and currents, one drive sample per
     run row. ``q``, currents, wrenches and positions come back bit for bit; ``t``
     comes back to the nanosecond when the table's times are increasing, else as
     10 ms slots; runs that overlap in time are moved after one another.
+    ``cell_text``: a cell.toml recorded with the log, as ``calibrate`` records its cell.
     """
     from elastocal.acquisition.recorder import Recorder
 
     clock = _SetClock(SYNTHETIC_ORIGIN_NS)
     with Recorder(path, overwrite=overwrite, clock=clock) as rec:
         rec.document("robot", robot.name, robot.to_toml())
+        if cell_text is not None:
+            rec.document("cell", "cell", cell_text)
         rec.event("procedure_start", procedure="from-tables")
         now = SYNTHETIC_ORIGIN_NS - 1_000_000  # step events may precede the origin
         if static is not None and len(static):

@@ -115,6 +115,9 @@ class _Data:
     note: str
     time_ns: int | None
     plan: str | None
+    #: where the log's cell.toml says the tracker stands (a prior on the registration, as
+    #: ``elastocal identify LOG`` takes it)
+    tracker_prior: tuple[float, float, float] | None = None
 
 
 def _load(task: FleetTask) -> _Data:
@@ -146,7 +149,7 @@ def _load(task: FleetTask) -> _Data:
         runs = read_run_table(runs_csv, robot) if runs_csv.is_file() else None
         files = tuple(p for p in (static_csv, runs_csv) if p.is_file())
         return _Data(robot, static, runs, files, files[0], task.cell, "", None, None)
-    from elastocal.acquisition.export import tables_from_log
+    from elastocal.acquisition.export import tables_from_log, tracker_position_from_log
     from elastocal.acquisition.logreader import read_log
 
     contents = read_log(path)
@@ -158,7 +161,8 @@ def _load(task: FleetTask) -> _Data:
     cell = task.cell or (contents.cell.name if contents.cell is not None else "")
     started = contents.sessions[0].get("started_utc") if contents.sessions else None
     plan = contents.plan.text if contents.plan is not None else None
-    return _Data(robot, static, runs, (path,), path, cell, note, _utc_ns(started), plan)
+    return _Data(robot, static, runs, (path,), path, cell, note, _utc_ns(started), plan,
+                 tracker_position_from_log(contents))
 
 
 def _parameters(params: Mapping[str, Any]) -> tuple[tuple[str, float, float | None], ...]:
@@ -177,7 +181,7 @@ def _identify(task: FleetTask, data: _Data) -> dict:
     if data.static is None and data.runs is None:
         raise InputError("the log holds neither a static experiment nor runs", source=task.path)
     obj, _ = identify_data(data.robot, data.static, data.runs, task.model, task.torque, task.form,
-                           exclude_outliers=task.exclude_outliers)
+                           exclude_outliers=task.exclude_outliers, tracker_prior=data.tracker_prior)
     cal = calibration_from_fit(data.robot.name, obj, data.files)
     return {"parameters": _parameters(obj["parameters"]), "residual_rms": obj["residual"]["rms"],
             "noise_floor": obj.get("noise_floor"), "calibration": cal}
@@ -187,7 +191,8 @@ def _diagnose(task: FleetTask, data: _Data) -> dict:
     from elastocal.identify.pipeline import diagnose_data, diagnosis_json
 
     static, runs = diagnose_data(data.robot, data.static, data.runs, task.model, task.torque, task.form,
-                                 log=None if task.tables else task.path, exclude_outliers=task.exclude_outliers)
+                                 log=None if task.tables else task.path, exclude_outliers=task.exclude_outliers,
+                                 tracker_prior=data.tracker_prior)
     obj = diagnosis_json(static, runs)
     return {"residual_rms": obj["residual"]["rms"], "noise_floor": obj.get("noise_floor"),
             "verdict": obj.get("verdict")}

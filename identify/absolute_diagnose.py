@@ -102,7 +102,8 @@ class AbsoluteDiagnosis:
                 "absolute_final": {"model": list(f.model),
                                    "residual": {"rms": f.rms, "max": f.max, "n": f.n, "unit": "m"},
                                    "noise_floor": f.noise_floor},
-                "absolute_per_pose": b.per_pose()}
+                "absolute_per_pose": b.per_pose(),
+                **({"registration": b.json_fields()["registration"]} if b.tracker_prior is not None else {})}
 
 
 def _test(base: AbsoluteFit, aug: AbsoluteFit) -> tuple[float, float, float, int]:
@@ -133,11 +134,13 @@ def _evidence(effect: str, before: AbsoluteFit, after: AbsoluteFit) -> str:
 
 
 def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *, torque: str = "current",
-                      form: str = "exact", pool: Sequence[str] = ABSOLUTE_EFFECTS) -> AbsoluteDiagnosis:
+                      form: str = "exact", pool: Sequence[str] = ABSOLUTE_EFFECTS,
+                      tracker_prior: Sequence[float] | None = None) -> AbsoluteDiagnosis:
     """Compare ``model`` (with its registration) with the absolute positions and
-    test the absolute effects it lacks."""
+    test the absolute effects it lacks; ``tracker_prior`` (base coordinates [m]) is a
+    prior on the registration of every fit."""
     base = identify_absolute(robot, ds, model=tuple(dict.fromkeys([*model, "tracker_frame"])), torque=torque,
-                             form=form)
+                             form=form, tracker_prior=tracker_prior)
     pool = tuple(p for p in pool if p in CANDIDATE_MODELS)
     first: tuple[AbsoluteCandidate, ...] | None = None
     steps: list[AbsoluteCandidate] = []
@@ -149,7 +152,8 @@ def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *, 
                 continue
             names = tuple(dict.fromkeys([*fit.model, *CANDIDATE_MODELS[name]]))
             try:
-                aug = identify_absolute(robot, ds, model=names, torque=torque, form=form)
+                aug = identify_absolute(robot, ds, model=names, torque=torque, form=form,
+                                        tracker_prior=tracker_prior)
             except InputError as exc:       # the data cannot show it (no times for a drift)
                 if exc.argument != "model":  # a refusal of the model, typed; anything else is an error
                     raise

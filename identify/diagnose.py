@@ -336,7 +336,7 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
 def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
                     model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
                     form: str = "exact", effects: Sequence[str] | None = None,
-                    exclude_outliers: bool = False) -> Diagnosis:
+                    exclude_outliers: bool = False, tracker_prior: Sequence[float] | None = None) -> Diagnosis:
     """Fit ``model``, test each effect it lacks, and diagnose stepwise (docs/cli.md).
 
     ``candidates`` are the effects tested against the model as given, best
@@ -347,7 +347,9 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     effect of the table). Effects these data cannot show are listed in
     ``not_testable`` with the reason. Readings far off their repeats are listed
     in ``outliers`` and left out of the noise floor; ``exclude_outliers`` (a
-    table only) refits without them.
+    table only) refits without them. ``tracker_prior``: where the tracker stands
+    in base coordinates [m] (cell.toml), a prior on the absolute comparison's
+    registration (identify/absolute.py).
     """
     excluded: tuple = ()
     if exclude_outliers and isinstance(data, StaticTable):
@@ -404,7 +406,7 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     abs_diag = None
     if absolute:     # the deflection model's final form against the absolute positions
         abs_diag = diagnose_absolute(robot, ds_abs, (*final.model, *absolute_model), torque=torque, form=form,
-                                     pool=absolute_pool)
+                                     pool=absolute_pool, tracker_prior=tracker_prior)
         verdict = combined_verdict(verdict, len(steps), detail is not None, abs_diag)
         if "tracker_frame" in absolute_pool and "tracker_frame" not in absolute_model:
             skipped_first.append(NotTestable("tracker_frame", TRACKER_FRAME_NOTE))

@@ -56,9 +56,11 @@ def identify_data(robot, static, runs, model: tuple[str, ...], torque: str, form
 
 
 def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: str, form: str, *,
-                  log: str | None = None, exclude_outliers: bool = False):
+                  log: str | None = None, exclude_outliers: bool = False, tracker_prior=None):
     """(static Diagnosis or None, run Diagnosis or None) for the tables; ``log``
-    names the log they came from, for the error when there is nothing to diagnose."""
+    names the log they came from, for the error when there is nothing to diagnose;
+    ``tracker_prior``: where the tracker stands in base coordinates [m], a prior on
+    the registration of the absolute comparison."""
     from elastocal.identify.diagnose import diagnose_static
 
     static_diag = None
@@ -69,7 +71,7 @@ def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: str, form
             static_model = tuple(m for m in model if "static" in get_effect(m).seen_in)
         pool = tuple(e for e in ALL_EFFECTS if e not in model)
         static_diag = diagnose_static(robot, static, model=static_model, torque=torque, form=form, effects=pool,
-                                      exclude_outliers=exclude_outliers)
+                                      exclude_outliers=exclude_outliers, tracker_prior=tracker_prior)
     if runs is not None:
         from elastocal.identify.diagnose_runs import diagnose_runs
 

@@ -18,6 +18,16 @@ class Inputs:
     runs: RunTable | None
     files: tuple[pathlib.Path, ...]
     log: pathlib.Path | None = None
+    #: where the log's cell.toml says the tracker stands ([tracker] base_p_tracker), if it says
+    tracker_position: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class TrackerPrior:
+    """Where the tracker stands in base coordinates [m] and who says so (a flag or a cell.toml)."""
+
+    base_p_tracker: tuple[float, float, float]
+    source: str
 
 
 def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = True) -> None:
@@ -40,18 +50,74 @@ def add_outlier_argument(parser: argparse.ArgumentParser) -> None:
                         help="refit without the static readings far off their repeats (listed as outliers)")
 
 
+def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
+    """--cell and --tracker-position: a prior on the tracker's registration (docs/absolute.md)."""
+    parser.add_argument("--cell", help="cell.toml whose [tracker] base_p_tracker is a prior of 0.1 m on the "
+                                       "registration (default: the cell.toml a log carries)")
+    parser.add_argument("--tracker-position", metavar="X,Y,Z",
+                        help="where the tracker stands in base coordinates [m] (cell.toml's [tracker] "
+                             "base_p_tracker): a prior of 0.1 m on the registration (docs/absolute.md)")
+
+
+def _position(text: str) -> tuple[float, float, float]:
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise InputError(f"expected x,y,z in metres, got {text!r}", source="--tracker-position") from None
+    if len(values) != 3 or not all(abs(v) < 100.0 for v in values):
+        raise InputError(f"expected 3 finite numbers x,y,z in metres, got {text!r}", source="--tracker-position")
+    return tuple(values)
+
+
+def tracker_prior(args: argparse.Namespace, inputs: "Inputs | None" = None) -> TrackerPrior | None:
+    """The tracker position prior: ``--tracker-position``, else ``--cell``'s [tracker]
+    base_p_tracker, else the one of the cell.toml the log carries; None when nobody says."""
+    text = getattr(args, "tracker_position", None)
+    if text is not None:
+        return TrackerPrior(_position(text), "--tracker-position")
+    cell_path = getattr(args, "cell", None)
+    if cell_path:
+        from elastocal.drivers.config import load_cell_config
+
+        cell = load_cell_config(cell_path)
+        if cell.tracker is None or cell.tracker.base_p_tracker is None:
+            return None
+        return TrackerPrior(cell.tracker.base_p_tracker, f"{cell_path} [tracker] base_p_tracker")
+    if inputs is not None and inputs.tracker_position is not None:
+        return TrackerPrior(inputs.tracker_position, f"{inputs.log}'s cell.toml [tracker] base_p_tracker")
+    return None
+
+
+def prior_line(prior: TrackerPrior | None, registration: dict | None) -> str | None:
+    """One line on the prior and how far the registration found is from it (None without a prior)."""
+    if prior is None or registration is None:
+        return None
+    base_p = registration["base_p_tracker"]
+    offset = sum((a - b) ** 2 for a, b in zip(base_p, prior.base_p_tracker)) ** 0.5
+    where = ", ".join(f"{v:.3f}" for v in base_p)
+    said = ", ".join(f"{v:.3f}" for v in prior.base_p_tracker)
+    from elastocal.identify.absolute import TRACKER_PRIOR_STD_M
+
+    words = (f": more than 3x the prior's {TRACKER_PRIOR_STD_M:g} m (a wrong cell file, or the tracker moved)"
+             if offset > 3.0 * TRACKER_PRIOR_STD_M else "")
+    return (f"tracker at ({where}) m in base coordinates, {offset:.3f} m from ({said}) m of {prior.source}"
+            f"{words}")
+
+
 def input_paths(args: argparse.Namespace) -> list[tuple[str | None, str]]:
     """The input files of the shared flags, with the flag naming each (outputs must differ)."""
     return [(getattr(args, "log", None), "the log"), (getattr(args, "robot", None), "--robot"),
             (getattr(args, "static", None), "--static"), (getattr(args, "runs", None), "--runs")]
 
 
-def load_log_noted(args: argparse.Namespace, path: str | pathlib.Path):
+def load_log_noted(args: argparse.Namespace, path: str | pathlib.Path, *, with_tracker: bool = False):
     """(robot, static table or None, run table or None) of a log, as
     ``acquisition.export.load_log``, with one note for stderr when the log ends
     without its MCAP summary (a killed recorder): what was read is then only
-    what came before its last complete chunk."""
-    from elastocal.acquisition.export import tables_from_log
+    what came before its last complete chunk. ``with_tracker``: and where the
+    log's cell.toml says the tracker stands (or None)."""
+    from elastocal.acquisition.export import tables_from_log, tracker_position_from_log
     from elastocal.acquisition.logreader import read_log
     from elastocal.commands._outputs import log_note, note
 
@@ -59,6 +125,8 @@ def load_log_noted(args: argparse.Namespace, path: str | pathlib.Path):
     text = log_note(str(path), contents)
     if text:
         note(args, text)
+    if with_tracker:
+        return (*tables_from_log(contents), tracker_position_from_log(contents))
     return tables_from_log(contents)
 
 
@@ -66,10 +134,10 @@ def load_inputs(args: argparse.Namespace) -> Inputs:
     if args.log:
         if args.static or args.runs:
             raise InputError("give either a log or --static/--runs tables, not both", source=args.log)
-        robot, static, runs = load_log_noted(args, args.log)
+        robot, static, runs, tracker = load_log_noted(args, args.log, with_tracker=True)
         if args.robot:
             robot = load_robot(args.robot)
-        return Inputs(robot, static, runs, (pathlib.Path(args.log),), pathlib.Path(args.log))
+        return Inputs(robot, static, runs, (pathlib.Path(args.log),), pathlib.Path(args.log), tracker)
     if not args.robot:
         raise InputError("missing --robot robot.toml (or give a log)", source="--robot")
     if not args.static and not args.runs:

@@ -6,7 +6,14 @@ import argparse
 import json
 import shlex
 
-from elastocal.commands._inputs import add_input_arguments, add_outlier_argument, load_inputs
+from elastocal.commands._inputs import (
+    add_input_arguments,
+    add_outlier_argument,
+    add_tracker_arguments,
+    load_inputs,
+    prior_line,
+    tracker_prior,
+)
 from elastocal.identify.effects import parse_model
 from elastocal.identify.pipeline import diagnose_data, diagnosis_json
 
@@ -14,12 +21,19 @@ from elastocal.identify.pipeline import diagnose_data, diagnosis_json
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser)
     add_outlier_argument(parser)
+    add_tracker_arguments(parser)
 
 
-def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *, exclude_outliers: bool = False):
-    """(static Diagnosis or None, run Diagnosis or None) for the loaded inputs."""
+def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *, exclude_outliers: bool = False,
+                    prior=None):
+    """(static Diagnosis or None, run Diagnosis or None) for the loaded inputs; ``prior``
+    (:class:`~elastocal.commands._inputs.TrackerPrior`) on the registration, by default the
+    one of the cell.toml a log carries."""
+    if prior is None and inputs.tracker_position is not None:
+        prior = tracker_prior(argparse.Namespace(), inputs)
     return diagnose_data(inputs.robot, inputs.static, inputs.runs, model, torque, form,
-                         log=None if inputs.log is None else str(inputs.log), exclude_outliers=exclude_outliers)
+                         log=None if inputs.log is None else str(inputs.log), exclude_outliers=exclude_outliers,
+                         tracker_prior=None if prior is None else prior.base_p_tracker)
 
 
 def _um(x: float | None) -> str:
@@ -160,14 +174,22 @@ def format_runs(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:
 def run(args: argparse.Namespace) -> int:
     inputs = load_inputs(args)
     model = parse_model(args.model)
+    prior = tracker_prior(args, inputs)
     static, runs = diagnose_inputs(inputs, model, args.torque, args.form,
-                                   exclude_outliers=getattr(args, "exclude_outliers", False))
+                                   exclude_outliers=getattr(args, "exclude_outliers", False), prior=prior)
     if args.json:
-        print(json.dumps(diagnosis_json(static, runs)))
+        obj = diagnosis_json(static, runs)
+        if prior is not None and "prior" in obj.get("registration", {}):
+            obj["registration"]["prior"]["source"] = prior.source
+        print(json.dumps(obj))
         return 0
     out = [f"{inputs.robot.name}"]
     if static is not None:
         out.append(format_static(static, args, model))
+        line = None if static.absolute is None else prior_line(
+            prior, static.absolute.base.json_fields()["registration"])
+        if line:
+            out.append(f"  {line}")
     if runs is not None:
         out.append(format_runs(runs, args, model))
     print("\n".join(out))

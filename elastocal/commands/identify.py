@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 
-from elastocal.commands._inputs import add_input_arguments, add_outlier_argument, input_paths, load_inputs
+from elastocal.commands._inputs import (
+    add_input_arguments,
+    add_outlier_argument,
+    add_tracker_arguments,
+    input_paths,
+    load_inputs,
+    prior_line,
+    tracker_prior,
+)
 from elastocal.commands._outputs import Outputs
 from elastocal.commands._format import format_fit
 from elastocal.errors import InputError
@@ -20,9 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_outlier_argument(parser)
     parser.add_argument("--out", help="write the calibration JSON (docs/formats.md §4) here")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    parser.add_argument("--tracker-position", metavar="X,Y,Z",
-                        help="where the tracker stands in base coordinates [m] (cell.toml's [tracker] "
-                             "base_p_tracker): a prior of 0.1 m on the registration (docs/absolute.md)")
+    add_tracker_arguments(parser)
 
 
 def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *,
@@ -33,29 +39,19 @@ def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *,
                          exclude_outliers=exclude_outliers, tracker_prior=tracker_prior)
 
 
-def _tracker_position(text: str | None):
-    if text is None:
-        return None
-    parts = [p.strip() for p in text.split(",")]
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        raise InputError(f"expected x,y,z in metres, got {text!r}", source="--tracker-position") from None
-    if len(values) != 3 or not all(abs(v) < 100.0 for v in values):
-        raise InputError(f"expected 3 finite numbers x,y,z in metres, got {text!r}", source="--tracker-position")
-    return tuple(values)
-
-
 def run(args: argparse.Namespace) -> int:
-    outputs = Outputs(force=args.force, inputs=input_paths(args))
+    outputs = Outputs(force=args.force, inputs=[*input_paths(args), (args.cell, "--cell")])
     if args.out:
         outputs.add(args.out, "--out")
     model = parse_model(args.model)
     inputs = load_inputs(args)
     if inputs.static is None and inputs.runs is None:
         raise InputError("the log holds neither a static experiment nor runs", source=args.log or "--static")
+    prior = tracker_prior(args, inputs)
     obj, fit = identify_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers,
-                               tracker_prior=_tracker_position(args.tracker_position))
+                               tracker_prior=None if prior is None else prior.base_p_tracker)
+    if prior is not None and "prior" in obj.get("registration", {}):
+        obj["registration"]["prior"]["source"] = prior.source
     if args.out:
         calibration = calibration_from_fit(inputs.robot.name, obj, inputs.files,
                                            robot_description=inputs.robot.to_toml())
@@ -73,6 +69,9 @@ def run(args: argparse.Namespace) -> int:
         how = (f"({obj['torque']}-based, {obj['form']} form)" if "form" in obj
                else "(run data: joint-2 sweeps and UV/VU runs)")
         print(format_fit(obj, title=f"{inputs.robot.name}: {', '.join(obj['model'])} {how}"))
+        line = prior_line(prior, obj.get("registration"))
+        if line:
+            print(line)
         if args.out:
             print(f"calibration written to {args.out}")
     return 0

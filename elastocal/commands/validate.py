@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 
+import numpy as np
+
+from elastocal.commands._inputs import add_tracker_arguments, prior_line, tracker_prior
 from elastocal.errors import InputError
 
 
@@ -15,6 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep-frame", action="store_true",
                         help="keep the calibration's tracker registration (tracker_frame) instead of "
                              "registering the tracker afresh on these data")
+    add_tracker_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
@@ -37,9 +41,16 @@ def run(args: argparse.Namespace) -> int:
     table = read_static_table(args.static, robot)
     if not len(table):
         raise InputError("the table holds no readings", source=args.static)
+    prior = tracker_prior(args)
     result = validate(robot, calibration, table, keep_frame=args.keep_frame, calibration_name=args.calibration)
+    obj = result.to_json()
+    if prior is not None:     # where the registration puts the tracker against where the cell says it stands
+        found = np.asarray(obj["registration"]["base_p_tracker"])
+        obj["registration"]["prior"] = {"base_p_tracker": list(prior.base_p_tracker), "source": prior.source,
+                                        "offset": float(np.linalg.norm(found - np.asarray(prior.base_p_tracker))),
+                                        "unit": "m"}
     if args.json:
-        print(json.dumps(result.to_json()))
+        print(json.dumps(obj))
         return 0
     frame = "kept from the calibration" if args.keep_frame else "registered afresh on these data"
     print(f"{robot.name}: {args.calibration} against {args.static} ({result.poses} poses; tracker {frame})")
@@ -50,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
     print(_row("nominal", result.deflection_nominal))
     print(_row("calibrated", result.deflection_calibrated))
     a_n, a_c = result.absolute_nominal, result.absolute_calibrated
+    line = prior_line(prior, obj["registration"])
+    if line:
+        print(line)
     print(f"absolute error on {result.poses} poses not used in the fit: nominal {a_n.rms * 1e6:.0f} µm rms "
           f"(max {a_n.max * 1e3:.2f} mm) → calibrated {a_c.rms * 1e6:.1f} µm (max {a_c.max * 1e6:.0f} µm)")
     return 0
