@@ -5,10 +5,14 @@
 A simulated cell with kinematic errors, link compliance and thermal drift, the
 tracker 3.7 m away and turned; the fit is ``joint_stiffness, link_compliance,
 thermal_drift, backlash, kinematic_errors, tracker_frame`` on 60 poses x 4
-states x 3 markers x 3 repeats. Prints the median wall time, its ratio to the
-5 s limit of the issue, and its ratio to one Pinocchio forward kinematics
-measured in the same run (the unit the fit's cost is made of), with the
-absolute rms against its noise floor so speed and accuracy are read together.
+states x 3 markers x 3 repeats. Prints the median wall time and its ratio to the
+5 s limit of the issue; and, since a shared machine's load changes the wall
+time by several times, the limit measured in the same run: one Pinocchio forward
+kinematics timed in batches between the fits, the fastest batch (the machine
+unloaded) against the median one (as loaded as the fits), so the fit's time at
+the fastest batch's speed is its time on this machine unloaded, with its ratio
+to the limit too. The absolute rms against its noise floor is printed beside, so
+speed and accuracy are read together.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import statistics
 import time
 
 import numpy as np
+import pinocchio as pin
 
 from elastocal.identify.absolute import identify_absolute
 from elastocal.identify.robot import bundled_robot
@@ -28,12 +33,17 @@ LIMIT_S = 5.0
 MODEL = ("joint_stiffness", "link_compliance", "thermal_drift", "backlash", "kinematic_errors", "tracker_frame")
 
 
-def one_fk_s(robot, n: int = 2000) -> float:
-    q = np.zeros(6)
-    t0 = time.perf_counter()
-    for _ in range(n):
-        robot.positions(robot.theta(q), ["R1"])
-    return (time.perf_counter() - t0) / n
+def fk_batches_s(robot, batches: int = 10, n: int = 50_000) -> list[float]:
+    """Seconds per forward kinematics (one Data reused) of each of ``batches`` batches of ``n``."""
+    data = robot.model.createData()
+    theta = robot.theta(np.array([0.1, 0.3, 0.2, 0.0, 0.5, 0.0]))
+    out = []
+    for _ in range(batches):
+        t0 = time.perf_counter_ns()
+        for _ in range(n):
+            pin.forwardKinematics(robot.model, data, theta)
+        out.append((time.perf_counter_ns() - t0) * 1e-9 / n)
+    return out
 
 
 def main() -> None:
@@ -44,18 +54,25 @@ def main() -> None:
     robot = bundled_robot()
     truth = CellTruth().with_hidden("kinematic_errors,link_compliance,thermal_drift")
     table = simulate_static(robot, truth, seed=5, plan=StaticPlan(n_poses=args.poses))
-    fk = one_fk_s(robot)
+    fk = fk_batches_s(robot)
     times = []
     for _ in range(args.repeat):
         t0 = time.perf_counter()
         fit = identify_absolute(robot, table, model=MODEL)
         times.append(time.perf_counter() - t0)
+        fk += fk_batches_s(robot)
     med = statistics.median(times)
+    fastest, typical = min(fk), statistics.median(fk)
+    unloaded = med * fastest / typical
     print(f"{args.poses} poses, {len(table)} readings, model {','.join(MODEL)}")
-    print(f"  absolute fit: median {med:.2f} s over {args.repeat}; {med / LIMIT_S:.2f} of the {LIMIT_S:.0f} s limit; "
-          f"{med / fk:.0f} x one forward kinematics ({fk * 1e6:.1f} µs)")
+    print(f"  absolute fit: median {med:.2f} s over {args.repeat} (wall); {med / LIMIT_S:.2f} of the "
+          f"{LIMIT_S:.0f} s limit; {med / typical:,.0f} x one forward kinematics")
+    print(f"  one forward kinematics: {typical * 1e6:.2f} µs median, {fastest * 1e6:.2f} µs fastest batch "
+          f"(machine load factor {typical / fastest:.2f})")
+    print(f"  at this machine's unloaded speed: {unloaded:.2f} s; {unloaded / LIMIT_S:.2f} of the "
+          f"{LIMIT_S:.0f} s limit ({'met' if unloaded < LIMIT_S else 'NOT met'})")
     print(f"  absolute rms {fit.rms * 1e6:.2f} µm, floor {fit.noise_floor * 1e6:.2f} µm "
-          f"({fit.rms / fit.noise_floor:.2f}x); {fit.n_params} parameters, {fit.iterations} evaluations")
+          f"({fit.rms / fit.noise_floor:.2f}x); {fit.n_params} parameters, {fit.iterations} Gauss-Newton steps")
 
 
 if __name__ == "__main__":
