@@ -276,15 +276,25 @@ def pair_with_joints(points: list[ExportPoint], log: JointLog, *, names: NamePat
                 unpaired.append((p, "neither its name (--names) nor the joint log (pose, load columns) says its "
                                     "pose and load"))
                 continue
-        else:
+        else:   # by name: the samples of its pose and load, around its time when it has one (docs/import.md)
             pose, load = fields["pose"], fields["load"]
-            if log.pose is None:
+            if log.pose is not None:
+                sel = np.flatnonzero((log.pose == pose) & (log.load == load))
+                if sel.size == 0:
+                    unpaired.append((p, f"the joint log has no sample of pose {pose} load {load}"))
+                    continue
+            elif p.t_s is None:
                 unpaired.append((p, "no timestamp, and the joint log has no pose and load columns"))
                 continue
-            sel = np.flatnonzero((log.pose == pose) & (log.load == load))
-            if sel.size == 0:
-                unpaired.append((p, f"the joint log has no sample of pose {pose} load {load}"))
-                continue
+            else:
+                sel = np.arange(len(log.t_s))
+            if p.t_s is not None:
+                sel = sel[np.abs(log.t_s[sel] - (p.t_s + clock_offset_s)) <= window_s / 2]
+                if sel.size == 0:
+                    of = f" of pose {pose} load {load}" if log.pose is not None else ""
+                    unpaired.append((p, f"no joint sample{of} within ±{window_s / 2:g} s of its time "
+                                        "(the two clocks apart? --clock-offset)"))
+                    continue
         t_rel = math.nan if p.t_s is None or t0 is None else p.t_s - t0
         rows.append(_Row(p, pose, load, marker, t_rel, log.q[sel].mean(axis=0), log.wrench[sel].mean(axis=0),
                          log.currents[sel].mean(axis=0)))

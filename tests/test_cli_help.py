@@ -5,6 +5,7 @@ import argparse
 import contextlib
 import io
 import pathlib
+import re
 
 import pytest
 
@@ -100,3 +101,18 @@ def test_plan_without_a_wrench_is_one_line(capsys, tmp_path):
                  "--out", str(tmp_path / "p.toml")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--wrench" in err[0]
+
+
+def test_sim_help_lists_exactly_the_effects_each_dataset_can_hide(capsys):
+    """`sim static --help` names every static effect the simulator hides and no run-only one;
+    `sim runs --help` the run effects."""
+    from elastocal.sims.cell import HIDDEN_EFFECTS
+    from elastocal.sims.runs import RUN_HIDDEN
+
+    for kind, effects, others in (("static", HIDDEN_EFFECTS, RUN_HIDDEN), ("runs", RUN_HIDDEN, HIDDEN_EFFECTS)):
+        with pytest.raises(SystemExit):
+            main(["sim", kind, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        words = set(re.findall(r"[a-z_]+", text[text.rindex("--hidden HIDDEN"):text.rindex("--seed")]))
+        assert set(effects) <= words, (kind, set(effects) - words)
+        assert not (set(others) - set(effects)) & words, (kind, (set(others) - set(effects)) & words)

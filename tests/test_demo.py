@@ -41,3 +41,32 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
     assert "link_compliance" in words and "no joint spring can mimic" in words and "%" in words
     assert not any(j in words for j in ("ΔBIC", "rms", "TPDO", "exact form", "p ="))
     assert "true" in text[text.index("The numbers", found):]
+    # Foxglove-ready (issue 17's acceptance): the demo's own log opens with mcap's reader, every message is
+    # valid against its channel's schema, and the Foxglove channels carry Foxglove's published schemas
+    _every_message_valid(out / "calibration.mcap")
+
+
+def _every_message_valid(path):
+    import jsonschema
+    from mcap.reader import make_reader
+
+    from elastocal.acquisition import logformat as lf
+
+    foxglove = {name: json.loads((lf.FOXGLOVE_SCHEMA_DIR / f"{name.split('.')[1]}.json").read_text())
+                for name in set(lf.FOXGLOVE_TOPIC_SCHEMAS.values())}
+    validators, seen = {}, {}
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            v = validators.get(schema.id)
+            if v is None:
+                doc = json.loads(schema.data)
+                jsonschema.Draft202012Validator.check_schema(doc)
+                if channel.topic in lf.FOXGLOVE_TOPIC_SCHEMAS:
+                    assert schema.name == lf.FOXGLOVE_TOPIC_SCHEMAS[channel.topic]
+                    assert doc == foxglove[schema.name]
+                v = validators[schema.id] = jsonschema.Draft202012Validator(doc)
+            v.validate(json.loads(message.data))
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+    assert set(lf.FOXGLOVE_TOPIC_SCHEMAS) <= set(seen) and set(lf.DRIVE_TOPICS) <= set(seen)
+    assert sum(seen.values()) > 10_000

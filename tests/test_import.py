@@ -285,3 +285,53 @@ def test_a_procedure_whose_tracker_its_own_software_reads(tmp_path, capsys):
     truth = np.array(CellTruth().stiffness)
     err = np.abs(fit.values([f"k{j}" for j in range(1, 7)]) - truth) / truth
     assert np.all(err[:3] < 0.02) and np.all(err[3:] < 0.05), err
+
+
+# ------------------------------------------- a simulated tracker software (sim static --tracker-export)
+def test_a_simulated_tracker_export_imports_to_the_simulated_table(tmp_path, capsys):
+    """`sim static --tracker-export` writes the readings as a tracker software's points and the controller's
+    joint log; importing them by name gives the simulated table: each point with the joint sample at its
+    own time (not the mean of its pose and load), positions to 1e-9 m, joints and currents exactly."""
+    assert main(["sim", "static", "--seed", "3", "--poses", "4", "--tracker-export", "--out", str(tmp_path)]) == 0
+    capsys.readouterr()
+    rc, obj, err = run_import(capsys, tmp_path / "points.csv", "--joints", tmp_path / "joints.csv", "--names",
+                              "P{pose}_L{load}_{marker}", "--out", tmp_path / "imported.csv")
+    assert rc == 0, err
+    simulated = read_static_table(tmp_path / "static.csv")
+    imported = read_static_table(tmp_path / "imported.csv")
+    assert obj["rows"] == obj["points"] == len(simulated) and obj["unpaired"] == []
+    for col in ("pose", "load", "marker"):
+        assert list(getattr(imported, col)) == list(getattr(simulated, col)), col
+    np.testing.assert_allclose(imported.xyz, simulated.xyz, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(imported.currents, simulated.currents)   # one sample, its own
+    np.testing.assert_allclose(imported.q, simulated.q, rtol=0, atol=1e-12)   # a pose's mean q
+    np.testing.assert_allclose(imported.wrench, simulated.wrench, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(imported.t, simulated.t - simulated.t[0], rtol=0, atol=1e-6)
+    # the repeats' currents differ: a pairing that averaged a pose's samples would not give them back
+    first = (simulated.pose == simulated.pose[0]) & (simulated.load == simulated.load[0])
+    assert np.ptp(simulated.currents[first], axis=0).max() > 1e-3
+
+
+def test_names_pair_within_the_window_of_the_points_time(tmp_path, capsys):
+    """By name, a point takes the samples of its pose and load around its time: with the tracker PC's clock
+    1 s off (the readings are 2 s apart), none is near, and the line says so; --clock-offset puts the
+    clocks together again."""
+    assert main(["sim", "static", "--seed", "4", "--poses", "2", "--loads-per-pose", "1", "--repeats", "2",
+                 "--tracker-export", "--out", str(tmp_path)]) == 0
+    lines = (tmp_path / "points.csv").read_text().splitlines()
+    shifted = [lines[0]]
+    for line in lines[1:]:
+        *head, stamp = line.split(",")
+        t = datetime.datetime.fromisoformat(stamp.replace("Z", "+00:00")) + datetime.timedelta(seconds=1)
+        shifted.append(",".join(head + [t.isoformat(timespec="microseconds")]))
+    (tmp_path / "late.csv").write_text("\n".join(shifted) + "\n")
+    capsys.readouterr()
+    argv = [tmp_path / "late.csv", "--joints", tmp_path / "joints.csv", "--names", "P{pose}_L{load}_{marker}",
+            "--out", tmp_path / "imported.csv"]
+    rc, _, err = run_import(capsys, *argv)
+    assert rc == 2 and "within ±0.25 s of its time (the two clocks apart? --clock-offset)" in err
+    assert not (tmp_path / "imported.csv").exists()
+    rc, obj, err = run_import(capsys, *argv, "--clock-offset", "-1")
+    assert rc == 0 and obj["unpaired"] == [], err
+    np.testing.assert_array_equal(read_static_table(tmp_path / "imported.csv").currents,
+                                  read_static_table(tmp_path / "static.csv").currents)

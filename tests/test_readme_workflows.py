@@ -46,9 +46,8 @@ def workflow_commands() -> set[str]:
 def test_the_blocks_cover_every_workflow_of_the_readme():
     offline, devices = readme_blocks()
     names = {argv[0] for argv in offline + devices}
-    # import reads a tracker software's export, fleet a plant of cells (their own docs and tests)
-    assert workflow_commands() - {"import", "fleet"} <= names, workflow_commands() - names
-    assert {"devices", "calibrate", "check", "schedule", "compensate"} <= names
+    assert workflow_commands() <= names, workflow_commands() - names
+    assert {"devices", "calibrate", "check", "schedule", "compensate", "import", "fleet"} <= names
     assert devices[0][:2] == ["sim", "serve"] and devices[0][-1] == "&"    # served in the background
 
 
@@ -76,8 +75,22 @@ def test_every_offline_readme_workflow_runs_from_simulated_data(tmp_path, monkey
         assert code == 0, (argv, out.err)
     for f in ("sim/report.html", "sim/cal.json", "sim/export/static.csv", "drift.png", "runs/sweep.csv",
               "plan.toml", "abs/cal.json", "calibrated.toml", "calibrated.urdf", "history.sqlite",
-              "path/path.csv", "path/compensated.csv", "path/compensated.src", "path/compensated.mod"):
+              "path/path.csv", "path/compensated.csv", "path/compensated.src", "path/compensated.mod",
+              "sim/imported.csv", "fleet.csv"):
         assert (tmp_path / f).stat().st_size > 0, f
+    # the tracker software's points import to the simulated table itself
+    from elastocal.identify.tables import read_static_table
+
+    simulated, imported = (read_static_table(tmp_path / "sim" / f) for f in ("static.csv", "imported.csv"))
+    assert list(imported.pose) == list(simulated.pose) and list(imported.marker) == list(simulated.marker)
+    assert abs(imported.xyz - simulated.xyz).max() < 1e-9 and abs(imported.currents - simulated.currents).max() < 1e-12
+    # the fleet's table has one row per log or table folder (export's), each identified
+    import csv
+
+    with open(tmp_path / "fleet.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["path"] for r in rows] == ["sim/export", "sim/log.mcap", "abs/log.mcap"], [r["path"] for r in rows]
+    assert all(r["error"] == "" and float(r["k2"]) > 1e6 for r in rows)
     header = (tmp_path / "path/compensated.csv").read_text().splitlines()[0].split(",")
     assert header[:7] == ["t", "q1", "q2", "q3", "q4", "q5", "q6"] and "qc1" in header and "dz" in header
 

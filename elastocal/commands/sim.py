@@ -20,7 +20,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        ("runs", "friction runs and joint-2 sweeps: robot.toml, runs.csv, truth.json")):
         p = sub.add_parser(name, help=text, description=text)
         effects = ("link_compliance, thermal_drift, static_friction, backlash, kinematic_errors (the real DH "
-                   "table off by 0.02-0.05 deg and 0.1-0.5 mm), tracker_frame (the tracker on another stand)"
+                   "table off by 0.02-0.05 deg and 0.1-0.5 mm), tracker_frame (the tracker on another stand), "
+                   "base_tilt (the base tilting under the overturning moment), nonlinear_stiffness (hardening "
+                   "gears); several as A,B"
                    if name == "static" else
                    "coulomb_friction, viscous_friction, load_dependent_friction, or friction for all three")
         p.add_argument("--hidden", default="none",
@@ -45,6 +47,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                 "truth.json lists their lines")
             p.add_argument("--shared-currents", action="store_true",
                            help="one drive reading per repeat for all its marker rows (docs/formats.md §2)")
+            p.add_argument("--tracker-export", action="store_true",
+                           help="also write the readings as a tracker software and the controller record them: "
+                                "points.csv (Leica-style, mm, named P{pose}_L{load}_{marker}) and joints.csv, "
+                                "for `elastocal import` (docs/import.md)")
     text = ("a process path to compensate: robot.toml and path.csv, Yang's line x 1.2 -> 1.8 m at z 0.116 m, "
             "10 mm/s, under a constant process wrench (default 1500 N up)")
     path = sub.add_parser("path", help=text, description=text)
@@ -206,7 +212,9 @@ def run(args: argparse.Namespace) -> int:
     outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot")])
     table_name = "static.csv" if static else "runs.csv"
     sweep = not static and args.compensator_sweep
-    for name in ("robot.toml", table_name, "log.mcap", "truth.json") + (("sweep.csv",) if sweep else ()):
+    export = static and args.tracker_export
+    for name in (("robot.toml", table_name, "log.mcap", "truth.json") + (("sweep.csv",) if sweep else ())
+                 + (("points.csv", "joints.csv") if export else ())):
         outputs.add(out / name, "--out", in_folder=True)
     robot = _robot(args)
 
@@ -258,6 +266,12 @@ def run(args: argparse.Namespace) -> int:
             write_static_table(outputs.temp(out / "static.csv"), table)
             written["static"] = str(out / "static.csv")
             write_log_from_tables(outputs.temp(out / "log.mcap"), robot, static=table)
+            if export:
+                from elastocal.sims.tracker_export import joints_csv, points_csv
+
+                outputs.temp(out / "points.csv").write_text(points_csv(table), encoding="utf-8")
+                outputs.temp(out / "joints.csv").write_text(joints_csv(table), encoding="utf-8")
+                written["points"], written["joints"] = str(out / "points.csv"), str(out / "joints.csv")
         else:
             write_runs_csv(outputs.temp(out / "runs.csv"), table)
             written["runs"] = str(out / "runs.csv")
