@@ -40,6 +40,10 @@ import pinocchio as pin
 #: Pinocchio joint kinds the batched chain evaluates, with their axis (the unaligned one carries its own)
 _AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0), "JointModelRZ": (0.0, 0.0, 1.0)}
 
+#: rotation angle [rad] below which log6 takes the series of V^-1's coefficient (truncation
+#: below 1e-16 there; the closed form above it loses less than eps / angle^2)
+LOG_SERIES_RAD = 0.1
+
 #: |theta - base| [rad] up to which cos/sin come from the base's by the addition theorem and a
 #: Taylor series (terms to the 9th power: error below 3e-17 there); beyond it numpy's cos/sin
 TAYLOR_LIMIT_RAD = 0.1
@@ -145,6 +149,8 @@ class BatchedChain:
         # the frames on the last joint (the flange, the load point, the markers): their origins there
         self._frames = {fid: turns[-1].T @ frame.placement.translation for fid, frame in enumerate(model.frames)
                         if frame.parentJoint == njoints}
+        self._frame_rot_t = {fid: (turns[-1].T @ frame.placement.rotation).T for fid, frame in enumerate(model.frames)
+                             if frame.parentJoint == njoints}
 
     # ------------------------------------------------------------ the chain
     def state(self, ang: Angles, *, masses: bool = False) -> ChainState:
@@ -199,6 +205,10 @@ class BatchedChain:
         """Base-frame position (3, n) of frame ``frame_id`` (a frame on the last joint)."""
         return state.o[-1] + np.matmul(self._frames[frame_id], state.rot)
 
+    def rotation(self, state: ChainState, frame_id: int) -> np.ndarray:
+        """Base-frame orientation (3, 3, n) of frame ``frame_id`` (a frame on the last joint)."""
+        return self._frame_rot_t[frame_id] @ state.rot
+
     # ------------------------------------------------------------ statics
     def torque(self, state: ChainState, *, force: np.ndarray | None = None, moment: np.ndarray | None = None,
                frame_id: int | None = None) -> np.ndarray:
@@ -238,3 +248,27 @@ class BatchedChain:
         jac[:3] = np.moveaxis(_cross(state.z, p[None] - state.o), 0, 1)
         jac[3:] = np.moveaxis(state.z, 0, 1)
         return jac
+
+
+def log6_local(rot: np.ndarray, pos: np.ndarray, rot_target: np.ndarray, pos_target: np.ndarray) -> np.ndarray:
+    """``log6(M^-1 M_target)`` (6, n), linear part first (Pinocchio's ``log6(...).vector``), for
+    poses given as rotations (3, 3, n) and positions (3, n): the error a frame at ``M`` has to a
+    target, in the frame's own axes. Near-zero angles by their series; angles beyond
+    ``LOG_SERIES_RAD`` by the closed forms (up to pi, excluded)."""
+    r = np.einsum("kan,kbn->abn", rot, rot_target)                 # R^T R_target
+    p = np.einsum("kan,kn->an", rot, pos_target - pos)              # R^T (p_target - p)
+    vee = np.stack((r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]))
+    s = 0.5 * np.sqrt(np.sum(vee * vee, axis=0))                   # sin(angle)
+    c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)                   # cos(angle)
+    angle = np.arctan2(s, c)
+    a2 = angle * angle
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # angle / (2 sin) and (1 - (angle/2) cot(angle/2)) / angle^2, by series where the closed
+        # forms lose digits (the second cancels to eps / angle^2)
+        half_over_sin = np.where(angle < 1e-2, 0.5 + a2 * (1.0 / 12 + a2 * 7.0 / 720), angle / (2.0 * s))
+        beta = np.where(angle < LOG_SERIES_RAD, 1.0 / 12 + a2 * (1.0 / 720 + a2 * (1.0 / 30240 + a2 / 1209600)),
+                        (1.0 - angle * s / (2.0 * (1.0 - c))) / a2)
+    w = half_over_sin * vee                                         # the rotation vector
+    wxp = _cross(w, p)
+    v = p - 0.5 * wxp + beta * _cross(w, wxp)                       # V(w)^-1 p
+    return np.concatenate((v, w))

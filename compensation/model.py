@@ -19,9 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pinocchio as pin
 
-from elastocal.compensation.chain import Angles, BatchedChain, ChainState
+from elastocal.compensation.chain import Angles, BatchedChain, ChainState, log6_local
 from elastocal.errors import InputError
 from elastocal.identify.calibration import Calibration
 from elastocal.identify.robot import LOAD_FRAME, Robot
@@ -222,30 +221,13 @@ class StaticKernel:
         return np.concatenate(failed) if failed else np.zeros(0, dtype=int)
 
     def fixed_points(self, base: Angles, wrench: np.ndarray | None, start: np.ndarray) -> np.ndarray:
-        """Link angles (6, n) at the fixed points ``theta = base + c ⊙ tau(theta, W)`` along the path.
+        """Link angles (6, n) at the fixed points ``theta = base + c ⊙ tau(theta, W)`` along the path,
+        warm-started along it (:func:`_along_path`). Raises :class:`NotConverged` naming the first
+        sample of the path without a fixed point."""
+        def solve(index: np.ndarray, theta: np.ndarray) -> np.ndarray:
+            return self._solve(base.take(index), None if wrench is None else wrench[:, index], theta, index)
 
-        Every WARM_STRIDE-th sample (and the last) is solved from ``start``; the others start from
-        ``start`` plus the correction interpolated between those, their neighbours along the path
-        (on a dense path most of them then need one iteration, which confirms the tolerance).
-        Raises :class:`NotConverged` naming the first sample of the path without a fixed point."""
-        n = start.shape[1]
-        theta = np.array(start, dtype=float)
-        if n <= 2 * WARM_STRIDE:
-            failed = self._solve(base, wrench, theta, np.arange(n))
-        else:
-            coarse = np.append(np.arange(0, n - 1, WARM_STRIDE), n - 1)
-            is_fine = np.ones(n, dtype=bool)
-            is_fine[coarse] = False
-            fine = np.flatnonzero(is_fine)
-            solved = theta[:, coarse]
-            failed = self._solve(base.take(coarse), None if wrench is None else wrench[:, coarse], solved, coarse)
-            guess = theta[:, fine]
-            if failed.size == 0:             # (a sample without a fixed point gives its neighbours no start)
-                guess += _interpolate(solved - theta[:, coarse], coarse, fine)
-            failed = np.concatenate([failed, self._solve(base.take(fine), None if wrench is None
-                                                         else wrench[:, fine], guess, fine)])
-            theta[:, coarse] = solved
-            theta[:, fine] = guess
+        theta, failed = _along_path(solve, start)
         if failed.size:
             raise NotConverged(int(failed.min()))
         return theta
@@ -317,29 +299,87 @@ class StaticKernel:
 
     def nominal_targets(self, q: np.ndarray, *, tol: float = 1e-12, max_iter: int = 50) -> np.ndarray:
         """Link angles (n, 6) at which the calibrated robot's tool frame has the
-        pose the drawing's robot gives it at ``q`` (Newton on the SE(3) error)."""
+        pose the drawing's robot gives it at ``q`` (Newton on the SE(3) error, batched
+        over the path and warm-started along it, each sample until ``max |log6| < tol``)."""
         nominal = self.m.nominal if self.m.nominal is not None else self.m.robot
-        nmodel = nominal.model
-        ndata = nmodel.createData()
+        nchain = BatchedChain(nominal.model)
         nfid = nominal.frame_id(self.m.tool)
-        out = np.empty((len(q), 6))
-        theta = q[0] + self.offsets if len(q) else None
-        for i, qi in enumerate(q):
-            pin.framesForwardKinematics(nmodel, ndata, qi + nominal.offsets)
-            target = ndata.oMf[nfid].copy()
-            theta = qi + self.offsets if i == 0 else theta
-            for _ in range(max_iter):
-                pin.framesForwardKinematics(self.pmodel, self.data, theta)
-                err = pin.log6(self.data.oMf[self.tool_fid].actInv(target)).vector
-                if np.max(np.abs(err)) < tol:
-                    break
-                jac = pin.computeFrameJacobian(self.pmodel, self.data, theta, self.tool_fid, pin.LOCAL)
-                theta = theta + np.linalg.solve(jac, err)
-            else:
-                raise InputError(f"no configuration of the calibrated robot reaches point {i + 1} of the path "
-                                 "as the drawing does (singular or out of reach)")
-            out[i] = theta
-        return out
+        rot_target = np.empty((3, 3, len(q)))
+        pos_target = np.empty((3, len(q)))
+        drawn = Angles.of((q + nominal.offsets).T)
+        for b in _blocks(len(q)):
+            st = nchain.state(_part(drawn, b))
+            rot_target[:, :, b], pos_target[:, b] = nchain.rotation(st, nfid), nchain.position(st, nfid)
+        base = self.base_angles(q)
+
+        def solve(index: np.ndarray, theta: np.ndarray) -> np.ndarray:
+            failed = [index[b][self._newton(base.take(index[b]), rot_target[:, :, index[b]], pos_target[:, index[b]],
+                                            theta[:, b], tol, max_iter)] for b in _blocks(len(index))]
+            return np.concatenate(failed) if failed else np.zeros(0, dtype=int)
+
+        theta, failed = _along_path(solve, base.theta)
+        if failed.size:
+            raise InputError(f"no configuration of the calibrated robot reaches point {int(failed.min()) + 1} of "
+                             "the path as the drawing does (singular or out of reach)")
+        return theta.T
+
+    def _newton(self, base: Angles, rot_target: np.ndarray, pos_target: np.ndarray, theta: np.ndarray,
+                tol: float, max_iter: int) -> np.ndarray:
+        """Newton steps ``theta += J_local^-1 log6(M(theta)^-1 M_target)`` for the samples (6, n) in
+        place until each one's error is below ``tol``; returns the columns that did not get there
+        (singular Jacobian, no convergence in ``max_iter`` steps)."""
+        active = np.arange(theta.shape[1])
+        failed = [np.zeros(0, dtype=int)]
+        for _ in range(max_iter):
+            th = theta[:, active]
+            st = self.chain.state(base.take(active).near(th))
+            rot = self.chain.rotation(st, self.tool_fid)
+            err = log6_local(rot, self.chain.position(st, self.tool_fid), rot_target[:, :, active],
+                             pos_target[:, active])
+            going = ~(np.max(np.abs(err), axis=0) < tol)
+            if not np.any(going):
+                return np.concatenate(failed)
+            keep = np.flatnonzero(going)
+            jac = self.chain.jacobian(st, self.tool_fid)[:, :, keep]
+            # LOCAL axes: the frame's own (rotations R^T of the base-aligned rows)
+            local = np.concatenate((np.einsum("kan,kjn->ajn", rot[:, :, keep], jac[:3]),
+                                    np.einsum("kan,kjn->ajn", rot[:, :, keep], jac[3:])))
+            mats = np.moveaxis(local, 2, 0)
+            det = np.linalg.det(mats)
+            singular = ~(np.abs(det) > 1e-12)
+            if np.any(singular):
+                failed.append(active[keep[singular]])
+                keep, mats = keep[~singular], mats[~singular]
+            step = np.linalg.solve(mats, np.moveaxis(err[:, keep], 1, 0)[:, :, None])[:, :, 0]
+            theta[:, active[keep]] = th[:, keep] + step.T
+            active = active[keep]
+        return np.concatenate(failed + [active])
+
+
+def _along_path(solve, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solve a per-sample problem along a path, warm-started from the neighbours: every
+    WARM_STRIDE-th sample (and the last) from ``start`` (6, n), the others from ``start`` plus
+    the correction interpolated between those (on a dense path most of them then need one
+    iteration, which confirms the tolerance). ``solve(index, theta)`` solves the samples
+    ``index`` in place from ``theta`` (6, len(index)) and returns the path indices of those it
+    could not; returns the solution and those indices."""
+    n = start.shape[1]
+    theta = np.array(start, dtype=float)
+    if n <= 2 * WARM_STRIDE:
+        return theta, solve(np.arange(n), theta)
+    coarse = np.append(np.arange(0, n - 1, WARM_STRIDE), n - 1)
+    is_fine = np.ones(n, dtype=bool)
+    is_fine[coarse] = False
+    fine = np.flatnonzero(is_fine)
+    solved = theta[:, coarse]
+    failed = solve(coarse, solved)
+    guess = theta[:, fine]
+    if failed.size == 0:                     # (a sample without a solution gives its neighbours no start)
+        guess += _interpolate(solved - theta[:, coarse], coarse, fine)
+    failed = np.concatenate([failed, solve(fine, guess)])
+    theta[:, coarse] = solved
+    theta[:, fine] = guess
+    return theta, failed
 
 
 def _interpolate(values: np.ndarray, coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:

@@ -106,8 +106,10 @@ def test_angles_near_a_base_are_numpys_cos_and_sin():
 
 
 def test_every_case_is_identical_to_the_per_point_implementation():
-    """Results identical to the implementation before issue 15 to 1e-9 (rad, m); they agree to
-    about 1e-15."""
+    """Results identical to the implementation before issue 15 to 1e-9 (rad, m). The fixed points
+    agree to about 1e-15; the nominal reference's targets to its Newton tolerance (1e-12 on the
+    SE(3) error), reached from other starts (the per-point Newton started from the previous
+    sample's solution, the batched one from its neighbours' interpolated)."""
     ref = np.load(REFERENCE)
     checked = 0
     worst = 0.0
@@ -124,10 +126,13 @@ def test_every_case_is_identical_to_the_per_point_implementation():
                 for what, value in got.items():
                     diff = np.abs(value - ref[f"{key}/{what}"]).max()
                     assert diff <= 1e-9, (key, what, diff)
-                    worst = max(worst, diff)
+                    if reference == "nominal":
+                        assert diff < 1e-11, (key, what, diff)
+                    else:
+                        worst = max(worst, diff)
                     checked += 1
     assert checked == 4 * (6 * 4 + 6)
-    assert worst < 1e-12
+    assert worst < 1e-13
 
 
 def _dense(robot, n):
