@@ -176,3 +176,67 @@ def test_a_load_too_large_names_the_first_sample_without_a_fixed_point(robot, ba
         compensate_path(model, q, w)
     assert err.value.sample == min(bad)
     assert f"at sample {min(bad) + 1} of the path" in str(err.value)
+
+
+def test_log6_equals_pinocchios_at_every_angle():
+    from elastocal.compensation.chain import log6_local
+
+    rng = np.random.default_rng(8)
+    scales = np.repeat([1e-10, 1e-6, 3e-3, 1e-2, 3e-2, 0.09, 0.2, 1.0, 2.5], 30)
+    start = [pin.SE3.Random() for _ in scales]
+    target = [m * pin.exp6(pin.Motion(rng.normal(size=6) * sc)) for m, sc in zip(start, scales)]
+
+    def stack(poses):
+        return np.stack([m.rotation for m in poses], axis=-1), np.stack([m.translation for m in poses], axis=-1)
+
+    got = log6_local(*stack(start), *stack(target))
+    want = np.stack([pin.log6(m.actInv(t)).vector for m, t in zip(start, target)], axis=-1)
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)   # near pi the log loses digits
+
+
+def test_frame_rotations_equal_pinocchios(robot):
+    for rob in _robots(robot).values():
+        model, data = rob.model, rob.model.createData()
+        chain = BatchedChain(model)
+        theta = np.random.default_rng(9).uniform(-np.pi, np.pi, (20, 6))
+        st = chain.state(Angles.of(theta.T))
+        for fid in (model.getFrameId(LOAD_FRAME), rob.frame_id(rob.marker_names[0])):
+            rot = chain.rotation(st, fid)
+            for i, th in enumerate(theta):
+                pin.framesForwardKinematics(model, data, th)
+                np.testing.assert_allclose(rot[:, :, i], data.oMf[fid].rotation, rtol=0, atol=1e-14)
+
+
+def test_nominal_targets_name_the_first_point_the_calibrated_robot_cannot_reach(robot):
+    """A drawing with a 0.8 m longer forearm: the batched, warm-started Newton refuses the path
+    naming the first point that no Newton reaches when each point is solved alone."""
+    from dataclasses import replace
+
+    from elastocal.errors import InputError
+
+    longer = replace(robot, joints=tuple(replace(j, a=j.a + 0.8) if i == 2 else j for i, j in enumerate(robot.joints)))
+    truth = CellTruth()
+    k = StaticKernel(CompensationModel(robot, truth.stiffness, truth.compensator, nominal=longer))
+    n = 80
+    q = np.tile([0.0, 0.3, -0.3, 0.0, 0.5, 0.0], (n, 1))
+    q[:, 1] = np.linspace(-0.5, 1.2, n)
+    q[:, 2] = np.linspace(1.5, -0.5, n)
+    alone = []
+    for i in range(n):
+        try:
+            k.nominal_targets(q[i:i + 1])
+            alone.append(True)
+        except InputError:
+            alone.append(False)
+    first = alone.index(False)
+    assert 0 < first < n - 20 and not alone[-1] and sum(alone) > n // 2
+    with pytest.raises(InputError, match=f"reaches point {first + 1} of the path as the drawing does"):
+        k.nominal_targets(q)
+    reachable = np.flatnonzero(alone)[-40:]                       # a run of reachable points in the middle
+    targets = k.nominal_targets(q[reachable])
+    drawn = np.array([longer.positions(longer.theta(qi), [robot.marker_names[0]])[0] for qi in q[reachable]])
+    k_marker = StaticKernel(CompensationModel(robot, truth.stiffness, truth.compensator, nominal=longer,
+                                              tool=robot.marker_names[0]))
+    got = k_marker.positions(k_marker.nominal_targets(q[reachable]))
+    np.testing.assert_allclose(got, drawn, rtol=0, atol=1e-12)
+    assert targets.shape == (len(reachable), 6)
