@@ -98,6 +98,12 @@ def test_a_prior_far_from_the_registration_is_said_in_words(cell_data, capsys):
 
 def test_diagnose_and_validate_take_the_prior(cell_data, capsys, tmp_path):
     d, table, said = cell_data
+    capsys.readouterr()
+    assert main(["diagnose", str(d / "log.mcap"), "--cell", str(d / "far.toml")]) == 0
+    text = capsys.readouterr().out
+    assert "far.toml [tracker] base_p_tracker: more than 3x" in text
+    # the command it proposes keeps the prior the diagnosis used
+    assert f"add it: elastocal identify {d / 'log.mcap'} --cell {d / 'far.toml'} --model " in text
     diag = run_json(capsys, ["diagnose", str(d / "log.mcap"), "--json"])
     prior = diag["registration"]["prior"]
     assert prior["base_p_tracker"] == pytest.approx(list(said)) and "log.mcap" in prior["source"]

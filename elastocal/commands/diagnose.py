@@ -50,10 +50,10 @@ def identify_command(args: argparse.Namespace, model: tuple[str, ...]) -> str:
     parts = ["elastocal", "identify"]
     if getattr(args, "log", None):
         parts.append(args.log)
-    for flag in ("robot", "static", "runs"):
+    for flag in ("robot", "static", "runs", "cell", "tracker_position"):   # the same data and tracker prior
         value = getattr(args, flag, None)
         if value:
-            parts += [f"--{flag}", value]
+            parts += [f"--{flag.replace('_', '-')}", value]
     parts += ["--model", ",".join(model)]
     if getattr(args, "torque", "current") != "current":
         parts += ["--torque", args.torque]
