@@ -144,3 +144,18 @@ def test_every_shop_floor_readme_workflow_runs_on_the_served_simulated_cell(tmp_
     assert f"-m elastocal check --cell {cell}" in service and "--db cell-history.sqlite" in service
     assert "OnCalendar=Mon *-*-* 06:00:00" in (tmp_path / "units/elastocal-check.timer").read_text()
     assert "1 calibration(s), 1 check(s)" in outputs["history"]
+
+
+def test_the_glossary_explains_every_effect_name():
+    """The README's glossary says in words what each effect a diagnosis can name is (issue 17, part 3)."""
+    from elastocal.identify.effects import ALL_EFFECTS
+
+    text = README.read_text(encoding="utf-8")
+    glossary = text[text.index("## Glossary"):]
+    glossary = glossary[:glossary.index("\n## ")]
+    # `name` (words), or `a` and `b` (words shared)
+    missing = [name for name in ALL_EFFECTS
+               if not re.search(rf"`{name}`(\s+and\s+`\w+`)?\s+\([a-z]", glossary)]
+    assert not missing, missing
+    for word in ("noise floor", "ΔBIC", "exact form", "TPDO / SYNC"):
+        assert f"**{word}" in glossary, word
