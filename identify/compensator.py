@@ -29,18 +29,15 @@ covariance ``s^2 (J^T J)^-1`` from the residuals.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
-import pinocchio as pin
-from scipy.optimize import least_squares
 
 from elastocal.errors import InputError, UnidentifiableError
+from elastocal.identify.effects import get_effect
 from elastocal.identify.robot import LOAD_FRAME, Robot
-
-#: relative singular value below which a gravity combination counts as not excited
-GRAVITY_RANK_TOL = 1e-8
+from elastocal.identify.sweepfit import fit_sweeps, sweep_terms
 
 
 @dataclass(frozen=True, eq=False)
@@ -53,6 +50,9 @@ class SweepMeans:
     friction: np.ndarray     # (n,) xi2 (i_bwd - i_fwd)/2 at forward speed: joint-2 friction [N·m]
     wrench: np.ndarray       # (n, 6) external wrench on the load point [N, N·m]
     sweep: np.ndarray        # (n,) index of the sweep (same held joints and load)
+    #: (n,) variance of the interpolated backward reading per unit variance of one reading,
+    #: ``(1 - f)^2 + f^2``: the mean's noise variance is ``xi2^2 sigma2^2 (1 + weight) / 4``
+    weight: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,7 +144,7 @@ def sweep_means(robot: Robot, q: np.ndarray, currents: np.ndarray, direction: np
     xi = robot.torque_constants
     run = _contiguous_runs(q, direction, load) if run is None else np.asarray(run, dtype=str)
     groups = _sweep_groups(q, direction, load, run)
-    theta, q2s, torque, friction, wrenches, sweep = [], [], [], [], [], []
+    theta, q2s, torque, friction, wrenches, sweep, weights = [], [], [], [], [], [], []
     for g, idx in enumerate(groups):
         fwd = idx[direction[idx] == "+"]
         bwd = idx[direction[idx] == "-"]
@@ -161,6 +161,9 @@ def sweep_means(robot: Robot, q: np.ndarray, currents: np.ndarray, direction: np
         inside = (q[fwd, 1] >= qb[0]) & (q[fwd, 1] <= qb[-1])
         fwd, tau_f = fwd[inside], tau_f[inside]
         tb_at = np.interp(q[fwd, 1], qb, tb)
+        right = np.clip(np.searchsorted(qb, q[fwd, 1]), 1, len(qb) - 1)
+        span = qb[right] - qb[right - 1]
+        frac = np.clip(np.where(span > 0, (q[fwd, 1] - qb[right - 1]) / np.where(span > 0, span, 1.0), 0.0), 0, 1)
         mean = (tau_f + tb_at) / 2.0
         th = robot.theta(q[fwd])
         if stiffness is not None:
@@ -174,11 +177,13 @@ def sweep_means(robot: Robot, q: np.ndarray, currents: np.ndarray, direction: np
         friction.append((tb_at - tau_f) / 2.0)
         wrenches.append(w[fwd])
         sweep.append(np.full(len(fwd), g))
+        weights.append((1.0 - frac) ** 2 + frac ** 2)
     if not torque:
         raise InputError("no joint-2 sweep run both forward (+) and backward (-) under the same load and "
                          "held joints", source=source, column="direction")
     return SweepMeans(theta=np.vstack(theta), q2=np.concatenate(q2s), torque=np.concatenate(torque),
-                      friction=np.concatenate(friction), wrench=np.vstack(wrenches), sweep=np.concatenate(sweep))
+                      friction=np.concatenate(friction), wrench=np.vstack(wrenches), sweep=np.concatenate(sweep),
+                      weight=np.concatenate(weights))
 
 
 # --------------------------------------------------------------- the fit
@@ -191,47 +196,13 @@ def _external_torque2(robot: Robot, theta: np.ndarray, wrench: np.ndarray) -> np
     return out
 
 
-def _gravity_regressor2(robot: Robot, theta: np.ndarray) -> np.ndarray:
-    """Joint-2 rows of Pinocchio's torque regressor at rest: g2 = Y2 pi."""
-    model = robot.model
-    data = model.createData()
-    zero = np.zeros(model.nv)
-    return np.array([pin.computeJointTorqueRegressor(model, data, th, zero, zero)[1].copy() for th in theta])
-
-
-def _excited_basis(regressor: np.ndarray) -> np.ndarray:
-    scale = np.linalg.norm(regressor, axis=0)
-    used = scale > 0
-    _, s, vt = np.linalg.svd(regressor[:, used], full_matrices=False)
-    rank = int(np.sum(s > GRAVITY_RANK_TOL * s[0])) if s.size and s[0] > 0 else 0
-    basis = np.zeros((regressor.shape[1], rank))
-    basis[used] = vt[:rank].T
-    return basis
-
-
-def _linear_start(spec, q2: np.ndarray, y: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """Starting parameters: exact linear LS for the spring; a scan of l_c with C
-    linear for the hydro-pneumatic compensator."""
-    if spec.kind == "spring":
-        a, big_l, alpha = spec.geo("a"), spec.geo("L"), spec.geo("alpha")
-        g = a * big_l * np.sin(alpha - q2)
-        s = spec.spring_length(q2)
-        x = np.column_stack([-g, g / s, -phi]) if phi.size else np.column_stack([-g, g / s])
-        beta, *_ = np.linalg.lstsq(x, y, rcond=None)
-        kc = beta[0]
-        return np.array([kc, beta[1] / kc if kc != 0 else 0.0])
-    length = spec.hydro_length(q2)
-    l_max = float(np.max(length))
-    best = (np.inf, None)
-    for gap in np.geomspace(1e-3, 5.0, 400):
-        lc = l_max + gap
-        h = spec.torque(q2, (1.0, lc))
-        x = np.column_stack([-h, -phi]) if phi.size else h[:, None] * -1.0
-        beta, *_ = np.linalg.lstsq(x, y, rcond=None)
-        rss = float(np.sum((y - x @ beta) ** 2))
-        if rss < best[0]:
-            best = (rss, np.array([beta[0], lc]))
-    return best[1]
+def known_torque(robot: Robot, means: SweepMeans, *, gravity: bool = True) -> np.ndarray:
+    """``y`` of identify/sweepfit.py: the mean torque less the external wrench's, plus the
+    description's gravity (``gravity=False``: without it)."""
+    y = means.torque - _external_torque2(robot, means.theta, means.wrench)
+    if gravity and robot.has_masses:
+        y = y + np.array([robot.gravity_torque(th)[1] for th in means.theta])
+    return y
 
 
 def identify_compensator(robot: Robot, means: SweepMeans, *, gravity: str = "model",
@@ -239,7 +210,9 @@ def identify_compensator(robot: Robot, means: SweepMeans, *, gravity: str = "mod
     """Compensator parameters from friction-free sweep torques.
 
     ``gravity="model"``: g2 from the robot's link masses (they must be given);
-    ``gravity="identify"``: the excited gravity combinations are fitted too.
+    ``gravity="identify"``: the excited gravity combinations are fitted too (their
+    values are the whole gravity, not corrections to the description's).
+    The terms are the effect modules' (identify/sweepfit.py).
     """
     spec = robot.compensator
     if spec is None:
@@ -249,51 +222,28 @@ def identify_compensator(robot: Robot, means: SweepMeans, *, gravity: str = "mod
     if gravity == "model" and not robot.has_masses:
         raise InputError("the robot description gives no link masses: identify the gravity with the "
                          "compensator (sweeps at two or more q3)", source=robot.source)
-    theta, q2, meas = means.theta, means.q2, means.torque
-    ext = _external_torque2(robot, theta, means.wrench)
-    if gravity == "model":
-        g2 = np.array([robot.gravity_torque(th)[1] for th in theta])
-        y = meas - ext + g2              # = -M(q2)
-        phi = np.zeros((len(q2), 0))
-    else:
-        reg = _gravity_regressor2(robot, theta)
-        basis = _excited_basis(reg)
-        phi = reg @ basis                 # g2 = phi beta
-        y = meas - ext                    # = -phi beta - M(q2)
-    n_grav = phi.shape[1]
-    start = np.asarray(initial, dtype=float) if initial is not None else _linear_start(spec, q2, y, phi)
-    if n_grav:
-        rest = y + spec.torque(q2, start)
-        beta0, *_ = np.linalg.lstsq(-phi, rest, rcond=None)
-        start = np.concatenate([start, beta0])
-    if len(q2) <= 2 + n_grav:
-        raise UnidentifiableError(f"{len(q2)} sweep samples cannot determine {2 + n_grav} parameters")
-
-    def residual(x: np.ndarray) -> np.ndarray:
-        return y - (-spec.torque(q2, x[:2]) - phi @ x[2:])
-
-    def jacobian(x: np.ndarray) -> np.ndarray:
-        return np.column_stack([spec.torque_derivatives(q2, x[:2]), phi])
-
-    lower = np.full(2 + n_grav, -np.inf)
-    if spec.kind == "hydropneumatic":
-        lower[1] = float(np.max(spec.hydro_length(q2))) + 1e-6
-    sol = least_squares(residual, np.maximum(start, lower + 1e-9), jac=jacobian, bounds=(lower, np.inf),
-                        x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
-    res = sol.fun
-    jac = jacobian(sol.x)
-    dof = len(res) - len(sol.x)
-    s2 = float(res @ res) / dof
-    cov = s2 * np.linalg.pinv(jac.T @ jac)
-    if not np.all(np.isfinite(cov[:2, :2])) or np.linalg.cond(jac / np.linalg.norm(jac, axis=0)) > 1e10:
-        raise UnidentifiableError("the sweeps cannot separate the compensator from gravity; sweep joint 2 "
-                                  "over a wider range")
-    balancing = -(y + phi @ sol.x[2:])  # measured M: tau2^0 - xi2 i2 with the gravity used
+    effects = [get_effect("compensator")] + ([get_effect("gravity")] if gravity == "identify" else [])
+    terms, refused = sweep_terms(robot, means.q2, means.theta, effects)
+    if refused:
+        name, reason = next(iter(refused.items()))
+        raise UnidentifiableError(f"{name}: {reason}")
+    comp = terms["compensator"]
+    if initial is not None:
+        comp = replace(comp, start=lambda y, other: np.asarray(initial, dtype=float))
+    fitted = [("compensator", comp)] + ([("gravity", terms["gravity"])] if gravity == "identify" else [])
+    y = known_torque(robot, means, gravity=gravity == "model")
+    fit = fit_sweeps(y, fitted)
+    c = fit.slice_of("compensator")
+    grav = fit.slice_of("gravity") if gravity == "identify" else slice(2, 2)
+    g_values = fit.values[1] if gravity == "identify" else np.zeros(0)
+    balancing = -(y + (terms["gravity"].torque(g_values) if gravity == "identify" else 0.0))
     units = tuple(spec.parameter_units[n] for n in spec.parameter_names)
-    return CompensatorFit(kind=spec.kind, names=spec.parameter_names, units=units, values=sol.x[:2].copy(),
-                          covariance=cov[:2, :2].copy(), gravity="model" if gravity == "model" else "identified",
-                          gravity_values=sol.x[2:].copy(), gravity_covariance=cov[2:, 2:].copy(), q2=q2,
-                          balancing_torque=balancing, residuals=res.copy(), friction=means.friction)
+    return CompensatorFit(kind=spec.kind, names=spec.parameter_names, units=units, values=fit.values[0].copy(),
+                          covariance=fit.covariance[c, c].copy(),
+                          gravity="model" if gravity == "model" else "identified",
+                          gravity_values=g_values.copy(), gravity_covariance=fit.covariance[grav, grav].copy(),
+                          q2=means.q2, balancing_torque=balancing, residuals=fit.residuals.copy(),
+                          friction=means.friction)
 
 
 def compensator_from_run_table(robot: Robot, table, *, gravity: str = "auto",

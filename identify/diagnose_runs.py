@@ -1,50 +1,66 @@
-"""Diagnose run data: friction terms on the UV/VU half-differences, compensator and
-gravity on the joint-2 sweep means, each a likelihood-ratio test with the noise variance
-estimated per joint (split out of :mod:`elastocal.identify.diagnose`).
+"""Diagnose run data stepwise, against their noise floor (docs/cli.md, ``diagnose --json``).
 
-The effects are strategies, as in the static diagnosis: the friction candidates are
-the effects whose module declares ``run_part = "uv/vu"`` and a ``run_column`` (the
-regression of each joint's half-differences is the sum of the columns of the model's
-friction effects), and the sweep candidates are :class:`SweepTest` objects, one per
-effect with ``run_part = "sweep"`` (:data:`SWEEP_TESTS`). :func:`diagnose_runs`
-takes both as arguments and never branches on an effect's name.
+The run model (identify/runmodel.py) is fitted to the friction half-differences
+of every forward/backward pair (UV/VU runs and ``+``/``-`` sweeps) and to the
+joint-2 sweep means. Every run effect the model lacks is a candidate, fitted
+with the model and tested by a likelihood ratio of Gaussian fits with the
+variance estimated per part (each joint's half-differences, the sweep means):
+chi-square with one degree of freedom per added parameter, ``delta_bic = -LR +
+q ln n``, significant when p < 0.01 and delta_bic < -10 (the rule of
+identify/verdict.py). As for static data the diagnosis is stepwise
+(identify/stepwise.py): the best significant, plausible candidate is added and
+the rest tested again, until none is; the verdict is the first step only when
+the final model sits at the noise floor of the runs (current repeatability
+through the half-differences and sweep means), otherwise it is None and
+``unexplained`` says what remains.
+
+The candidates are strategies: the friction effects are those whose module
+declares ``run_part = "uv/vu"`` and a ``run_column``, the sweep effects those
+with ``run_part = "sweep"`` and a ``sweep_term``. :func:`diagnose_runs` takes
+both as arguments and never branches on an effect's name.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Protocol, Sequence
+from typing import Sequence
 
 import numpy as np
-import scipy.sparse
 import scipy.stats
 
-from elastocal.errors import InputError, UnidentifiableError
+from elastocal.errors import UnidentifiableError
 from elastocal.identify.effects import ALL_EFFECTS, get_effect, run_effects
 from elastocal.identify.effects.base import Effect
-from elastocal.identify.robot import Robot
+from elastocal.identify.runmodel import (
+    REFERENCE_STIFFNESS,
+    RunData,
+    RunModelFit,
+    StiffnessUsed,
+    fit_run_model,
+    prepare_run_data,
+    with_rigid_bias,
+)
 from elastocal.identify.static import Parameter
+from elastocal.identify.stepwise import EXCESS_P, Step, Unexplained, stepwise, unexplained_of, verdict_of
 from elastocal.identify.verdict import VERDICT_DELTA_BIC, VERDICT_P, NotTestable
 from elastocal.identify.where import GroupSummary, _bins
 
-
-# =================================================================== run data
 #: friction effects (each adds its column to the friction regression), then the sweep effects
 FRICTION_EFFECTS = run_effects("uv/vu")
 SWEEP_EFFECTS = run_effects("sweep")
 RUN_EFFECTS = (*FRICTION_EFFECTS, *SWEEP_EFFECTS)
-#: a scaled friction design worse conditioned than this cannot separate a term from Coulomb
-MAX_FRICTION_CONDITION = 1e4
-
-
-#: relative singular value below which a gravity combination counts as not excited
-GRAVITY_RANK_TOL = 1e-8
+#: a feature the excess follows is reported below this p (rank correlation)
+FEATURE_P = 1e-3
+#: rigid model: a sweep effect whose values differ from the description's by no more than
+#: this many times the rigid model's bias (at REFERENCE_STIFFNESS) is not a finding: the
+#: neglected deflection of a robot down to a third of that stiffness would explain it
+RIGID_BIAS_FACTOR = 3.0
 
 
 @dataclass(frozen=True, eq=False)
 class RunCandidate:
-    """One missing run-data effect, fitted and tested (likelihood ratio, unknown noise)."""
+    """One missing run-data effect, fitted with the model and tested (likelihood ratio, unknown noise)."""
 
     effect: str
     part: str                 # "uv/vu" (friction half-differences) or "sweep" (joint-2 sweep means)
@@ -58,31 +74,38 @@ class RunCandidate:
     dof: int
     parameters: tuple[Parameter, ...]
     unidentifiable: tuple[str, ...]
+    fit: RunModelFit | None = field(default=None, repr=False)   # the model with the candidate
+    implausible: str | None = None
 
     @property
     def significant(self) -> bool:
         return self.p_value < VERDICT_P and self.delta_bic < VERDICT_DELTA_BIC
 
+    @property
+    def noise_floor_after(self) -> float | None:
+        return None if self.fit is None else self.fit.noise_floor
+
     def to_json(self) -> dict:
         return {"effect": self.effect, "rms_after": self.rms_after, "delta_bic": self.delta_bic,
                 "p_value": self.p_value, "evidence": self.evidence, "significant": self.significant,
                 "part": self.part, "rms_before": self.rms_before, "unit": "N*m", "statistic": self.statistic,
-                "dof": self.dof,
+                "dof": self.dof, "noise_floor_after": self.noise_floor_after,
                 "parameters": {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in self.parameters},
-                "unidentifiable": list(self.unidentifiable), "explanation": self.explanation}
+                "unidentifiable": list(self.unidentifiable), "explanation": self.explanation,
+                **({"implausible": self.implausible} if self.implausible else {})}
 
 
 @dataclass(frozen=True, eq=False)
 class FrictionView:
-    """UV/VU half-differences and what the models make of them (for plots)."""
+    """Half-differences of the forward/backward pairs and what the models make of them (for plots)."""
 
-    measured: np.ndarray      # (n, 6) friction torque -sign(dq_UV) xi (i_UV - i_VU)/2 [N·m]; NaN: joint still
+    measured: np.ndarray      # (n, 6) friction torque -sign(dq_fwd) xi (i_fwd - i_bwd)/2 [N·m]; NaN: joint still
     speed: np.ndarray         # (n, 6) [rad/s]
     load_torque: np.ndarray   # (n, 6) [N·m]
-    pair: np.ndarray          # (n,) UV/VU pair index
+    pair: np.ndarray          # (n,) pair index
     pairs: tuple[tuple[str, str], ...]
     before: np.ndarray        # (n, 6) the model's friction
-    after: np.ndarray | None  # (n, 6) model + verdict (None without a friction verdict)
+    after: np.ndarray | None  # (n, 6) the final model's (None when no step is a friction effect)
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,23 +126,53 @@ class RunDiagnosis:
     n: int                          # torque samples tested (moving joint samples + sweep means)
     residual_rms: float | None      # [N·m] of the model over the tested parts
     residual_max: float | None
-    candidates: tuple[RunCandidate, ...]
+    candidates: tuple[RunCandidate, ...]   # tested against the model as given, best first
     not_testable: tuple[NotTestable, ...]
     verdict: str | None
     friction: FrictionView | None = field(repr=False)
     sweeps: SweepView | None = field(repr=False)
-    #: torque residual rms [N·m] of the model by joint and by UV/VU pair (direction-
-    #: dependent part: friction), and of the joint-2 sweep means by q2 and by sweep
+    #: torque residual rms [N·m] of the model by joint and by forward/backward pair
+    #: (friction), and of the joint-2 sweep means by q2 and by sweep, with the noise floor of each
     groups: tuple[GroupSummary, ...] = ()
+    base: RunModelFit | None = field(default=None, repr=False)
+    final: RunModelFit | None = field(default=None, repr=False)
+    steps: tuple[Step, ...] = ()
+    unexplained: tuple[str, ...] = ()
+    unexplained_detail: Unexplained | None = None
+    stiffness: StiffnessUsed | None = None
+    current_noise: np.ndarray | None = None     # (6,) [A]
+
+    @property
+    def noise_floor(self) -> float | None:
+        return None if self.base is None else self.base.noise_floor
+
+    @property
+    def excess_p_value(self) -> float | None:
+        return None if self.final is None else self.final.excess_p
 
     def to_json(self) -> dict:
+        final = self.final
         return {"model": list(self.model),
                 "where": {g.by: {**g.to_json(), "unit": "N*m"} for g in self.groups},
                 "residual": {"rms": self.residual_rms, "max": self.residual_max, "n": self.n, "unit": "N*m"},
-                "noise_floor": None,
+                "noise_floor": self.noise_floor,
                 "candidates": [c.to_json() for c in self.candidates],
                 "verdict": self.verdict,
-                "not_testable": [{"effect": n.effect, "reason": n.reason} for n in self.not_testable]}
+                "not_testable": [{"effect": n.effect, "reason": n.reason} for n in self.not_testable],
+                "steps": [{"effect": st.effect,
+                           "residual": {"rms": st.rms_after, "max": st.candidate.fit.max, "n": st.candidate.fit.n,
+                                        "unit": "N*m"},
+                           "noise_floor": st.noise_floor_after, "delta_bic": st.candidate.delta_bic,
+                           "p_value": st.candidate.p_value,
+                           "parameters": {p.name: {"value": p.value, "std": p.std, "unit": p.unit}
+                                          for p in st.candidate.parameters}} for st in self.steps],
+                "final": None if final is None else {**final.to_json(), "model": list(
+                    dict.fromkeys((*self.model, *(st.effect for st in self.steps))))},
+                "unexplained": None if self.unexplained_detail is None else {
+                    **self.unexplained_detail.to_json(), "sentences": list(self.unexplained)},
+                "current_noise": None if self.current_noise is None else {
+                    "values": [None if not np.isfinite(s) else float(s) for s in self.current_noise], "unit": "A"},
+                "stiffness": None if self.stiffness is None else self.stiffness.to_json()}
 
 
 def _lr(rss0: np.ndarray, rss1: np.ndarray, n: np.ndarray, q: int) -> tuple[float, float, float]:
@@ -132,364 +185,237 @@ def _lr(rss0: np.ndarray, rss1: np.ndarray, n: np.ndarray, q: int) -> tuple[floa
     return stat, p, -stat + q * math.log(max(int(n[ok].sum()), 2))
 
 
-def _friction_columns(speed: np.ndarray, load: np.ndarray, effects: Sequence[Effect]) -> dict[str, np.ndarray]:
-    """Each friction effect's column of the regression (its module's ``run_column``)."""
-    return {e.name: e.run_column(speed, load) for e in effects}
+def _evidence(eff: Effect, params: Sequence[Parameter], nominal: bool | None) -> str:
+    if not params:
+        return eff.evidence
+    if eff.run_part == "uv/vu":
+        best = max(params, key=lambda p_: abs(p_.value) / p_.std if p_.std > 0 else 0.0)
+        unit = "" if best.unit == "1" else f" {best.unit}"
+        return f"{eff.evidence} (joint {best.name[2:]}: {best.name} = {best.value:.3g}{unit})"
+    if len(params) > 3:
+        return f"{eff.evidence} ({len(params)} parameters the sweeps excite)"
+    base = "the robot description's nominal values" if nominal else "none in the model"
+    return f"{eff.evidence}: {', '.join(f'{p.name} = {p.value:.4g} {p.unit}' for p in params)} instead of {base}"
 
 
-def _lstsq(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    if x.shape[1] == 0:
-        return np.zeros(0), np.zeros((0, 0)), float(y @ y)
-    beta, *_ = np.linalg.lstsq(x, y, rcond=None)
-    res = y - x @ beta
-    rss = float(res @ res)
-    s2 = rss / max(len(y) - x.shape[1], 1)
-    return beta, s2 * np.linalg.pinv(x.T @ x), rss
+def _implausible(eff: Effect, params: Sequence[Parameter]) -> str | None:
+    if eff.plausibility is None or not params:
+        return None
+    return eff.plausibility(tuple(p.name for p in params), np.array([p.value for p in params]),
+                            np.array([p.std for p in params]))
 
 
-def _scaled_condition(x: np.ndarray) -> float:
-    scale = np.linalg.norm(x, axis=0)
-    if np.any(scale == 0):
-        return float("inf")
-    return float(np.linalg.cond(x / scale))
+def _within_rigid_bias(data: RunData, eff: Effect, params: Sequence[Parameter]) -> str | None:
+    """Why a sweep candidate's change from the description's values is no finding with the rigid model."""
+    term = data.sweep_terms.get(eff.name)
+    bias = dict(data.stiffness.bias_parameters)
+    if data.stiffness.source != "rigid" or term is None or term.nominal is None or not bias:
+        return None
+    shifts = []
+    for p, nom in zip(params, term.nominal):
+        if p.name not in bias or nom == 0.0:
+            return None
+        rel = (p.value - nom) / nom
+        if abs(rel) > RIGID_BIAS_FACTOR * abs(bias[p.name]):
+            return None
+        shifts.append(f"{p.name} {100 * rel:+.2g} %")
+    words = ", ".join(f"{n} {100 * v:+.2g} %" for n, v in data.stiffness.bias_parameters)
+    return (f"its change from the description's values ({', '.join(shifts)}) is within {RIGID_BIAS_FACTOR:g}x the "
+            f"rigid model's bias ({words} at {REFERENCE_STIFFNESS:.0e} N*m/rad): give robot.toml the joint "
+            "stiffness or a static table")
 
 
-def _diagnose_friction(samples, model: tuple[str, ...], effects: Sequence[Effect]):
-    """Candidates among the friction ``effects`` (the first is the constant, Coulomb-like
-    one) from matched UV/VU samples."""
-    by_name = {e.name: e for e in effects}
-    names = tuple(by_name)
-    have = [e for e in names if e in model]
-    cols_all = _friction_columns(samples.speed, samples.load_torque, effects)
-    rss0 = np.zeros(6)
-    n = np.zeros(6, dtype=int)
-    before = np.full(samples.friction.shape, np.nan)
-    for j in range(6):
-        ok = np.isfinite(samples.friction[:, j])
-        n[j] = int(ok.sum())
-        if n[j] == 0:
-            continue
-        y = samples.friction[ok, j]
-        x = np.column_stack([cols_all[e][ok, j] for e in have]) if have else np.zeros((n[j], 0))
-        beta, _, rss0[j] = _lstsq(x, y)
-        before[ok, j] = x @ beta if have else 0.0
-    out: list[tuple[RunCandidate, np.ndarray]] = []
-    skipped: list[NotTestable] = []
-    for eff_name in names:
-        if eff_name in have:
-            continue
-        eff = by_name[eff_name]
-        rss1 = rss0.copy()
-        after = before.copy()
-        params, unident, tested = [], [], []
+def _test_one(data: RunData, fit: RunModelFit, model_effects: Sequence[Effect], eff: Effect,
+              constant: Effect) -> RunCandidate | NotTestable:
+    """The candidate ``eff`` fitted with the model of ``fit`` and tested against it."""
+    if eff.run_part == "uv/vu":
+        if data.friction is None:
+            return NotTestable(eff.name, "the runs hold no UV/VU pair or +/- sweep (the same path forward and "
+                                         "backward)")
+    elif data.sweeps is None:
+        return NotTestable(eff.name, "the runs hold no joint-2 sweep (direction + and -)")
+    elif eff.name in data.sweep_refused:
+        return NotTestable(eff.name, data.sweep_refused[eff.name])
+    try:
+        aug = fit_run_model(data, (*model_effects, eff), constant=constant)
+    except UnidentifiableError as exc:
+        return NotTestable(eff.name, str(exc))
+    if eff.run_part == "uv/vu":
+        tested = np.append(aug.friction_columns[eff.name], False)
+        q = int(tested.sum())
+        if q == 0:
+            return NotTestable(eff.name, f"these runs cannot separate it from {constant.name}; it needs "
+                                         f"{eff.run_needs}")
+        unident = tuple(u for u in aug.unidentifiable if u.startswith(eff.run_prefix)
+                        and u not in fit.unidentifiable)
+        nominal = None
+    else:
+        tested = np.append(np.zeros(6, dtype=bool), True)
+        q = len(data.sweep_terms[eff.name].names)
+        unident = ()
+        nominal = data.sweep_terms[eff.name].nominal is not None
+    rss0, rss1, n = fit.group_rss(), aug.group_rss(), aug.group_n()
+    stat, p, dbic = _lr(rss0[tested], rss1[tested], n[tested], q)
+    before = {x.name for x in fit.parameters}
+    params = tuple(pm for pm in aug.parameters if pm.name not in before)
+    part = eff.run_part
+    rb = math.sqrt(rss0[tested].sum() / max(n[tested].sum(), 1))
+    ra = math.sqrt(rss1[tested].sum() / max(n[tested].sum(), 1))
+    implausible = _implausible(eff, params) or (_within_rigid_bias(data, eff, params) if part == "sweep" else None)
+    return RunCandidate(eff.name, part, eff.explanation, _evidence(eff, params, nominal), rb, ra, dbic, p, stat, q,
+                        params, unident, fit=aug, implausible=implausible)
+
+
+def _run_structure(data: RunData, fit: RunModelFit) -> tuple[str, ...]:
+    """What the excess of the final model's residual over the noise follows: sentences."""
+    found: list[tuple[float, str]] = []
+    if data.friction is not None and data.friction_var is not None and fit.friction_residual is not None:
+        r, var, s = fit.friction_residual, data.friction_var, data.friction
         for j in range(6):
-            if n[j] == 0:
+            ok = np.isfinite(r[:, j]) & np.isfinite(var[:, j])
+            dof = fit.friction_n[j] - fit.friction_p[j]
+            if ok.sum() < 5 or dof <= 0:
                 continue
-            ok = np.isfinite(samples.friction[:, j])
-            y = samples.friction[ok, j]
-            terms = [*have, eff_name]
-            x = np.column_stack([cols_all[e][ok, j] for e in terms])
-            check = terms if names[0] in terms else [names[0], *terms]
-            xc = np.column_stack([cols_all[e][ok, j] for e in check])
-            name = f"{eff.run_prefix}{j + 1}"
-            if n[j] <= len(check) + 1 or _scaled_condition(xc) > MAX_FRICTION_CONDITION:
-                unident.append(name)
+            chi2 = float(np.sum(r[ok, j] ** 2 / var[ok, j]))
+            p = float(scipy.stats.chi2.sf(chi2, dof))
+            if p >= FEATURE_P:
                 continue
-            beta, cov, rss1[j] = _lstsq(x, y)
-            after[ok, j] = x @ beta
-            params.append(Parameter(name, float(beta[-1]), float(np.sqrt(max(cov[-1, -1], 0.0))),
-                                    eff.units[0]))
-            tested.append(j)
-        if not tested:
-            skipped.append(NotTestable(eff_name, f"these runs cannot separate it from Coulomb friction; "
-                                                 f"it needs {eff.run_needs}"))
-            continue
-        idx = np.array(tested)
-        stat, p, dbic = _lr(rss0[idx], rss1[idx], n[idx], len(idx))
-        before_rms = float(np.sqrt(rss0[idx].sum() / n[idx].sum()))
-        after_rms = float(np.sqrt(rss1[idx].sum() / n[idx].sum()))
-        strongest_p = max(params, key=lambda p_: abs(p_.value) / p_.std if p_.std > 0 else 0.0)
-        unit = "" if strongest_p.unit == "1" else f" {strongest_p.unit}"
-        evidence = (f"{eff.evidence} (joint {strongest_p.name[2:]}: {strongest_p.name} = "
-                    f"{strongest_p.value:.3g}{unit})")
-        out.append((RunCandidate(eff_name, "uv/vu", eff.explanation, evidence, before_rms, after_rms, dbic, p, stat,
-                                 len(idx), tuple(params), tuple(unident)), after))
-    return out, skipped, before, rss0, n
+            ratio = math.sqrt(chi2 / dof)      # the joints first, worst first; then what the excess follows
+            found.append((-1.0 / ratio, f"friction residual on joint {j + 1} is {ratio:.1f}x its noise"))
+            ratio_i = r[ok, j] ** 2 / var[ok, j]
+            for name, values in (("speed", s.speed[ok, j]), ("the load torque", np.abs(s.load_torque[ok, j]))):
+                if np.ptp(values) == 0.0:
+                    continue
+                rho, pr = scipy.stats.spearmanr(values, ratio_i)
+                if np.isfinite(pr) and pr < FEATURE_P:
+                    found.append((pr, f"it {'grows' if rho > 0 else 'falls'} with {name} on joint {j + 1} "
+                                      f"(rank correlation {rho:+.2f} over {int(ok.sum())} samples)"))
+            if s.q is not None and np.ptp(s.q[ok, j]) > 0.0:     # any pattern in the angle, not only a trend
+                idx, labels = _bins(s.q[ok, j], 6, "rad", ".2f")
+                groups = [r[ok, j][idx == b] for b in range(len(labels))]
+                if len(groups) > 1 and all(len(g) > 1 for g in groups):
+                    _, pk = scipy.stats.kruskal(*groups)
+                    if np.isfinite(pk) and pk < FEATURE_P:
+                        found.append((pk, f"it follows the angle of joint {j + 1} (the residual changes "
+                                          f"across q{j + 1}, Kruskal-Wallis p {pk:.1g})"))
+    if fit.sweep is not None and data.sweep_var is not None and fit.sweep_n:
+        dof = fit.sweep_n - fit.sweep.n_parameters
+        if dof > 0:
+            p = float(scipy.stats.chi2.sf(fit.sweep_chi2, dof))
+            if p < FEATURE_P:
+                found.append((-1.0 / math.sqrt(fit.sweep_chi2 / dof), f"joint-2 sweep means stay {math.sqrt(fit.sweep_chi2 / dof):.1f}x their noise "
+                                 f"(they follow q2: see where['sweep q2'])"))
+    found.sort(key=lambda x: x[0])
+    return tuple(text for _, text in found)
 
 
-def _gravity_regressor2(robot: Robot, theta: np.ndarray) -> np.ndarray:
-    """Joint-2 rows of Pinocchio's joint-torque regressor at rest (g2 = Y2 pi)."""
-    import pinocchio as pin
-
-    model = robot.model
-    data = model.createData()
-    zero = np.zeros(model.nv)
-    return np.array([pin.computeJointTorqueRegressor(model, data, th, zero, zero)[1].copy() for th in theta])
-
-
-@dataclass(frozen=True, eq=False)
-class SweepData:
-    """Joint-2 sweep means and the torque the model leaves (``y`` = -M(q2) - gravity error)."""
-
-    robot: Robot
-    means: object                 # identify.compensator.SweepMeans
-    y: np.ndarray                 # (n,) [N·m]
-    theta: np.ndarray             # (n, 6) deflected link-side configurations
-
-
-class SweepTest(Protocol):
-    """A sweep effect as a strategy of the run diagnosis (pysindy style)."""
-
-    effect: str
-
-    def model_torque(self, data: SweepData, in_model: bool) -> np.ndarray:
-        """What the effect adds to ``y`` in the model (in it: fitted; else its nominal part)."""
-
-    def test(self, data: SweepData, r0: np.ndarray) -> tuple[RunCandidate, np.ndarray] | NotTestable:
-        """The effect fitted to the model's residual ``r0``: candidate and new residual, or why not."""
-
-    def refusal(self, data: SweepData) -> NotTestable | None:
-        """Why these data cannot hold the effect at all, whether or not the model has it."""
-
-
-class CompensatorSweepTest:
-    """The compensator's geometry (identify/compensator.py) on the sweep means."""
-
-    effect = "compensator"
-
-    def model_torque(self, data: SweepData, in_model: bool) -> np.ndarray:
-        from elastocal.identify.compensator import identify_compensator
-
-        spec = data.robot.compensator
-        nominal = spec.nominal_parameters() if spec is not None else None
-        if spec is not None and in_model:
-            return spec.torque(data.means.q2, identify_compensator(data.robot, data.means, gravity="model").values)
-        if spec is not None and nominal is not None:
-            return spec.torque(data.means.q2, nominal)
-        return np.zeros_like(data.y)
-
-    def refusal(self, data: SweepData) -> NotTestable | None:
-        if data.robot.compensator is None:
-            return NotTestable("compensator", "the robot description has no [compensator]")
-        return None
-
-    def test(self, data: SweepData, r0: np.ndarray) -> tuple[RunCandidate, np.ndarray] | NotTestable:
-        from elastocal.identify.compensator import identify_compensator
-
-        spec = data.robot.compensator
-        try:
-            fit = identify_compensator(data.robot, data.means, gravity="model")
-        except (InputError, UnidentifiableError) as exc:
-            return NotTestable("compensator", str(exc))
-        n = np.array([len(r0)])
-        rss0 = float(r0 @ r0)
-        r1 = fit.residuals
-        stat, p, dbic = _lr(np.array([rss0]), np.array([float(r1 @ r1)]), n, 2)
-        params = tuple(Parameter(nm, float(v), float(s), u)
-                       for nm, v, s, u in zip(fit.names, fit.values, fit.std, fit.units))
-        base = ("the robot description's nominal values" if spec.nominal_parameters() is not None
-                else "no compensator")
-        eff = get_effect("compensator")
-        evidence = (f"{eff.evidence}: {', '.join(f'{p_.name} = {p_.value:.4g} {p_.unit}' for p_ in params)} "
-                    f"instead of {base}")
-        return (RunCandidate("compensator", "sweep", eff.explanation, evidence,
-                             float(np.sqrt(rss0 / n[0])), fit.rms, dbic, p, stat, 2, params, ()), r1)
-
-
-class GravitySweepTest:
-    """Corrections to the links' mass moments: Pinocchio's joint-2 regressor rows."""
-
-    effect = "gravity"
-
-    def model_torque(self, data: SweepData, in_model: bool) -> np.ndarray:
-        return np.zeros_like(data.y)      # the description's masses are always in the torque model
-
-    def refusal(self, data: SweepData) -> NotTestable | None:
-        return None
-
-    def test(self, data: SweepData, r0: np.ndarray) -> tuple[RunCandidate, np.ndarray] | NotTestable:
-        if not data.robot.has_masses:
-            return NotTestable("gravity", "the robot description gives no link masses to correct")
-        n = np.array([len(r0)])
-        rss0 = float(r0 @ r0)
-        reg = _gravity_regressor2(data.robot, data.theta)
-        scale = np.linalg.norm(reg, axis=0)
-        used = scale > 0
-        _, s, vt = np.linalg.svd(reg[:, used], full_matrices=False)
-        rank = int(np.sum(s > GRAVITY_RANK_TOL * s[0])) if s.size and s[0] > 0 else 0
-        if rank == 0 or len(r0) <= rank + 1:
-            return NotTestable("gravity", "the sweeps excite no gravity parameter")
-        phi = reg[:, used] @ vt[:rank].T
-        beta, cov, rss1 = _lstsq(phi, r0)
-        r1 = r0 - phi @ beta
-        stat, p, dbic = _lr(np.array([rss0]), np.array([rss1]), n, rank)
-        eff = get_effect("gravity")
-        params = tuple(Parameter(f"g{k + 1}", float(b), float(np.sqrt(max(cov[k, k], 0.0))), "N*m")
-                       for k, b in enumerate(beta))
-        return (RunCandidate("gravity", "sweep", eff.explanation,
-                             f"{eff.evidence} ({rank} mass-moment combinations the sweeps excite)",
-                             float(np.sqrt(rss0 / n[0])), float(np.sqrt(rss1 / n[0])), dbic, p, stat, rank,
-                             params, ()), r1)
-
-
-#: the sweep strategies of the effect table, in its order (one per effect with run_part "sweep")
-SWEEP_TESTS: tuple[SweepTest, ...] = (CompensatorSweepTest(), GravitySweepTest())
-
-
-def _diagnose_sweeps(robot: Robot, table, model: tuple[str, ...], stiffness: np.ndarray,
-                     tests: Sequence[SweepTest] = SWEEP_TESTS):
-    """Candidates among the sweep ``tests`` from joint-2 sweep means."""
-    from elastocal.identify.compensator import sweep_means
-
-    sub = table.subset(np.isin(table.direction, ("+", "-")))
-    means = sweep_means(robot, sub.q, sub.currents, sub.direction, sub.load, sub.wrench, stiffness=stiffness,
-                        source=table.source)
-    theta = means.theta
-    ext = np.array([(robot.jacobians(th, ["load_point"])[0].T @ w)[1] if np.any(w) else 0.0
-                    for th, w in zip(theta, means.wrench)])
-    g2 = np.array([robot.gravity_torque(th)[1] for th in theta])
-    y = means.torque - ext + g2                       # = -M(q2) - (gravity error)
-    data = SweepData(robot=robot, means=means, y=y, theta=theta)
-    m_model = np.zeros_like(y)
-    for t in tests:
-        m_model = m_model + t.model_torque(data, t.effect in model)
-    r0 = y + m_model
-    candidates: list[tuple[RunCandidate, np.ndarray]] = []
-    skipped: list[NotTestable] = []
-    for t in tests:
-        refused = t.refusal(data)
-        if refused is not None:
-            skipped.append(refused)
-            continue
-        if t.effect in model:
-            continue
-        found = t.test(data, r0)
-        if isinstance(found, NotTestable):
-            skipped.append(found)
-        else:
-            candidates.append(found)
-    return candidates, skipped, means, r0
-
-
-def diagnose_runs(robot: Robot, table, *, model: Sequence[str] = ("joint_stiffness",),
+def diagnose_runs(robot, table, *, model: Sequence[str] = ("joint_stiffness",),
                   stiffness: Sequence[float] | None = None, friction_effects: Sequence[Effect] | None = None,
-                  sweep_tests: Sequence[SweepTest] = SWEEP_TESTS) -> RunDiagnosis:
-    """Test the run-data effects the model lacks: friction terms on the UV/VU
-    half-differences (identify/friction.py matching), the compensator and the
-    gravity on the joint-2 sweep means (identify/compensator.py).
+                  sweep_effects: Sequence[Effect] | None = None) -> RunDiagnosis:
+    """Test the run-data effects the model lacks, stepwise, against the runs' noise floor.
 
-    The noise level of run torques is unknown (no repeats): each test is a
-    likelihood ratio of Gaussian fits with the variance estimated per joint,
-    chi-square with one degree of freedom per tested joint (friction) or per
-    parameter (sweeps); delta_bic = -LR + q ln n.
-
-    ``stiffness`` (k1..k6 [N·m/rad], from a static fit) puts the sweeps at the
-    deflected configuration; the joint-2 torque there differs from the
-    commanded one by more than the current noise, so without it the sweep
-    effects are not tested (they would absorb the deflection).
-
-    ``friction_effects`` (default: the table's "uv/vu" effects, the constant one first)
-    and ``sweep_tests`` (default :data:`SWEEP_TESTS`) are the candidates' strategies.
+    ``stiffness`` (k1..k6 [N·m/rad], from a static fit) puts the sweeps at the deflected
+    configuration; without it robot.toml's nominal stiffness, else the rigid model with its
+    bias stated (identify/runmodel.py). ``friction_effects`` (default: the table's "uv/vu"
+    effects, the constant one first) and ``sweep_effects`` (default: the "sweep" effects)
+    are the candidates' strategies; effects of ``model`` outside them are fitted with the model.
     """
-    from elastocal.identify.friction import friction_samples
-
     model = tuple(dict.fromkeys(["joint_stiffness", *model]))
-    for name in model:
-        get_effect(name)
+    model_effects_all = [get_effect(name) for name in model]
     friction_effects = tuple(get_effect(e) for e in FRICTION_EFFECTS) if friction_effects is None \
         else tuple(friction_effects)
-    sweep_tests = tuple(sweep_tests)
-    tested_here = {e.name for e in friction_effects} | {t.effect for t in sweep_tests}
-    candidates: list[tuple[RunCandidate, object]] = []
-    skipped: list[NotTestable] = []
-    friction_view = None
-    sweep_view = None
-    pieces_rss, pieces_n, pieces_max = 0.0, 0, 0.0
-    uvvu = np.isin(table.direction, ("UV", "VU"))
-    friction_out = None
-    if np.any(uvvu):
-        sub = table.subset(uvvu)
-        samples = friction_samples(sub.q, sub.dq, sub.currents, sub.run, sub.direction, sub.load,
-                                   robot.torque_constants, t=sub.t, source=table.source)
-        found, skip, before, rss0, n = _diagnose_friction(samples, model, friction_effects)
-        candidates += found
-        skipped += skip
-        friction_out = (samples, before)
-        pieces_rss += float(rss0.sum())
-        pieces_n += int(n.sum())
-        resid = samples.friction - before
-        if np.any(np.isfinite(resid)):
-            pieces_max = max(pieces_max, float(np.nanmax(np.abs(resid))))
-    else:
-        for eff in friction_effects:
-            if eff.name not in model:
-                skipped.append(NotTestable(eff.name, "the runs hold no UV/VU pairs (the same path forward and "
-                                                     "backward)"))
-    sweep_out = None
-    has_sweeps = bool(np.any(np.isin(table.direction, ("+", "-"))))
-    if has_sweeps and stiffness is None:
-        for t in sweep_tests:
-            if t.effect not in model:
-                skipped.append(NotTestable(t.effect, "the sweep torques need the joint stiffness to place the arm "
-                                                     "at its deflected configuration: give the static table too"))
-    elif has_sweeps:
-        found, skip, means, r0 = _diagnose_sweeps(robot, table, model, np.asarray(stiffness, dtype=float),
-                                                  sweep_tests)
-        candidates += found
-        skipped += skip
-        sweep_out = (means, r0)
-        pieces_rss += float(r0 @ r0)
-        pieces_n += len(r0)
-        pieces_max = max(pieces_max, float(np.max(np.abs(r0))) if len(r0) else 0.0)
-    else:
-        for t in sweep_tests:
-            if t.effect not in model:
-                skipped.append(NotTestable(t.effect, "the runs hold no joint-2 sweep (direction + and -)"))
+    sweep_effects = tuple(get_effect(e) for e in SWEEP_EFFECTS) if sweep_effects is None else tuple(sweep_effects)
+    constant = friction_effects[0] if friction_effects else get_effect(FRICTION_EFFECTS[0])
+    pool = (*friction_effects, *sweep_effects)
+    in_model = [e for e in model_effects_all if e.run_part is not None]
+    by_name = {e.name: e for e in (*pool, *in_model)}
+    sweep_all = tuple(dict.fromkeys([e for e in (*in_model, *sweep_effects) if e.run_part == "sweep"]))
+    data = prepare_run_data(robot, table, stiffness=stiffness, sweep_effects=sweep_all)
+    # the bias of the nonlinear sweep candidates (their physical parameters), fitted with the model's
+    data = with_rigid_bias(data, table, sweep_all, [e.name for e in sweep_all if e.name in model or (
+        e.name in data.sweep_terms and not data.sweep_terms[e.name].linear)])
+    base = fit_run_model(data, in_model, constant=constant)
+    first_skipped: list[NotTestable] = []
+
+    def test(fit: RunModelFit, added: Sequence[str]) -> list[RunCandidate]:
+        effects = [*in_model, *(by_name[a] for a in added)]
+        out: list[RunCandidate] = []
+        for eff in pool:
+            if eff.name in fit.model or eff.name in model:
+                continue
+            found = _test_one(data, fit, effects, eff, constant)
+            if isinstance(found, NotTestable):
+                if not added:
+                    first_skipped.append(found)
+            else:
+                out.append(found)
+        out.sort(key=lambda c: (c.delta_bic, c.rms_after))
+        return out
+
+    candidates, steps, final, _ = stepwise(base, test)
+    floor = final.noise_floor
+    verdict = verdict_of(steps, final.rms, floor, final.excess_p)
+    unexplained: tuple[str, ...] = ()
+    detail = None
+    if final.excess_p is not None and final.excess_p < EXCESS_P:
+        unexplained = _run_structure(data, final)
+        detail = unexplained_of(base.rms, steps, final.rms, floor, final.excess_p, unexplained, unit="N*m")
+        if detail is not None and not unexplained:
+            unexplained = (f"residual stays {detail.ratio:.2f}x the noise floor with no pattern in joint, speed, "
+                           "load torque or position",)
+            detail = Unexplained(detail.rms, detail.noise_floor, detail.unit, unexplained, detail.explained)
+    skipped = list(first_skipped)
+    tested_here = {e.name for e in pool}
     for name in ALL_EFFECTS:
         if name in model or name in RUN_EFFECTS or name in tested_here:
             continue
-        eff = get_effect(name)
-        if "runs" in eff.seen_in:
-            skipped.append(NotTestable(name, "the run diagnosis tests torque effects; "
-                                             "test it on a static table"))
-    candidates.sort(key=lambda c: (c[0].delta_bic, c[0].rms_after))
-    verdict = candidates[0][0].effect if candidates and candidates[0][0].significant else None
-    if friction_out is not None:
-        samples, before = friction_out
-        after = None
-        if verdict in {e.name for e in friction_effects}:
-            after = candidates[0][1]
-        friction_view = FrictionView(samples.friction, samples.speed, samples.load_torque, samples.pair,
-                                     samples.pairs, before, after)
-    if sweep_out is not None:
-        means, r0 = sweep_out
-        after = candidates[0][1] if verdict in {t.effect for t in sweep_tests} else None
-        sweep_view = SweepView(means.q2, means.sweep, r0, after)
-    rms = float(np.sqrt(pieces_rss / pieces_n)) if pieces_n else None
-    return RunDiagnosis(model=model, n=pieces_n, residual_rms=rms, residual_max=pieces_max if pieces_n else None,
-                        candidates=tuple(c for c, _ in candidates), not_testable=tuple(skipped), verdict=verdict,
-                        friction=friction_view, sweeps=sweep_view, groups=_run_groups(friction_view, sweep_view))
+        if "runs" in get_effect(name).seen_in:
+            skipped.append(NotTestable(name, "the run diagnosis tests torque effects; test it on a static table"))
+    step_names = {st.effect for st in steps}
+    friction_view = sweep_view = None
+    if data.friction is not None:
+        s = data.friction
+        after = final.friction_pred if any(by_name[e].run_part == "uv/vu" for e in step_names) else None
+        friction_view = FrictionView(s.friction, s.speed, s.load_torque, s.pair, s.pairs,
+                                     np.where(np.isfinite(s.friction), base.friction_pred, np.nan), after)
+    if data.sweeps is not None and base.sweep is not None:
+        after = final.sweep.residuals if any(by_name[e].run_part == "sweep" for e in step_names) else None
+        sweep_view = SweepView(data.sweeps.q2, data.sweeps.sweep, base.sweep.residuals, after)
+    n = base.n
+    return RunDiagnosis(model=model, n=n, residual_rms=base.rms if n else None, residual_max=base.max if n else None,
+                        candidates=tuple(candidates), not_testable=tuple(skipped), verdict=verdict,
+                        friction=friction_view, sweeps=sweep_view, groups=_run_groups(data, base), base=base,
+                        final=final, steps=steps, unexplained=unexplained, unexplained_detail=detail,
+                        stiffness=data.stiffness if data.sweeps is not None else None,
+                        current_noise=data.current_noise)
 
 
-def _run_groups(friction: FrictionView | None, sweeps: SweepView | None) -> tuple[GroupSummary, ...]:
-    def summary(by: str, index: np.ndarray, values: np.ndarray, labels: Sequence[str]) -> GroupSummary:
+def _run_groups(data: RunData, fit: RunModelFit) -> tuple[GroupSummary, ...]:
+    """Residual rms (and what noise alone leaves) by joint, pair, q2 and sweep."""
+    def summary(by: str, index: np.ndarray, values: np.ndarray, var: np.ndarray | None,
+                labels: Sequence[str]) -> GroupSummary:
         g = len(labels)
         n = np.bincount(index, minlength=g)
-        ss = np.bincount(index, weights=values**2, minlength=g)
-        return GroupSummary(by, tuple(labels), np.sqrt(ss / np.maximum(n, 1)), None, n)
+        ss = np.bincount(index, weights=values ** 2, minlength=g)
+        floor = None
+        if var is not None and np.all(np.isfinite(var)):
+            floor = np.sqrt(np.bincount(index, weights=var, minlength=g) / np.maximum(n, 1))
+        return GroupSummary(by, tuple(labels), np.sqrt(ss / np.maximum(n, 1)), floor, n)
 
     out = []
-    if friction is not None:
-        resid = friction.measured - friction.before
+    if data.friction is not None and fit.friction_residual is not None:
+        resid = fit.friction_residual
         moving = np.isfinite(resid)
+        var = data.friction_var[moving] if data.friction_var is not None else None
         joint = np.nonzero(moving)[1]
-        out.append(summary("joint", joint, resid[moving], [f"j{j + 1}" for j in range(6)]))
-        pair = np.broadcast_to(friction.pair[:, None], resid.shape)[moving]
-        out.append(summary("uv/vu pair", pair, resid[moving], [f"{u}/{v}" for u, v in friction.pairs]))
-    if sweeps is not None and len(sweeps.q2):
-        idx, labels = _bins(sweeps.q2, 6, "rad", ".2f")
-        out.append(summary("sweep q2", idx, sweeps.residual_before, labels))
-        ids = np.unique(sweeps.sweep)
-        out.append(summary("sweep", np.searchsorted(ids, sweeps.sweep), sweeps.residual_before,
+        out.append(summary("joint", joint, resid[moving], var, [f"j{j + 1}" for j in range(6)]))
+        pair = np.broadcast_to(data.friction.pair[:, None], resid.shape)[moving]
+        out.append(summary("uv/vu pair", pair, resid[moving], var, [f"{u}/{v}" for u, v in data.friction.pairs]))
+    if fit.sweep is not None and len(fit.sweep.residuals):
+        r = fit.sweep.residuals
+        idx, labels = _bins(data.sweeps.q2, 6, "rad", ".2f")
+        out.append(summary("sweep q2", idx, r, data.sweep_var, labels))
+        ids = np.unique(data.sweeps.sweep)
+        out.append(summary("sweep", np.searchsorted(ids, data.sweeps.sweep), r, data.sweep_var,
                            [f"sweep {k + 1}" for k in range(len(ids))]))
     return tuple(out)

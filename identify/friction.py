@@ -92,7 +92,11 @@ class FrictionSamples:
     speed: np.ndarray      # (n, 6) (|dq_UV| + |dq_VU|)/2 [rad/s]
     load_torque: np.ndarray  # (n, 6) xi (i_UV + i_VU)/2 [N·m]
     pair: np.ndarray       # (n,) index of the UV/VU pair
-    pairs: tuple[tuple[str, str], ...]  # (UV run, VU run)
+    pairs: tuple[tuple[str, str], ...]  # (UV run, VU run) or (+ sweep, - sweep)
+    #: (n,) variance of the interpolated backward reading per unit variance of one reading,
+    #: ``(1 - f)^2 + f^2``: a half-difference's noise variance is ``xi^2 sigma^2 (1 + weight) / 4``
+    weight: np.ndarray | None = None
+    q: np.ndarray | None = None  # (n, 6) joint angles of the forward run's samples [rad]
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,23 +180,40 @@ def _finite_difference_speed(q: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.gradient(q, t, axis=0)
 
 
+#: forward direction -> its backward one: UV/VU pairs and +/- joint sweeps are both the same
+#: path run forward and backward, so both give the friction half-differences
+BACKWARD = {"UV": "VU", "+": "-"}
+
+
+def _path_distance(q_a: np.ndarray, q_b: np.ndarray) -> float:
+    """Median distance of the samples of path A from the polyline of path B [rad]."""
+    return float(np.median(match_path(q_a, q_b).distance)) if len(q_b) >= 2 else float("inf")
+
+
 def pair_runs(run: np.ndarray, direction: np.ndarray, load: np.ndarray, dq: np.ndarray,
-              *, source: str | None = None) -> tuple[tuple[str, str], ...]:
-    """Pair each UV run with the VU run of the same load whose speed is closest."""
+              *, source: str | None = None, q: np.ndarray | None = None) -> tuple[tuple[str, str], ...]:
+    """Pair each forward run (UV, ``+``) with a backward run (VU, ``-``) of the same load:
+    of those on the same path (``q`` given: within 3 sample spacings), the one whose
+    speed is closest."""
     run = np.asarray(run, dtype=str)
-    uv_runs = [r for r in dict.fromkeys(run[direction == "UV"])]
-    vu_runs = [r for r in dict.fromkeys(run[direction == "VU"])]
-    if not uv_runs:
-        raise InputError("no UV runs: friction needs the same path run forward (UV) and backward (VU)",
-                         source=source, column="direction")
+    direction = np.asarray(direction, dtype=str)
+    forward = [r for r in dict.fromkeys(run[np.isin(direction, tuple(BACKWARD))])]
+    if not forward:
+        raise InputError("no UV runs: friction needs the same path run forward (UV, or + for a sweep) and "
+                         "backward (VU, or -)", source=source, column="direction")
     pairs = []
-    for r in uv_runs:
+    for r in forward:
         rm = run == r
-        ld = load[rm][0]
-        candidates = [v for v in vu_runs if load[run == v][0] == ld]
+        ld, back = load[rm][0], BACKWARD[direction[rm][0]]
+        candidates = [v for v in dict.fromkeys(run[direction == back]) if load[run == v][0] == ld]
+        if q is not None and candidates:
+            qr = np.asarray(q, dtype=float)[rm]
+            spacing = float(np.median(np.linalg.norm(np.diff(qr, axis=0), axis=1))) if len(qr) > 1 else 0.0
+            candidates = [v for v in candidates
+                          if _path_distance(qr, np.asarray(q, dtype=float)[run == v]) <= 3.0 * spacing + 1e-6]
         if not candidates:
-            raise InputError(f"UV run {r} (load {ld}) has no VU run under the same load", source=source,
-                             column="run")
+            raise InputError(f"{'UV' if back == 'VU' else 'sweep'} run {r} (load {ld}) has no {back} run on its "
+                             "path under the same load", source=source, column="run")
         speed = _run_speed(dq[rm])
         best = min(candidates, key=lambda v: abs(np.log(max(_run_speed(dq[run == v]), 1e-12) / max(speed, 1e-12))))
         pairs.append((r, best))
@@ -216,8 +237,8 @@ def friction_samples(q: np.ndarray, dq: np.ndarray, currents: np.ndarray, run: n
             if t is None:
                 raise InputError(f"run {r} has no joint speeds", source=source, column="dq1")
             dq[rm] = _finite_difference_speed(q[rm], np.asarray(t, dtype=float)[rm])
-    pairs = pair_runs(run, direction, load, dq, source=source)
-    fr, sp, tl, pair_idx = [], [], [], []
+    pairs = pair_runs(run, direction, load, dq, source=source, q=q)
+    fr, sp, tl, pair_idx, weight, q_fwd = [], [], [], [], [], []
     for k, (ru, rv) in enumerate(pairs):
         mu, mv = run == ru, run == rv
         if not np.all(np.isfinite(currents[mu])) or not np.all(np.isfinite(currents[mv])):
@@ -237,8 +258,11 @@ def friction_samples(q: np.ndarray, dq: np.ndarray, currents: np.ndarray, run: n
         sp.append(np.where(moving, (np.abs(d_u) + np.abs(d_v)) / 2.0, np.nan))
         tl.append(xi * (i_u + i_v) / 2.0)
         pair_idx.append(np.full(len(i_u), k))
+        weight.append((1.0 - sub.fraction) ** 2 + sub.fraction ** 2)
+        q_fwd.append(q[mu][on_path])
     return FrictionSamples(friction=np.vstack(fr), speed=np.vstack(sp), load_torque=np.vstack(tl),
-                           pair=np.concatenate(pair_idx), pairs=pairs)
+                           pair=np.concatenate(pair_idx), pairs=pairs, weight=np.concatenate(weight),
+                           q=np.vstack(q_fwd))
 
 
 def _fit_joint(y: np.ndarray, columns: list[np.ndarray], names: list[str]) -> tuple[dict, dict, float]:
@@ -317,11 +341,21 @@ def identify_friction(samples: FrictionSamples, *, terms: Sequence[str] = FRICTI
 
 def friction_from_run_table(table, torque_constants: Sequence[float], *, terms: Sequence[str] = FRICTION_TERMS,
                             effects: Sequence[Effect] | None = None, min_speed_rad_s: float = 1e-3) -> FrictionFit:
-    """:func:`identify_friction` on the UV/VU runs of a run table (docs/formats.md §3)."""
-    uvvu = np.isin(table.direction, ("UV", "VU"))
-    if not np.any(uvvu):
-        raise InputError("the table has no UV/VU runs", source=table.source, column="direction")
-    sub = table.subset(uvvu)
-    samples = friction_samples(sub.q, sub.dq, sub.currents, sub.run, sub.direction, sub.load, torque_constants,
-                               t=sub.t, min_speed_rad_s=min_speed_rad_s, source=table.source)
+    """:func:`identify_friction` on the UV/VU runs and the ``+``/``-`` sweeps of a run table
+    (docs/formats.md §3): both are the same path forward and backward."""
+    samples = table_friction_samples(table, torque_constants, min_speed_rad_s=min_speed_rad_s)
+    if samples is None:
+        raise InputError("the table has no UV/VU runs and no +/- sweeps (the same path forward and backward)",
+                         source=table.source, column="direction")
     return identify_friction(samples, terms=terms, effects=effects)
+
+
+def table_friction_samples(table, torque_constants: Sequence[float], *,
+                           min_speed_rad_s: float = 1e-3) -> FrictionSamples | None:
+    """Matched samples of every forward/backward pair of a run table (UV/VU and +/-), None without one."""
+    paired = np.isin(table.direction, (*BACKWARD, *BACKWARD.values()))
+    if not np.any(paired):
+        return None
+    sub = table.subset(paired)
+    return friction_samples(sub.q, sub.dq, sub.currents, sub.run, sub.direction, sub.load, torque_constants,
+                            t=sub.t, min_speed_rad_s=min_speed_rad_s, source=table.source)

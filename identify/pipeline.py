@@ -47,11 +47,14 @@ def identify_data(robot, static, runs, model: tuple[str, ...], torque: str, form
     if runs is not None:
         from elastocal.identify import runs as run_ident
 
-        if run_model:
-            result = run_ident.identify_runs(robot, runs, model=("joint_stiffness", *run_model))
+        if run_model:    # the sweeps placed with the static fit's stiffness
+            k = [p.value for p in fit.parameters if p.name in {f"k{j}" for j in range(1, 7)}]
+            result = run_ident.identify_runs(robot, runs, model=("joint_stiffness", *run_model),
+                                             stiffness=k if len(k) == 6 else None)
             rj = result.to_json()
             obj["parameters"].update(rj["parameters"])
             obj["torque_residual"] = rj["residual"]
+            obj["torque_noise_floor"] = rj["noise_floor"]
     return obj, fit
 
 

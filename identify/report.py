@@ -341,9 +341,18 @@ def _runs_html(runs: RunDiagnosis) -> str:
     out = ["<h2>Run data</h2>"]
     if runs.verdict is not None:
         out.append(f'<div class="verdict found">Missing effect in the runs: <b>{_e(runs.verdict)}</b> — '
-                   f"{_e(runs.candidates[0].evidence)}.</div>")
+                   f"{_e(runs.steps[0].candidate.evidence if runs.steps else runs.candidates[0].evidence)}.</div>")
+    elif runs.unexplained_detail is not None:
+        out.append('<div class="verdict found">Run data: above the noise floor, and no candidate effect explains '
+                   f"all of it: {_e(runs.unexplained_detail.summary(scale=1.0, unit_text='N·m'))}.</div>")
     else:
         out.append('<div class="verdict clean">Run data: no missing effect found.</div>')
+    if runs.noise_floor is not None:
+        out.append(f'<p class="note">Torque residual {runs.residual_rms:.3g} N·m rms, noise floor '
+                   f"{runs.noise_floor:.3g} N·m (current repeatability through the half-differences and "
+                   "sweep means).</p>")
+    if runs.stiffness is not None:
+        out.append(f'<p class="note">{_e(runs.stiffness.note)}.</p>')
     rows = ["<tr><th class=l>effect</th><th class=l>part</th><th>rms before [N·m]</th><th>rms after [N·m]</th>"
             "<th>ΔBIC</th><th>p</th><th class=l>significant</th></tr>"]
     for c in runs.candidates:

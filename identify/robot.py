@@ -87,7 +87,8 @@ def _vec3(value, *, source: str, column: str) -> tuple[float, float, float]:
 
 #: the keys robot.toml knows (docs/formats.md §1 plus elastocal's optional URDF keys)
 TOP_KEYS = ("name", "convention", "gravity", "urdf", "urdf_xml", "joint", "tool", "compensator")
-JOINT_KEYS = ("name", "a", "alpha", "d", "beta", "offset", "lower", "upper", "torque_constant", "mass", "com")
+JOINT_KEYS = ("name", "a", "alpha", "d", "beta", "offset", "lower", "upper", "torque_constant", "mass", "com",
+              "stiffness")
 TOOL_KEYS = ("load_point", "markers", "flange")
 COMPENSATOR_KEYS = {"hydropneumatic": ("kind", "joint", "a", "b", "h", "C", "l_c"),
                     "spring": ("kind", "joint", "a", "L", "alpha", "K_c", "s0")}
@@ -128,6 +129,9 @@ class JointSpec:
     #: Hayati's rotation about y [rad] (elastocal extension of docs/formats.md §1, for
     #: calibrated robots whose axes i-1 and i are parallel): Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)
     beta: float = 0.0
+    #: the joint's nominal stiffness [N·m/rad] (an elastocal extension of docs/formats.md §1,
+    #: e.g. the gear maker's catalogue value); None when not given
+    stiffness: float | None = None
 
     def __post_init__(self) -> None:
         if not self.lower < self.upper:
@@ -136,6 +140,8 @@ class JointSpec:
             raise InputError(f"joint {self.name}: torque_constant must be non-zero")
         if self.mass < 0.0:
             raise InputError(f"joint {self.name}: mass must be >= 0")
+        if self.stiffness is not None and not self.stiffness > 0.0:
+            raise InputError(f"joint {self.name}: stiffness must be positive")
 
 
 @dataclass(frozen=True)
@@ -357,6 +363,12 @@ class Robot:
         return self.tool.marker_names
 
     @property
+    def nominal_stiffness(self) -> np.ndarray | None:
+        """k1..k6 [N·m/rad] from robot.toml's ``stiffness`` keys, None unless every joint gives one."""
+        k = [j.stiffness for j in self.joints]
+        return None if any(v is None for v in k) else np.array(k, dtype=float)
+
+    @property
     def has_masses(self) -> bool:
         return any(j.mass > 0.0 for j in self.joints)
 
@@ -461,7 +473,10 @@ class Robot:
                     lines.append(f"beta = {num(j.beta)}")
             lines += [f"offset = {num(j.offset)}", f"lower = {num(j.lower)}", f"upper = {num(j.upper)}",
                       f"torque_constant = {num(j.torque_constant)}", f"mass = {num(j.mass)}",
-                      f"com = {vec(j.com)}", ""]
+                      f"com = {vec(j.com)}"]
+            if j.stiffness is not None:
+                lines.append(f"stiffness = {num(j.stiffness)}")
+            lines.append("")
         lines += ["[tool]"]
         if self.urdf is not None and self.urdf.flange:
             lines.append(f'flange = "{self.urdf.flange}"')
@@ -573,10 +588,16 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
             if abs(x) > MAX_LENGTH_M:
                 raise InputError(f"the centre of mass is {x:g} m from the joint frame along {axis}; millimetres? "
                                  "positions are metres", source=source, column=f"{where}.com")
+        stiffness = None
+        if "stiffness" in t:
+            stiffness = _number(t, "stiffness", source=source, where=where)
+            if not stiffness > 0.0 or not math.isfinite(stiffness):
+                raise InputError(f"stiffness = {stiffness:g} N*m/rad: a joint's stiffness is positive",
+                                 source=source, column=f"{where}.stiffness")
         try:
             joints.append(JointSpec(
                 **geometry, offset=offset, lower=lower, upper=upper, torque_constant=xi, mass=mass,
-                com=com,
+                com=com, stiffness=stiffness,
                 name=str(t.get("name", f"joint{i}")),
             ))
         except InputError as exc:

@@ -1,11 +1,17 @@
-"""Identification from run data (docs/formats.md §3): compensator and friction.
+"""Identification from run data (docs/formats.md §3): compensator, gravity and friction.
 
-Dispatches the run-data effects of ``--model`` to their fits —
-``compensator`` (and ``gravity``) to identify/compensator.py on the joint-2
-sweeps, the friction effects to identify/friction.py on the UV/VU pairs — and
-gathers one result with the torque residual of docs/cli.md: measured ``xi i`` minus
-the torque model, in the reduced form each fit uses (forward/backward means of
-joint 2 along the sweeps; UV/VU half-differences per moving joint).
+The run-data effects of ``--model`` are fitted together by the run model of
+identify/runmodel.py: the friction effects (each module's ``run_column``) on the
+half-differences of every forward/backward pair — UV/VU runs and ``+``/``-``
+joint sweeps alike — and the sweep effects (each module's ``sweep_term``: the
+compensator, gravity) on the joint-2 sweep means. The result holds the torque
+residual of docs/cli.md (measured ``xi i`` minus the torque model, in those
+reduced forms) and its noise floor (current repeatability through the
+half-differences and sweep means).
+
+Run data alone place the sweeps at the deflected configuration with robot.toml's
+nominal joint stiffness when it gives one, else with the rigid model, whose bias
+is stated (``stiffness`` of the result).
 """
 
 from __future__ import annotations
@@ -16,8 +22,9 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.identify.effects import run_effects
+from elastocal.identify.effects import get_effect, run_effects
 from elastocal.identify.robot import Robot
+from elastocal.identify.runmodel import RunModelFit, StiffnessUsed, fit_run_model, prepare_run_data, with_rigid_bias
 from elastocal.identify.static import Parameter
 from elastocal.identify.tables import RunTable
 
@@ -33,9 +40,11 @@ class RunFit:
 
     model: tuple[str, ...]
     parameters: tuple[Parameter, ...]
-    residuals: np.ndarray            # torque residuals [N·m], all fits together
+    residuals: np.ndarray            # torque residuals [N·m], half-differences then sweep means
     unidentifiable: tuple[str, ...] = ()
-    fits: dict = field(default_factory=dict, repr=False)   # "compensator" / "friction" -> fit object
+    noise_floor: float | None = None   # [N·m], the rms current noise alone would leave
+    stiffness: StiffnessUsed | None = None   # what placed the sweeps (None without sweeps)
+    fit: RunModelFit | None = field(default=None, repr=False)
 
     @property
     def rms(self) -> float:
@@ -46,18 +55,21 @@ class RunFit:
                "parameters": {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in self.parameters},
                "residual": {"rms": self.rms, "max": float(np.max(np.abs(self.residuals))) if self.residuals.size
                             else float("nan"), "n": int(self.residuals.size), "unit": "N*m"},
-               "noise_floor": None}
+               "noise_floor": self.noise_floor}
         if self.unidentifiable:
             out["unidentifiable"] = list(self.unidentifiable)
+        if self.stiffness is not None:
+            out["stiffness"] = self.stiffness.to_json()
         return out
 
 
 def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joint_stiffness",),
                   stiffness: Sequence[float] | None = None) -> RunFit:
-    """Fit the run-data effects named in ``model`` to a run table."""
-    from elastocal.identify.compensator import compensator_from_run_table
-    from elastocal.identify.friction import friction_from_run_table
+    """Fit the run-data effects named in ``model`` to a run table.
 
+    ``stiffness`` (k1..k6 from a static fit) places the sweeps; without it robot.toml's
+    nominal stiffness, else the rigid model (its bias stated in the result).
+    """
     wanted = [m for m in model if m != "joint_stiffness"]
     unknown = [m for m in wanted if m not in RUN_EFFECTS]
     if unknown:
@@ -66,30 +78,38 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
     if not wanted:
         raise InputError("run data alone do not give the joint stiffness; name the run effects to fit, e.g. "
                          "--model compensator,coulomb_friction,viscous_friction", argument="model")
-    params: dict = {}
+    effects = [get_effect(m) for m in wanted]
+    sweep_effects = [e for e in effects if e.run_part == "sweep"]
+    data = prepare_run_data(robot, table, stiffness=stiffness,
+                            sweep_effects=[get_effect(e) for e in SWEEP_EFFECTS])
+    if sweep_effects and data.sweeps is None:
+        raise InputError("the table has no joint-2 sweeps (direction + and -)", source=table.source,
+                         column="direction")
+    for e in sweep_effects:
+        if e.name in data.sweep_refused:
+            raise InputError(f"{e.name}: {data.sweep_refused[e.name]}", argument="model")
+    if any(e.run_part == "uv/vu" for e in effects) and data.friction is None:
+        raise InputError("the table has no UV/VU runs and no +/- sweeps (the same path forward and backward)",
+                         source=table.source, column="direction")
+    fit = fit_run_model(data, effects)
+    if sweep_effects:
+        data = with_rigid_bias(data, table, [get_effect(e) for e in SWEEP_EFFECTS], fit.model)
     residuals = []
-    unident: list[str] = []
-    fits: dict = {}
-    if any(m in SWEEP_EFFECTS for m in wanted):
-        if robot.compensator is None:
-            raise InputError("the robot description has no [compensator]", argument="model")
-        gravity = "identify" if "gravity" in wanted else "auto"
-        fit = compensator_from_run_table(robot, table, gravity=gravity, stiffness=stiffness)
-        fits["compensator"] = fit
-        params.update(fit.parameters())
-        residuals.append(np.asarray(fit.residuals, dtype=float).ravel())
-    terms = tuple(m.removesuffix("_friction") for m in wanted if m in FRICTION_EFFECTS)
-    if terms:
-        fit = friction_from_run_table(table, robot.torque_constants, terms=terms)
-        fits["friction"] = fit
-        params.update(fit.parameters())
-        unident.extend(fit.unidentified)
-        half = fit.samples.friction
-        predicted = fit.torque(np.where(np.isfinite(fit.samples.speed), fit.samples.speed, 0.0),
-                               fit.samples.load_torque)
-        r = half - predicted
+    if any(e.run_part == "uv/vu" for e in effects) and fit.friction_residual is not None:
+        r = fit.friction_residual
         residuals.append(r[np.isfinite(r)])
-    names = tuple(dict.fromkeys(["joint_stiffness", *wanted]))
-    return RunFit(model=names, parameters=tuple(Parameter(n, float(p["value"]), float(p["std"]), str(p["unit"]))
-                                                for n, p in params.items()), residuals=np.concatenate(residuals) if residuals else np.zeros(0),
-                  unidentifiable=tuple(unident), fits=fits)
+    if sweep_effects and fit.sweep is not None:
+        residuals.append(fit.sweep.residuals)
+    names = tuple(dict.fromkeys(["joint_stiffness", *wanted, *fit.model]))
+    floor = _floor(fit, any(e.run_part == "uv/vu" for e in effects), bool(sweep_effects))
+    return RunFit(model=names, parameters=fit.parameters,
+                  residuals=np.concatenate(residuals) if residuals else np.zeros(0),
+                  unidentifiable=fit.unidentifiable, noise_floor=floor,
+                  stiffness=data.stiffness if sweep_effects else None, fit=fit)
+
+
+def _floor(fit: RunModelFit, friction: bool, sweeps: bool) -> float | None:
+    """The noise floor of the parts the model was fitted to."""
+    n = (int(fit.friction_n.sum()) if friction else 0) + (fit.sweep_n if sweeps else 0)
+    ss = (float(fit.friction_floor_ss.sum()) if friction else 0.0) + (fit.sweep_floor_ss if sweeps else 0.0)
+    return float(np.sqrt(ss / n)) if n and np.isfinite(ss) and ss > 0 else None

@@ -206,15 +206,26 @@ def simulate_run_dataset(robot: Robot, truth: CellTruth, *, seed: int, out_dir: 
 
 
 #: what ``elastocal sim runs --hidden`` can switch on: each friction term alone, all
-#: three together ("friction", the realistic cell), or none
-RUN_HIDDEN = ("none", "coulomb_friction", "viscous_friction", "load_dependent_friction", "friction")
+#: three together ("friction", the realistic cell), the compensator (the description then
+#: gives no nominal C, l_c), or none; "a,b" for several
+RUN_HIDDEN = ("none", "coulomb_friction", "viscous_friction", "load_dependent_friction", "friction", "compensator")
+
+
+def described_robot(robot: Robot, effect: str) -> Robot:
+    """The robot description a user of the simulated cell has: with the compensator
+    hidden, its geometry without the nominal parameters (the cell still has them)."""
+    names = {e.strip() for e in effect.split(",")}
+    if "compensator" not in names or robot.compensator is None:
+        return robot
+    return replace(robot, compensator=replace(robot.compensator, nominal=()))
 
 
 def hide_in_runs(truth: CellTruth, effect: str) -> CellTruth:
     """``truth`` with only the named friction switched on (sizes of
     :func:`default_run_truth`); ``none`` switches friction off, ``friction``
     switches on all three terms. The compensator and the link masses are always
-    in the run physics: the run torque model always holds them (docs/cli.md)."""
+    in the run physics: the run torque model always holds them (docs/cli.md);
+    ``compensator`` hides it from the description (:func:`described_robot`)."""
     names = {e.strip() for e in effect.split(",")}     # "a,b": several
     for name in names:
         if name not in RUN_HIDDEN:

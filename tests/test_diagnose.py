@@ -214,10 +214,13 @@ def test_runs_refuse_what_they_cannot_show():
     assert "load_dependent_friction" in {c.effect for c in diag.candidates}
 
 
-def test_runs_sweeps_need_the_stiffness(runs_table):
+def test_runs_sweeps_without_a_stiffness_use_the_rigid_model_and_say_so(runs_table):
     diag = diagnose_runs(ROBOT, runs_table)
-    reasons = {n.effect: n.reason for n in diag.not_testable}
-    assert "joint stiffness" in reasons["compensator"] and "joint stiffness" in reasons["gravity"]
+    assert {"compensator", "gravity"} <= {c.effect for c in diag.candidates}
+    assert diag.stiffness.source == "rigid" and "neglected" in diag.stiffness.note
+    assert diag.to_json()["stiffness"]["bias"]["torque_rms"] > 0
+    with_k = diagnose_runs(ROBOT, runs_table, stiffness=HH150_STIFFNESS)
+    assert with_k.stiffness.source == "static fit" and with_k.stiffness.values == tuple(HH150_STIFFNESS)
 
 
 # ------------------------------------------------------------------ CLI
@@ -290,9 +293,12 @@ def test_runs_where_it_fails_by_joint_pair_and_q2(runs_table):
     groups = {g.by: g for g in diag.groups}
     assert set(groups) == {"joint", "uv/vu pair", "sweep q2", "sweep"}
     assert groups["joint"].labels == tuple(f"j{j}" for j in range(1, 7))
-    assert len(groups["uv/vu pair"].labels) == 4 and all("/" in lab for lab in groups["uv/vu pair"].labels)
+    # the four UV/VU pairs and the two +/- sweeps (the same path forward and backward too)
+    assert len(groups["uv/vu pair"].labels) == 6 and all("/" in lab for lab in groups["uv/vu pair"].labels)
+    assert sum(lab.startswith("sweep") for lab in groups["uv/vu pair"].labels) == 2
     # the missing load-dependent friction is worst on the pairs under load
     pair = groups["uv/vu pair"]
+    assert pair.floor is not None and np.all(pair.floor > 0)
     loaded = [r for lab, r in zip(pair.labels, pair.rms) if lab.split("/")[0].endswith("-1")]
     unloaded = [r for lab, r in zip(pair.labels, pair.rms) if lab.split("/")[0].endswith("-0")]
     assert len(loaded) == len(unloaded) == 2 and min(loaded) > max(unloaded)

@@ -53,7 +53,15 @@ def format_fit(obj: Mapping, title: str, truth: Mapping[str, Mapping] | None = N
     if res.get("unit", "m") == "m":
         lines.append(verdict_line(res["rms"], obj.get("noise_floor")))
     else:
-        lines.append(f"torque residual {res['rms']:.4g} {res['unit']} rms over {res['n']} samples")
+        line = f"torque residual {res['rms']:.4g} {res['unit']} rms over {res['n']} samples"
+        floor = obj.get("noise_floor")
+        if floor:
+            ratio = res["rms"] / floor
+            line += (f", noise floor {floor:.4g} {res['unit']} ({ratio:.2f}x): "
+                     + ("at the noise floor" if ratio < 1.3 else "above the noise floor: the model misses something"))
+        lines.append(line)
+        if obj.get("stiffness"):
+            lines.append(obj["stiffness"]["note"])
     if "torque_residual" in obj:
         tr = obj["torque_residual"]
         lines.append(f"torque residual {tr['rms']:.4g} {tr['unit']} rms over {tr['n']} samples")

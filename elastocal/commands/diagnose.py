@@ -150,24 +150,45 @@ def format_absolute(absolute) -> list[str]:
 
 def format_runs(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:
     lines = [f"runs: {', '.join(diag.model)}, {diag.n} torque samples"]
+    floor = diag.noise_floor
     if diag.residual_rms is not None:
-        lines.append(f"  torque residual {diag.residual_rms:.3g} N*m rms over the parts tested")
+        head = f"  torque residual {diag.residual_rms:.3g} N*m rms over the parts tested"
+        if floor is None:
+            lines.append(head + "; the noise floor is unknown (runs too short)")
+        elif diag.verdict is not None:
+            lines.append(head + f", noise floor {floor:.3g} N*m: the model misses something.")
+        elif diag.unexplained_detail is not None:
+            lines.append(head + f", noise floor {floor:.3g} N*m: above the floor, and no candidate effect "
+                                "explains all of it.")
+        else:
+            lines.append(head + f", noise floor {floor:.3g} N*m: at the noise floor; no missing effect found.")
     width = max([len(c.effect) for c in diag.candidates] + [10])
     for k, c in enumerate(diag.candidates, start=1):
         change = f"{c.rms_before:.3g} → {c.rms_after:.3g} N*m"
-        if c.significant:
+        if c.implausible:
+            words = f"implausible: {c.implausible}"
+        elif c.significant:
             words = f"ΔBIC {c.delta_bic:.0f}   {_p(c.p_value)}   {c.evidence}"
         else:
             words = f"not significant (ΔBIC {c.delta_bic:+.0f}, {_p(c.p_value)})"
         lines.append(f"  {k}. {c.effect:<{width}}  {change:<24}  {words}")
-    if diag.verdict is None:
-        lines.append("  no missing effect found in the run data.")
+    if diag.steps:
+        lines.append("  stepwise: " + " → ".join(
+            [f"{diag.residual_rms:.3g} N*m"] + [f"+{st.effect} {st.rms_after:.3g} N*m" for st in diag.steps])
+            + ("" if diag.final.noise_floor is None else f" (floor {diag.final.noise_floor:.3g} N*m)"))
+    if diag.unexplained_detail is not None:
+        lines.append(f"  {diag.unexplained_detail.summary(scale=1.0, unit_text='N*m')}.")
+        for u in diag.unexplained[1:]:
+            lines.append(f"  unexplained: {u}")
+    if diag.stiffness is not None:
+        lines.append(f"  {diag.stiffness.note}")
     if diag.not_testable:
         lines.append("  not testable from these runs:")
         for n in diag.not_testable:
             lines.append(f"    {n.effect}: {n.reason}")
     if diag.verdict is not None:
-        lines.append(f"  add it: {identify_command(args, (*model, diag.verdict))}")
+        added = tuple(st.effect for st in diag.steps)
+        lines.append(f"  add it: {identify_command(args, tuple(dict.fromkeys((*model, *added))))}")
     return "\n".join(lines)
 
 

@@ -24,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    "base_tilt (the base tilting under the overturning moment), nonlinear_stiffness (hardening "
                    "gears); several as A,B"
                    if name == "static" else
-                   "coulomb_friction, viscous_friction, load_dependent_friction, or friction for all three")
+                   "coulomb_friction, viscous_friction, load_dependent_friction, or friction for all three; "
+                   "compensator (robot.toml without its nominal C, l_c); A,B for two")
         p.add_argument("--hidden", default="none",
                        help=f"effect the simulated cell has and the default model lacks: none (default), {effects}")
         add_seed(p)
@@ -238,11 +239,12 @@ def run(args: argparse.Namespace) -> int:
         params = truth.parameters(robot)
     else:
         from elastocal.identify.tables import read_run_table
-        from elastocal.sims.runs import hide_in_runs, simulate_runs, write_runs_csv
+        from elastocal.sims.runs import described_robot, hide_in_runs, simulate_runs, write_runs_csv
 
         truth = hide_in_runs(CellTruth(), args.hidden)
         table = simulate_runs(robot, truth, seed=args.seed, source=str(out / "runs.csv"))
         params = truth.parameters(robot)
+        robot = described_robot(robot, args.hidden)     # what the user's robot.toml says
     truth_doc = {"hidden": args.hidden, "seed": args.seed, "robot": robot.name, "parameters": params,
                  "noise": {"tracker_m": truth.tracker_noise_m, "current_a": truth.current_noise_a}}
     if static:

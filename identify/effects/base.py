@@ -32,7 +32,11 @@ shows the effect, and a friction effect gives its column of the per-joint fricti
 regression (``run_column``) and the runs that separate it (``run_needs``). The
 friction fit and the run diagnosis take the effects as strategies (the friction
 regression is the sum of the columns of the effects in the model), so a new
-friction law is one new effect module.
+friction law is one new effect module. A "sweep" effect gives its part of the
+joint-2 sweep torque (``sweep_term``: a :class:`SweepTerm` built on a
+:class:`SweepContext`, or the reason these sweeps cannot hold it): the sweep fits
+(identify/sweepfit.py) sum the terms of the effects in the model, nonlinear ones
+(the compensator's geometry) and linear ones (gravity's regressor) alike.
 """
 
 from __future__ import annotations
@@ -77,6 +81,39 @@ class StaticContext:
         if self.estimate is None or name not in self.estimate_names:
             return None
         return float(self.estimate[self.estimate_names.index(name)])
+
+
+@dataclass(frozen=True, eq=False)
+class SweepContext:
+    """Joint-2 sweep means an effect may use to build its :class:`SweepTerm`."""
+
+    robot: object               # the Robot (identify/robot.py)
+    q2: np.ndarray              # (n,) compensator coordinate of each mean [rad]
+    theta: np.ndarray           # (n, 6) link-side configuration of each mean (deflected when known)
+
+
+@dataclass(frozen=True, eq=False)
+class SweepTerm:
+    """An effect's part of the friction-free joint-2 sweep torque.
+
+    The sweep model is ``y = -(sum of the terms' torques)``, ``y`` the measured
+    mean torque less the external wrench's, plus the description's gravity
+    (identify/sweepfit.py); each term takes ``torque(p)`` [N·m] off joint 2.
+    """
+
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    torque: Callable[[np.ndarray], np.ndarray]     # parameters -> (n,) [N·m]
+    jacobian: Callable[[np.ndarray], np.ndarray]   # parameters -> (n, p)
+    linear: bool = False
+    #: (target y, (n, m) columns of the linear terms fitted with it) -> starting parameters
+    start: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]] = None
+    lower: np.ndarray | None = None                # bounds on the parameters (None: none)
+    #: the description's values, the model's torque when the effect is not fitted (None: zero)
+    nominal: np.ndarray | None = None
+    #: why the sweep fit must always hold it (the description lacks what it would be
+    #: taken as known from), or None
+    required: str | None = None
 
 
 @dataclass(frozen=True)
@@ -149,6 +186,9 @@ class Effect:
     run_column: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]] = None
     #: the run data that separate it from the effects before it, in words (for the refusal)
     run_needs: str = ""
+    #: "sweep" effects: the joint-2 sweep means -> this effect's SweepTerm, or the
+    #: reason these sweeps (or the robot description) cannot hold it
+    sweep_term: Optional[Callable[[SweepContext], "SweepTerm | str"]] = None
 
     @property
     def run_prefix(self) -> str:

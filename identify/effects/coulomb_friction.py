@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastocal.identify.effects.base import Effect, StaticContext
+from elastocal.identify.effects.base import Effect, StaticContext, wrong_sign
 
 
 def _refusal(ctx: StaticContext) -> str:
@@ -31,6 +31,7 @@ EFFECT = Effect(
     static_model="none: static readings are taken at rest",
     run_model="xi i = tau_load - fc_j sign(dq_j)",
     run_part="uv/vu",
+    plausibility=lambda names, values, stds: wrong_sign(names, values, stds, "friction"),
     run_column=lambda speed, load: np.ones_like(speed),
     run_needs="UV/VU runs",
 )

@@ -11,7 +11,7 @@ no motion, so they cannot show it.
 
 from __future__ import annotations
 
-from elastocal.identify.effects.base import Effect, StaticContext
+from elastocal.identify.effects.base import Effect, StaticContext, wrong_sign
 
 
 def _refusal(ctx: StaticContext) -> str:
@@ -29,6 +29,7 @@ EFFECT = Effect(
     static_model="none: static readings are taken at rest",
     run_model="xi i = tau_load - fv_j dq_j",
     run_part="uv/vu",
+    plausibility=lambda names, values, stds: wrong_sign(names, values, stds, "viscous friction"),
     run_column=lambda speed, load: speed,
     run_needs="runs at two or more speeds",
 )
