@@ -1,6 +1,6 @@
 """Identification from run data (docs/formats.md §3): compensator, gravity and friction.
 
-The run-data effects of ``--model`` are fitted together by the run model of
+The run-data effects of the model are fitted together by the run model of
 identify/runmodel.py: the friction effects (each module's ``run_column``) on the
 half-differences of every forward/backward pair — UV/VU runs and ``+``/``-``
 joint sweeps alike — and the sweep effects (each module's ``sweep_term``: the
@@ -77,7 +77,7 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
                          argument="model")
     if not wanted:
         raise InputError("run data alone do not give the joint stiffness; name the run effects to fit, e.g. "
-                         "--model compensator,coulomb_friction,viscous_friction", argument="model")
+                         "compensator,coulomb_friction,viscous_friction", argument="model")
     effects = [get_effect(m) for m in wanted]
     sweep_effects = [e for e in effects if e.run_part == "sweep"]
     data = prepare_run_data(robot, table, stiffness=stiffness,
