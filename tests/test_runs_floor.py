@@ -218,3 +218,18 @@ def test_cli_sweeps_alone_name_the_compensator(tmp_path, capsys):
     for name, true in zip(("C", "l_c"), TRUE_C):
         assert abs(fit["parameters"][name]["value"] / true - 1.0) < 0.02
     assert fit["noise_floor"] > 0 and fit["residual"]["rms"] < 1.3 * fit["noise_floor"]
+
+
+def test_two_hidden_run_effects_are_found_in_two_steps():
+    """The compensator hidden from the description and Coulomb friction from the model:
+    two steps, the verdict the first, the final model at the floor."""
+    clean = _clean("compensator,coulomb_friction")
+    robot = described_robot(ROBOT, "compensator,coulomb_friction")
+    for seed in range(3):
+        diag = diagnose_runs(robot, _noisy(clean, seed))
+        assert {s.effect for s in diag.steps} == {"compensator", "coulomb_friction"}
+        assert diag.verdict == diag.steps[0].effect
+        assert diag.final.rms < 1.1 * diag.final.noise_floor and diag.unexplained_detail is None
+        comp = next(s for s in diag.steps if s.effect == "compensator").candidate
+        c = {p.name: p.value for p in comp.parameters}
+        np.testing.assert_allclose([c["C"], c["l_c"]], TRUE_C, rtol=0.02)
