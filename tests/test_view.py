@@ -143,3 +143,18 @@ def test_nominal_and_calibrated_geometry_toggle(tmp_path):
         assert page.geometry == "calibrated" and "largest joint-origin shift" in page.gui_scale.content
     finally:
         page.stop()
+
+
+def test_view_of_a_log_is_the_view_of_its_tables(dataset):
+    """`elastocal view LOG.mcap`: the page of a log shows what the page of the tables it holds shows
+    (the README's inputs: a log, or tables)."""
+    from elastocal.commands.view import build_view
+
+    from_log = build_view(view_args(str(dataset / "log.mcap")))
+    from_tables = build_view(view_args("--robot", str(dataset / "robot.toml"), "--static", str(dataset / "static.csv")))
+    assert from_log.pose_ids == from_tables.pose_ids and from_log.markers == from_tables.markers
+    np.testing.assert_allclose(from_log.measured, from_tables.measured, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(from_log.skeletons, from_tables.skeletons, rtol=0, atol=1e-12)
+    assert [m.title for m in from_log.models] == [m.title for m in from_tables.models]
+    for a, b in zip(from_log.models, from_tables.models):
+        np.testing.assert_allclose(a.pose_ratio, b.pose_ratio, rtol=1e-6)
