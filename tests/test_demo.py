@@ -18,6 +18,9 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
     # the guided procedure completed and the log holds it
     assert summary["procedure"]["status"] == "completed" and summary["procedure"]["steps"] == 6
     assert (out / "calibration.mcap").stat().st_size > 100_000
+    # Foxglove-ready (issue 17's acceptance): the demo's own log opens with mcap's reader, every message is
+    # valid against its channel's schema, and the Foxglove channels carry Foxglove's published schemas
+    _every_message_valid(out / "calibration.mcap")
     # the hidden effect is named, added, and the error falls to the noise floor
     assert summary["verdict"] == "link_compliance"
     assert summary["rms_before"] > 3 * summary["noise_floor"]
@@ -41,9 +44,6 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
     assert "link_compliance" in words and "no joint spring can mimic" in words and "%" in words
     assert not any(j in words for j in ("ΔBIC", "rms", "TPDO", "exact form", "p ="))
     assert "true" in text[text.index("The numbers", found):]
-    # Foxglove-ready (issue 17's acceptance): the demo's own log opens with mcap's reader, every message is
-    # valid against its channel's schema, and the Foxglove channels carry Foxglove's published schemas
-    _every_message_valid(out / "calibration.mcap")
 
 
 def _every_message_valid(path):
