@@ -93,7 +93,7 @@ def _parameter_panel(ax, drift: Drift, cols: list[int], tc: np.ndarray, tk: np.n
         base = values[known[0]] if known.size else values[finite[0]]
         rel = (values / base - 1.0) * 100.0
         err = stds / abs(base) * 100.0
-        label = name if determined[np.isfinite(values)].all() else f"{name} (x: not determined)"
+        label = name if determined[np.isfinite(values)].all() else f"{name} (x on the edge: not determined)"
         if determined.any():
             ax.errorbar(tc[determined], rel[determined], yerr=np.nan_to_num(err[determined]), color=colour,
                         marker=marker, ms=4, capsize=2, label=label)
@@ -101,7 +101,7 @@ def _parameter_panel(ax, drift: Drift, cols: list[int], tc: np.ndarray, tk: np.n
             label = None
         undetermined = np.isfinite(values) & ~determined
         if undetermined.any():    # no value to show: on the lower edge of the panel
-            ax.plot(tc[undetermined], np.full(int(undetermined.sum()), 0.03), "x", color=colour, ms=7, mew=1.5,
+            ax.plot(tc[undetermined], np.zeros(int(undetermined.sum())), "x", color=colour, ms=7, mew=1.5,
                     transform=ax.get_xaxis_transform(), clip_on=False, label=label)
         friction = any(name.startswith(p) and name[len(p):].isdigit() for p in FRICTION_PREFIXES)
         checked = np.isfinite(drift.check_value[:, j])

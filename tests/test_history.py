@@ -270,7 +270,7 @@ def test_drift_plot_draws_every_check_point_inside_its_panel(simulated_history, 
     k2_checks = [line for line in stiff.lines if line.get_marker() == "o" and line.get_mfc() == "none"
                  and line.get_color() == stiff.get_legend_handles_labels()[0][1][0].get_color()]
     assert k2_checks and min(np.min(line.get_ydata()) for line in k2_checks) == pytest.approx(-10.0, abs=2.5)
-    assert any(label.startswith("k1 (x: not determined)") for label in stiff.get_legend_handles_labels()[1])
+    assert any(label.startswith("k1 (x on the edge: not determined)") for label in stiff.get_legend_handles_labels()[1])
     # friction: the failed (check, joint) pairs are exactly the checks' own
     expected = set()
     for i, res in enumerate(results):
