@@ -12,8 +12,6 @@ degrees as those languages expect, one move per sample.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import pathlib
 import re
@@ -63,8 +61,12 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
     if any(w_present) and not all(w_present):
         raise InputError(f"the wrench needs all of {','.join(W_COLS)}", source=source, row=1)
     idx = {c: i for i, c in enumerate(header)}
+    records = list(reader)
+    fast = _parse_plain(records, header, idx, robot, all(w_present))
+    if fast is not None:
+        return fast
     t, q, w, lines = [], [], [], []
-    for lineno, row in reader:
+    for lineno, row in records:
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) != len(header):
@@ -88,6 +90,38 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
     return PlannedPath(t=np.array(t), q=np.array(q), wrench=np.array(w) if w else None, line=np.array(lines))
 
 
+def _parse_plain(records: list[tuple[int, list[str]]], header: list[str], idx: dict[str, int], robot: Robot | None,
+                 with_wrench: bool) -> PlannedPath | None:
+    """The path of a file without blank lines whose fields are all finite numbers within the
+    joint limits, in time order, converted in one numpy pass (numpy parses a field as
+    ``float()`` does); None for any other file, which the row-by-row reader reads or
+    refuses with the line and column of the first problem."""
+    if not records or any(len(row) != len(header) for _, row in records):
+        return None
+    try:
+        values = np.array([row for _, row in records], dtype=float)
+    except ValueError:
+        return None
+    if not np.all(np.isfinite(values)):
+        return None
+    t = values[:, idx["t"]]
+    q = values[:, [idx[c] for c in Q_COLS]]
+    if robot is not None and np.any((q < robot.lower - 1e-9) | (q > robot.upper + 1e-9)):
+        return None
+    if np.any(t[1:] < t[:-1]):
+        return None
+    wrench = values[:, [idx[c] for c in W_COLS]] if with_wrench else None
+    return PlannedPath(t=t.copy(), q=q, wrench=wrench, line=np.array([lineno for lineno, _ in records]))
+
+
+def _csv_lines(header: tuple[str, ...], values: np.ndarray) -> str:
+    """CSV text: the header, then one line per row of ``values`` with each number as
+    ``repr(float)`` (the shortest text that reads back to the same number)."""
+    lines = [",".join(header)]
+    lines += [repr(row)[1:-1].replace(", ", ",") for row in values.tolist()]
+    return "\n".join(lines) + "\n"
+
+
 def read_path(path: str | pathlib.Path, robot: Robot | None = None) -> PlannedPath:
     path = pathlib.Path(path)
     text = read_text_file(path)
@@ -96,27 +130,18 @@ def read_path(path: str | pathlib.Path, robot: Robot | None = None) -> PlannedPa
 
 def write_path(path: str | pathlib.Path, planned: PlannedPath) -> None:
     """Write a path CSV (t, q1..q6 and the wrench when the path has one)."""
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
     cols = ("t",) + Q_COLS + (W_COLS if planned.wrench is not None else ())
-    writer.writerow(cols)
-    for i in range(len(planned)):
-        row = [repr(float(planned.t[i]))] + [repr(float(v)) for v in planned.q[i]]
-        if planned.wrench is not None:
-            row += [repr(float(v)) for v in planned.wrench[i]]
-        writer.writerow(row)
-    pathlib.Path(path).write_text(out.getvalue(), encoding="utf-8")
+    parts = [planned.t, planned.q] + ([planned.wrench] if planned.wrench is not None else [])
+    values = np.column_stack([np.asarray(p, dtype=float).reshape(len(planned), -1) for p in parts])
+    pathlib.Path(path).write_text(_csv_lines(cols, values), encoding="utf-8")
 
 
 def write_compensated_csv(path: str | pathlib.Path, t: np.ndarray, result: CompensatedPath) -> None:
     """``t, q1..q6, fx..mz, qc1..qc6, dx, dy, dz``."""
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(("t",) + Q_COLS + W_COLS + QC_COLS + D_COLS)
-    for i in range(len(result)):
-        values = [t[i], *result.q_planned[i], *result.wrench[i], *result.q_command[i], *result.tcp_deflection[i]]
-        writer.writerow([repr(float(v)) for v in values])
-    pathlib.Path(path).write_text(out.getvalue(), encoding="utf-8")
+    values = np.column_stack([np.asarray(t, dtype=float).reshape(-1, 1), result.q_planned, result.wrench,
+                              result.q_command, result.tcp_deflection]).astype(float)
+    pathlib.Path(path).write_text(_csv_lines(("t",) + Q_COLS + W_COLS + QC_COLS + D_COLS, values),
+                                  encoding="utf-8")
 
 
 def _program_name(path: str | pathlib.Path, max_len: int) -> str:
@@ -126,8 +151,11 @@ def _program_name(path: str | pathlib.Path, max_len: int) -> str:
     return stem[:max_len]
 
 
-def _deg(v: float) -> str:
-    return f"{round(float(v), 6) + 0.0:.6f}"  # no "-0.000000"
+def _deg_lines(template: str, rows: np.ndarray) -> list[str]:
+    """``template % row`` for each row of numbers, whose ``%.6f`` fields print an angle in
+    degrees to 6 decimals: rounded to nearest (ties to even, as ``round``), and never as
+    "-0.000000" (a tiny negative angle prints as 0)."""
+    return [(template % tuple(row)).replace("-0.000000", "0.000000") for row in rows.tolist()]
 
 
 def _header_lines(result: CompensatedPath, comment: str) -> list[str]:
@@ -145,10 +173,11 @@ def format_krl(name: str, t: np.ndarray, result: CompensatedPath) -> str:
     duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
     lines += [f"; planned duration {duration:.3f} s: set the axis speed (BAS #VEL_PTP) to match",
               "  BAS(#INITMOV, 0)", "  $APO.CPTP = 1"]
-    for i, row in enumerate(deg):
-        axes = ", ".join(f"A{j + 1} {_deg(v)}" for j, v in enumerate(row))
-        approx = " C_PTP" if i < len(deg) - 1 else ""
-        lines.append(f"  PTP {{AXIS: {axes}}}{approx}")
+    axes = ", ".join(f"A{j + 1} %.6f" for j in range(deg.shape[1]))
+    moves = _deg_lines(f"  PTP {{AXIS: {axes}}} C_PTP", deg)
+    if moves:
+        moves[-1] = moves[-1][:-len(" C_PTP")]              # the last move stops
+    lines += moves
     lines.append("END")
     return "\n".join(lines) + "\n"
 
@@ -160,15 +189,13 @@ def format_rapid(name: str, t: np.ndarray, result: CompensatedPath) -> str:
     deg = np.degrees(result.q_command)
     lines = [f"MODULE {name}"] + ["  " + s for s in _header_lines(result, "!")] + ["  PROC main()"]
     ext = "[9E9,9E9,9E9,9E9,9E9,9E9]"
-    for i, row in enumerate(deg):
-        target = "[[" + ",".join(_deg(v) for v in row) + "]," + ext + "]"
-        if i == 0:
-            speed = "v100"
-        else:
-            dt = max(float(t[i] - t[i - 1]), 1e-3)
-            speed = f"v1000\\T:={dt:.4f}"
-        zone = "fine" if i == len(deg) - 1 else "z1"
-        lines.append(f"    MoveAbsJ {target}\\NoEOffs, {speed}, {zone}, tool0;")
+    target = "[[" + ",".join(["%.6f"] * deg.shape[1]) + "]," + ext + "]"
+    moves = _deg_lines(f"    MoveAbsJ {target}\\NoEOffs, ", deg)
+    # the first move approaches at v100, the others take their sample interval (1 ms at least)
+    dt = np.maximum(np.diff(np.asarray(t, dtype=float)), 1e-3)
+    speeds = ["v100"] + [f"v1000\\T:={d:.4f}" for d in dt.tolist()]
+    zones = ["z1"] * (len(moves) - 1) + ["fine"]
+    lines += [f"{move}{speed}, {zone}, tool0;" for move, speed, zone in zip(moves, speeds, zones)]
     lines += ["  ENDPROC", "ENDMODULE"]
     return "\n".join(lines) + "\n"
 

@@ -240,3 +240,96 @@ def test_nominal_targets_name_the_first_point_the_calibrated_robot_cannot_reach(
     got = k_marker.positions(k_marker.nominal_targets(q[reachable]))
     np.testing.assert_allclose(got, drawn, rtol=0, atol=1e-12)
     assert targets.shape == (len(reachable), 6)
+
+
+# ------------------------------------------------------------------ path files
+def _old_deg(v: float) -> str:
+    return f"{round(float(v), 6) + 0.0:.6f}"
+
+
+def _old_krl(name, t, result):
+    """format_krl as it was written per value before issue 15 (the reference for the bytes)."""
+    deg = np.degrees(result.q_command)
+    lines = ["&ACCESS RVP", f"DEF {name}( )"] + _old_header(result, ";")
+    duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    lines += [f"; planned duration {duration:.3f} s: set the axis speed (BAS #VEL_PTP) to match",
+              "  BAS(#INITMOV, 0)", "  $APO.CPTP = 1"]
+    for i, row in enumerate(deg):
+        axes = ", ".join(f"A{j + 1} {_old_deg(v)}" for j, v in enumerate(row))
+        lines.append(f"  PTP {{AXIS: {axes}}}" + (" C_PTP" if i < len(deg) - 1 else ""))
+    return "\n".join(lines + ["END"]) + "\n"
+
+
+def _old_rapid(name, t, result):
+    deg = np.degrees(result.q_command)
+    lines = [f"MODULE {name}"] + ["  " + s for s in _old_header(result, "!")] + ["  PROC main()"]
+    for i, row in enumerate(deg):
+        target = "[[" + ",".join(_old_deg(v) for v in row) + "],[9E9,9E9,9E9,9E9,9E9,9E9]]"
+        speed = "v100" if i == 0 else f"v1000\\T:={max(float(t[i] - t[i - 1]), 1e-3):.4f}"
+        zone = "fine" if i == len(deg) - 1 else "z1"
+        lines.append(f"    MoveAbsJ {target}\\NoEOffs, {speed}, {zone}, tool0;")
+    return "\n".join(lines + ["  ENDPROC", "ENDMODULE"]) + "\n"
+
+
+def _old_header(result, comment):
+    return [f"{comment} elastocal compensated joint path: {len(result)} points, form {result.form}, "
+            f"reference {result.reference}",
+            f"{comment} joint angles in degrees; compensation removes up to "
+            f"{1e3 * float(np.max(np.linalg.norm(result.tcp_deflection, axis=1))):.3f} mm of tool deflection"]
+
+
+def test_programs_and_csv_are_the_bytes_the_per_value_writers_wrote(robot, tmp_path):
+    """KRL, RAPID and the compensated CSV written a line at a time are byte-identical to the
+    per-value writers, also for ties at the 7th decimal of a degree, tiny negative angles
+    (never "-0.000000") and a zero time step (the 1 ms floor)."""
+    import csv
+    from dataclasses import replace
+
+    from elastocal.compensation.files import format_krl, format_rapid, write_compensated_csv
+
+    truth = CellTruth()
+    model = CompensationModel(robot, truth.stiffness, truth.compensator)
+    q = _dense(robot, 600)
+    result = compensate_path(model, q, np.array([0.0, 0.0, 1500.0, 0.0, 0.0, 0.0]))
+    qc = result.q_command.copy()
+    special = np.radians([-0.0, -4e-7, -5e-7, -6e-7, 1.0000005, -2.0000005, 5e-7, 12.3456785, -179.9999995])
+    qc[:len(special), 0] = special
+    qc[100:300] = np.radians(np.round(np.random.default_rng(10).uniform(-180, 180, (200, 6)), 7))
+    result = replace(result, q_command=qc)
+    t = np.arange(len(q)) * 0.004
+    t[5] = t[4]
+    assert format_krl("p", t, result) == _old_krl("p", t, result)
+    assert format_rapid("p", t, result) == _old_rapid("p", t, result)
+    assert "-0.000000" not in format_krl("p", t, result)
+    write_compensated_csv(tmp_path / "c.csv", t, result)
+    rows = list(csv.reader(open(tmp_path / "c.csv", encoding="utf-8")))
+    want = np.column_stack([t, result.q_planned, result.wrench, result.q_command, result.tcp_deflection])
+    assert rows[0][0] == "t" and len(rows) == len(q) + 1
+    assert all(r == [repr(float(v)) for v in w] for r, w in zip(rows[1:], want))
+
+
+def test_reading_a_path_in_one_pass_equals_the_row_by_row_reader(robot, monkeypatch):
+    from elastocal.compensation import files
+
+    q = _dense(robot, 500)
+    lines = ["q3,t,q1,q2,fx,fy,fz,mx,my,mz,q4,q5,q6"]          # columns in any order
+    for i, qi in enumerate(q):
+        fmt = (lambda x: repr(float(x)), lambda x: f" {x:.9e} ", lambda x: f"{x:+.12f}")[i % 3]
+        lines.append(",".join([fmt(qi[2]), repr(i * 0.002), fmt(qi[0]), fmt(qi[1]), "0", "1e-3", "1500.", ".0",
+                               "-0", "0", fmt(qi[3]), fmt(qi[4]), fmt(qi[5])]))
+    text = "\n".join(lines) + "\n"
+    fast = files.parse_path(text, robot)
+    from elastocal.identify.tables import csv_records
+
+    records = list(csv_records(text, "x"))
+    header = records[0][1]
+    assert files._parse_plain(records[1:], header, {c: i for i, c in enumerate(header)}, robot, True) is not None
+    monkeypatch.setattr(files, "_parse_plain", lambda *args: None)
+    slow = files.parse_path(text, robot)
+    for what in ("t", "q", "wrench", "line"):
+        np.testing.assert_array_equal(getattr(fast, what), getattr(slow, what))
+    np.testing.assert_array_equal(fast.line, np.arange(2, len(q) + 2))
+    monkeypatch.undo()
+    gap = files.parse_path("\n".join(lines[:10] + [""] + lines[10:]) + "\n", robot)   # a blank line: lines shift
+    np.testing.assert_array_equal(gap.line, np.r_[np.arange(2, 11), np.arange(12, len(q) + 3)])
+    np.testing.assert_array_equal(gap.q, fast.q)
