@@ -21,7 +21,7 @@ import numpy as np
 
 from elastocal.acquisition import logformat as lf
 from elastocal.acquisition.logreader import SEGMENT_NS, LogContents, read_log
-from elastocal.errors import InputError
+from elastocal.errors import Arg, InputError
 from elastocal.identify.robot import Robot, parse_robot
 from elastocal.identify.tables import (
     RunTable,
@@ -115,9 +115,9 @@ def static_table_from_log(contents: LogContents, robot: Robot | None = None) -> 
     if not readings:
         return None
     if not contents.markers:
-        raise InputError("the log has readings but no tracker sample (its tracker was read by its own "
-                         "software): pair that software's export with the log by `elastocal import EXPORT "
-                         "--log LOG.mcap` (docs/import.md)", source=contents.path)
+        raise InputError(("the log has readings but no tracker sample (its tracker was read by its own "
+                          "software): pair that software's export with the log (docs/import.md: `import` "
+                          "with ", Arg("log", "LOG.mcap"), ")"), source=contents.path)
     pose, load, t, q, wrench, currents, marker, xyz = [], [], [], [], [], [], [], []
     for r in readings:
         start, end = r.window

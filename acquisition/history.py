@@ -23,7 +23,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.identify.calibration import FORMAT, Calibration
+from elastocal.identify.calibration import FORMAT, CalibratedParameter, Calibration, calibration_from_json
 from elastocal.identify.check import VERDICTS
 
 SCHEMA_VERSION = 1
@@ -131,13 +131,12 @@ class Drift:
     check_friction_tolerance: np.ndarray
 
 
-def is_determined(p: Mapping[str, Any]) -> bool:
+def is_determined(p: CalibratedParameter) -> bool:
     """Whether a calibrated parameter (docs/formats.md §4) is determined by its data: not marked
     ``"determined": false``, with a finite std within :data:`DETERMINED_RELATIVE_STD` of its value."""
-    value, std = p.get("value"), p.get("std")
-    if p.get("determined") is False or not isinstance(value, (int, float)) or not isinstance(std, (int, float)):
+    if not p.is_result or p.std is None:
         return False
-    return math.isfinite(std) and std <= DETERMINED_RELATIVE_STD * abs(value)
+    return math.isfinite(p.std) and p.std <= DETERMINED_RELATIVE_STD * abs(p.value)
 
 
 def clean(obj):
@@ -154,10 +153,7 @@ def clean(obj):
 def _calibration_from_json(doc: Mapping[str, Any], source: str) -> Calibration:
     if not isinstance(doc, Mapping) or doc.get("format") != FORMAT:
         raise InputError(f"a stored calibration is not {FORMAT}", source=source)
-    return Calibration(robot=str(doc.get("robot", "")), created=str(doc.get("created", "")),
-                       model=tuple(doc.get("model", ["joint_stiffness"])), torque=str(doc.get("torque", "current")),
-                       parameters=doc.get("parameters", {}), residual=doc.get("residual", {}),
-                       data=tuple(doc.get("data", [])))
+    return calibration_from_json(dict(doc), source)
 
 
 class History:
@@ -288,7 +284,7 @@ class History:
         if names is None:
             seen: dict[str, None] = {}
             for rec in cals:
-                for n in rec.calibration.parameters:
+                for n in rec.calibration.names:
                     seen.setdefault(n, None)
             stiff = [f"k{j}" for j in range(1, 7) if f"k{j}" in seen]
             names = tuple(stiff + [n for n in seen if n not in stiff])
@@ -297,9 +293,9 @@ class History:
         for n in names:
             unit = ""
             for rec in cals:
-                p = rec.calibration.parameters.get(n)
+                p = rec.calibration.find(n)
                 if p is not None:
-                    unit = str(p.get("unit", ""))
+                    unit = p.unit or ""
                     break
             units.append(unit)
         cv = np.full((len(cals), len(names)), np.nan)
@@ -307,11 +303,10 @@ class History:
         cd = np.zeros((len(cals), len(names)), dtype=bool)
         for i, rec in enumerate(cals):
             for j, n in enumerate(names):
-                p = rec.calibration.parameters.get(n)
+                p = rec.calibration.find(n)
                 if p is not None:
-                    cv[i, j] = float(p["value"])
-                    std = p.get("std")
-                    cs[i, j] = float(std) if isinstance(std, (int, float)) else math.nan
+                    cv[i, j] = p.value
+                    cs[i, j] = math.nan if p.std is None else p.std
                     cd[i, j] = is_determined(p)
         kv = np.full((len(checks), len(names)), np.nan)
         unexplained = np.full(len(checks), np.nan)
@@ -366,9 +361,9 @@ def _friction_drift(result: object, calibration: Calibration | None, names: Sequ
             continue
         for prefix in FRICTION_PREFIXES:
             name = f"{prefix}{joint}"
-            p = calibration.parameters.get(name)
-            if name in names and isinstance(p, Mapping) and isinstance(p.get("value"), (int, float)):
-                row[names.index(name)] = float(p["value"]) * measured / predicted
+            p = calibration.find(name)
+            if name in names and p is not None:
+                row[names.index(name)] = p.value * measured / predicted
 
 
 def _friction_levels(result: object, verdict: str, relative: np.ndarray, failed: np.ndarray) -> float:

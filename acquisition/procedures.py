@@ -34,7 +34,7 @@ from elastocal.acquisition.recorder import Recorder
 from elastocal.acquisition.session import Session
 from elastocal.acquisition.steps import PERSON_S, build_steps
 from elastocal.acquisition.ui import Aborted, AutoUI, OperatorUI
-from elastocal.errors import DeviceError, InputError
+from elastocal.errors import Arg, DeviceError, InputError
 from elastocal.textfiles import read_text_file
 
 
@@ -78,12 +78,14 @@ def _procedures(plan: Plan, procedures: Sequence[str] | None) -> tuple[str, ...]
 def _check_out(out_path: str | pathlib.Path, overwrite: bool, resume_from) -> None:
     out = pathlib.Path(out_path)
     if out.exists() and not overwrite:
-        raise InputError("already exists; choose another --out, or --force to overwrite it", source=str(out))
+        raise InputError(("already exists; choose another ", Arg("out"), ", or ", Arg("force", True),
+                          " to overwrite it"), source=str(out))
     if resume_from is not None:
         if not pathlib.Path(resume_from).is_file():
             raise InputError("cannot read: no such log", source=str(resume_from))
         if pathlib.Path(resume_from).resolve() == out.resolve():
-            raise InputError("--resume must name the interrupted log, --out a new file", source=str(out))
+            raise InputError((Arg("resume"), " must name the interrupted log, ", Arg("out"), " a new file"),
+                             source=str(out))
 
 
 def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: OperatorUI | None = None,
@@ -251,8 +253,8 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
             if rig is not None:
                 world = stack.enter_context(rig)
         if yes and world is None:
-            raise InputError("--yes answers the prompts of a simulated cell only; a person confirms every load "
-                             "change on a real cell", argument="yes")
+            raise InputError((Arg("yes"), " answers the prompts of a simulated cell only; a person confirms every "
+                              "load change on a real cell"), argument="yes")
         devices = stack.enter_context(open_cell(config))
         io = stack.enter_context(DriverCellIO(robot, config, drives=list(devices.drives.values()),
                                               tracker=devices.tracker, controller=devices.controller,

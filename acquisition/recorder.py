@@ -35,7 +35,7 @@ from mcap.writer import CompressionType, Writer
 from elastocal import __version__
 from elastocal.acquisition import logformat as lf
 from elastocal.acquisition.foxglove import CellPublisher
-from elastocal.errors import InputError
+from elastocal.errors import Arg, InputError
 from elastocal.identify.robot import parse_robot
 
 Clock = Callable[[], int]
@@ -71,7 +71,7 @@ class Recorder:
                  unix_clock: Clock = time.time_ns, foxglove: bool = True) -> None:
         self.path = pathlib.Path(path)
         if not overwrite and self.path.exists():
-            raise InputError("already exists; choose another --out or remove it", source=str(self.path))
+            raise InputError(("already exists; choose another ", Arg("out"), " or remove it"), source=str(self.path))
         if chunk_size <= 0:
             raise ValueError("chunk_size must be positive")
         if flush_interval_s <= 0:

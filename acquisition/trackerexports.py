@@ -27,7 +27,7 @@ import pathlib
 import re
 from dataclasses import dataclass
 
-from elastocal.errors import InputError
+from elastocal.errors import Arg, InputError
 from elastocal.identify.tables import check_header
 from elastocal.textfiles import read_text_file
 
@@ -138,8 +138,8 @@ def _leica_roles(header: list[str], source: str) -> dict[str, tuple[int, str | N
                 break
     missing = [r for r in ("name", "x", "y", "z") if r not in roles]
     if missing:
-        raise InputError(f"not a Leica-style point export: no column for {', '.join(missing)} (expected a "
-                         "header like Point,X [mm],Y [mm],Z [mm]; for other layouts give --columns)",
+        raise InputError((f"not a Leica-style point export: no column for {', '.join(missing)} (expected a "
+                          "header like Point,X [mm],Y [mm],Z [mm]; for other layouts give ", Arg("columns"), ")"),
                          source=source, row=1)
     return roles
 
@@ -184,7 +184,7 @@ def read_points(path: str | pathlib.Path, *, layout: str = "auto", unit: str | N
 
 
 def _read_xyz(text: str, source: str, unit: str) -> list[ExportPoint]:
-    f = length_factor(unit, source="--unit")
+    f = length_factor(unit, argument="unit")
     out = []
     for line, raw in enumerate(text.split("\n"), start=1):
         s = raw.strip()
@@ -211,8 +211,8 @@ def _read_table(text: str, source: str, unit: str | None, columns: dict[str, str
         roles = {}
         for role, col in columns.items():
             if col not in header:
-                raise InputError(f"--columns maps {role} to {col!r}, which is not in the header "
-                                 f"({', '.join(header)})", source=source, row=1)
+                raise InputError((Arg("columns"), f" maps {role} to {col!r}, which is not in the header "
+                                  f"({', '.join(header)})"), source=source, row=1)
             roles[role] = (header.index(col), None)
     head_units = {r: u for r, (_, u) in roles.items() if u}
     xyz_units = {head_units.get(c) for c in "xyz"}
@@ -220,14 +220,14 @@ def _read_table(text: str, source: str, unit: str | None, columns: dict[str, str
         raise InputError(f"X, Y and Z have different units ({', '.join(sorted(u or '?' for u in xyz_units))})",
                          source=source, row=1)
     file_unit = xyz_units.pop()
-    if unit is not None and file_unit is not None and length_factor(unit, source="--unit") != \
+    if unit is not None and file_unit is not None and length_factor(unit, argument="unit") != \
             length_factor(file_unit, source=source, column=header[roles["x"][0]]):
-        raise InputError(f"--unit {unit} contradicts the header's unit [{file_unit}]", source=source, row=1)
+        raise InputError((Arg("unit", unit), f" contradicts the header's unit [{file_unit}]"), source=source, row=1)
     length = file_unit or unit
     if length is None:
-        raise InputError("the coordinates' unit is not in the header (X [mm]); give --unit mm or --unit m",
-                         source=source, row=1)
-    f = length_factor(length, source=source) if file_unit else length_factor(length, source="--unit")
+        raise InputError(("the coordinates' unit is not in the header (X [mm]); give ", Arg("unit", "mm"), " or ",
+                          Arg("unit", "m")), source=source, row=1)
+    f = length_factor(length, source=source) if file_unit else length_factor(length, argument="unit")
     fu = length_factor(head_units["u95"], source=source) if "u95" in head_units else f
     temp_unit = (head_units.get("temperature") or "°C").replace(" ", "").lower()
     if temp_unit not in ("°c", "c", "degc", "°f", "f", "degf"):
@@ -286,13 +286,13 @@ def check_units(points: list[ExportPoint], source: str) -> None:
     """Coordinates within the tracker's range and not all within 50 mm of it (see the module docstring)."""
     far = max(points, key=lambda p: max(abs(v) for v in p.xyz_m))
     if max(abs(v) for v in far.xyz_m) > MAX_RANGE_M:
-        raise InputError(f"point {far.name} is {max(abs(v) for v in far.xyz_m):.4g} m away, beyond a tracker's "
-                         f"{MAX_RANGE_M:g} m: the numbers look like millimetres; give --unit mm",
+        raise InputError((f"point {far.name} is {max(abs(v) for v in far.xyz_m):.4g} m away, beyond a tracker's "
+                          f"{MAX_RANGE_M:g} m: the numbers look like millimetres; give ", Arg("unit", "mm")),
                          source=source, row=far.line)
     reach = max(math.sqrt(sum(v * v for v in p.xyz_m)) for p in points)
     if reach < MIN_SPREAD_M:
-        raise InputError(f"every point is within {reach * 1e3:.3g} mm of the tracker: the numbers look like "
-                         "metres read as millimetres; give --unit m", source=source)
+        raise InputError((f"every point is within {reach * 1e3:.3g} mm of the tracker: the numbers look like "
+                          "metres read as millimetres; give ", Arg("unit", "m")), source=source)
 
 
 def parse_columns(text: str | None) -> dict[str, str] | None:
@@ -311,6 +311,5 @@ def parse_columns(text: str | None) -> dict[str, str] | None:
         out[role] = col
     missing = [r for r in ("name", "x", "y", "z") if r not in out]
     if missing:
-        raise InputError(f"--columns must map {', '.join(missing)} (e.g. name=Point,x=X,y=Y,z=Z)",
-                         argument="columns")
+        raise InputError(f"must map {', '.join(missing)} (e.g. name=Point,x=X,y=Y,z=Z)", argument="columns")
     return out

@@ -273,8 +273,8 @@ def pair_with_joints(points: list[ExportPoint], log: JointLog, *, names: NamePat
                     continue
                 pose, load = states.pop()
             else:
-                unpaired.append((p, "neither its name (--names) nor the joint log (pose, load columns) says its "
-                                    "pose and load"))
+                unpaired.append((p, "neither its name (the names pattern) nor the joint log (pose, load columns) "
+                                    "says its pose and load"))
                 continue
         else:   # by name: the samples of its pose and load, around its time when it has one (docs/import.md)
             pose, load = fields["pose"], fields["load"]

@@ -74,11 +74,10 @@ class CompensationModel:
         if cal.robot and cal.robot != robot.name:
             raise InputError(f"the calibration is for robot {cal.robot!r}, the description is {robot.name!r}",
                              source=source, column="robot")
-        params = cal.parameters
-        missing = [f"k{j}" for j in range(1, 7) if f"k{j}" not in params]
+        missing = [f"k{j}" for j in range(1, 7) if not cal.has(f"k{j}")]
         if missing:
             raise InputError(f"missing joint stiffness {', '.join(missing)}", source=source, column="parameters")
-        k = np.array([float(params[f"k{j}"]["value"]) for j in range(1, 7)])
+        k = np.array(cal.stiffness())
         bad = np.flatnonzero(~(k > 0))
         if bad.size:
             raise InputError(f"stiffness must be positive, got {k[bad[0]]}", source=source,
@@ -87,16 +86,16 @@ class CompensationModel:
         spec = robot.compensator
         if spec is not None:
             names = spec.parameter_names
-            if all(n in params for n in names):
-                comp = tuple(float(params[n]["value"]) for n in names)
-            elif any(n in params for n in names):
+            if all(cal.has(n) for n in names):
+                comp = tuple(cal.value(n) for n in names)
+            elif any(cal.has(n) for n in names):
                 raise InputError(f"give both compensator parameters {' and '.join(names)}", source=source,
                                  column="parameters")
             else:
                 nominal = spec.nominal_parameters()
                 comp = None if nominal is None else (float(nominal[0]), float(nominal[1]))
             other = ("K_c", "s0") if spec.kind == "hydropneumatic" else ("C", "l_c")
-            if any(n in params for n in other):
+            if any(cal.has(n) for n in other):
                 raise InputError(f"compensator parameters {', '.join(other)} do not fit the robot's "
                                  f"{spec.kind} compensator", source=source, column="parameters")
         if "kinematic_errors" in cal.model:        # the real geometry (issue 12, part 7)
@@ -130,7 +129,7 @@ def unmodelled_effects(cal: Calibration) -> dict[str, list[str]]:
         if name in MODELLED_EFFECTS or name in NO_PATH_DEFLECTION:
             continue
         names = get_effect(name).parameters
-        out[name] = [p for p in cal.parameters if p in names] or [p for p in names if p in cal.parameters]
+        out[name] = [p for p in cal.names if p in names] or [p for p in names if cal.has(p)]
     return out
 
 

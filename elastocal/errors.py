@@ -8,9 +8,50 @@ printing ``str(error)`` as one line.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Mapping, Sequence, Union
+
 
 class ElastocalError(Exception):
     """Base of every expected error: its message is one line for the user."""
+
+
+@dataclass(frozen=True)
+class Arg:
+    """A library argument that a message names (what to give, or what was wrong), said as
+    its reader knows it: by the library as the keyword (``torque='force'``), on a command
+    line as the flag (``--torque force``; :meth:`InputError.on_command_line`). ``value``:
+    None names the argument itself, True a switch to turn on, anything else the value."""
+
+    name: str
+    value: object = None
+
+    def library(self) -> str:
+        if self.value is None:
+            return self.name
+        return f"{self.name}={self.value!r}"
+
+    def command_line(self, flags: "Mapping[str, str] | None" = None) -> str:
+        flag = flag_of(self.name, flags)
+        return flag if self.value is None or self.value is True else f"{flag} {self.value}"
+
+
+def flag_of(argument: str, flags: "Mapping[str, str] | None" = None) -> str:
+    """The command-line flag of a library argument: ``flags[argument]``, else ``--`` and the
+    argument with dashes (``exclude_outliers`` -> ``--exclude-outliers``)."""
+    return (flags or {}).get(argument, "--" + argument.replace("_", "-"))
+
+
+#: a message: a text, or texts and the arguments it names (:class:`Arg`), in order
+Message = Union[str, Sequence[Union[str, Arg]]]
+
+
+def say(message: Message, flags: "Mapping[str, str] | None" = None, *, command_line: bool = False) -> str:
+    """``message`` as one text: its arguments in the library's words, or as flags (``command_line``)."""
+    if isinstance(message, str):
+        return message
+    return "".join(p if isinstance(p, str) else p.command_line(flags) if command_line else p.library()
+                   for p in message)
 
 
 class InputError(ElastocalError, ValueError):
@@ -19,40 +60,49 @@ class InputError(ElastocalError, ValueError):
     ``source`` names the input (a path, or a flag when the CLI raises it), ``row``
     is the 1-based line in a file (header = line 1), ``column`` the column or field
     name. The library names a bad *argument* of its own functions with ``argument``
-    (``"model"``, ``"test_pose"``) and never a command-line flag; the CLI maps the
-    argument onto its flag (:meth:`with_source`, ``--model``).
+    (``"model"``, ``"test_pose"``) and never a command-line flag; a message that tells
+    what to give names the arguments as :class:`Arg` parts (``("use ", Arg("torque",
+    "force"))``). The CLI says both as its flags (:meth:`on_command_line`: ``--model``,
+    ``use --torque force``); ``str()`` says them in the library's words.
     """
 
-    def __init__(self, message: str, *, source: str | None = None,
+    def __init__(self, message: Message, *, source: str | None = None,
                  row: int | None = None, column: str | None = None, argument: str | None = None) -> None:
         self.source = source
         self.row = row
         self.column = column
         self.argument = argument
-        self.detail = message
+        self.parts: tuple[str | Arg, ...] = (message,) if isinstance(message, str) else tuple(message)
+        self.detail = say(self.parts)
+        super().__init__(self._where(self.source, self.argument, self.detail))
+
+    def _where(self, source: str | None, argument: str | None, detail: str) -> str:
         where = []
         if source:
             where.append(str(source))
         elif argument:
             where.append(argument)
-        if row is not None:
-            where.append(f"line {row}")
-        if column:
-            where.append(f"column {column}")
+        if self.row is not None:
+            where.append(f"line {self.row}")
+        if self.column:
+            where.append(f"column {self.column}")
         prefix = ", ".join(where)
-        super().__init__(f"{prefix}: {message}" if prefix else message)
+        return f"{prefix}: {detail}" if prefix else detail
 
     def with_source(self, source: str) -> "InputError":
         """The same error naming ``source`` (e.g. the CLI flag of the library's argument)."""
-        return InputError(self.detail, source=source, row=self.row, column=self.column)
+        return InputError(self.parts, source=source, row=self.row, column=self.column)
 
-    def on_command_line(self, flags: "dict[str, str] | None" = None) -> "InputError":
+    def on_command_line(self, flags: "Mapping[str, str] | None" = None) -> "InputError":
         """The error as a command line says it: a library argument becomes its flag
-        (``flags[argument]``, else ``--`` and the argument with dashes)."""
-        if self.source is not None or not self.argument:
+        (``flags[argument]``, else ``--`` and the argument with dashes), in the message too."""
+        source = self.source
+        if source is None and self.argument:
+            source = flag_of(self.argument, flags)
+        if source == self.source and all(isinstance(p, str) for p in self.parts):
             return self
-        flag = (flags or {}).get(self.argument, "--" + self.argument.replace("_", "-"))
-        return self.with_source(flag)
+        return InputError(say(self.parts, flags, command_line=True), source=source, row=self.row,
+                          column=self.column)
 
 
 def check_known_keys(table, known, *, source: str | None, where: str, what: str = "") -> None:
@@ -77,7 +127,7 @@ class EffectRefused(InputError):
     ``reason`` its module gives (identification refuses it; diagnosis lists it as
     not testable). The message is ``"<effect>: <reason>"`` unless ``message`` is given."""
 
-    def __init__(self, effect: str, reason: str, *, message: str | None = None,
+    def __init__(self, effect: str, reason: str, *, message: Message | None = None,
                  source: str | None = None, argument: str | None = None) -> None:
         self.effect = effect
         self.reason = reason

@@ -20,7 +20,7 @@ import pathlib
 from dataclasses import dataclass
 from typing import Sequence
 
-from elastocal.errors import InputError
+from elastocal.errors import Arg, InputError
 from elastocal.fleet.discover import CELL_FILE
 from elastocal.fleet.tasks import LogResult
 
@@ -184,21 +184,24 @@ def plant_drift(paths: Sequence[str | pathlib.Path]) -> list[CellDrift]:
 
 
 def current_calibration(cell_config: str | pathlib.Path | None):
-    """(the calibration in force in the cell's history, its id, "") -- or (None, None, why not)."""
+    """(the calibration in force in the cell's history, its id, None) -- or (None, None, an
+    :class:`InputError` saying why not: the caller says it, ``fleet.tasks.error_text``)."""
     from elastocal.acquisition.history import History
     from elastocal.drivers.config import load_cell_config
 
     if cell_config is None:
-        return None, None, (f"no {CELL_FILE} in its folder or above: a check needs the cell's history "
-                            "(or give --cell)")
+        return None, None, InputError((f"no {CELL_FILE} in its folder or above: a check needs the cell's history "
+                                       "(or give ", Arg("cell"), ")"))
     try:
         config = load_cell_config(cell_config)
         if config.history is None:
-            return None, None, f"{cell_config}: names no history ([cell] history = ...), so no calibration to check"
+            return None, None, InputError("names no history ([cell] history = ...), so no calibration to check",
+                                          source=str(cell_config))
         with History(config.history, create=False) as h:
             rec = h.current()
     except InputError as exc:
-        return None, None, str(exc)
+        return None, None, exc
     if rec is None:
-        return None, None, f"{config.history}: the history holds no calibration; record one first"
-    return rec.calibration, rec.id, ""
+        return None, None, InputError("the history holds no calibration; record one first",
+                                      source=str(config.history))
+    return rec.calibration, rec.id, None

@@ -28,7 +28,7 @@ import logging
 import os
 from typing import Callable, Iterator, Sequence
 
-from elastocal.errors import DeviceError, InputError
+from elastocal.errors import Arg, DeviceError, InputError
 from elastocal.fleet.tasks import FleetTask, LogResult, error_text, run_task
 
 #: times a task whose worker died is run again before it is recorded as failed
@@ -83,8 +83,8 @@ def resolve_pool(pool: str, scheduler: str | None) -> str:
     if pool == "auto":
         pool = "dask" if scheduler or dask_available() else "processes"
     if pool == "dask" and not dask_available():
-        what = "--scheduler" if scheduler else "--pool dask"
-        raise InputError(f"needs dask.distributed, which is not installed: {INSTALL_HINT}", source=what)
+        raise InputError(f"needs dask.distributed, which is not installed: {INSTALL_HINT}",
+                         argument="scheduler" if scheduler else "pool")
     return pool
 
 
@@ -99,7 +99,8 @@ def run_tasks(tasks: Sequence[FleetTask], *, pool: str = "auto", scheduler: str 
     if workers is not None and workers < 1:
         raise InputError(f"must be at least 1, got {workers}", argument="workers")
     if scheduler and workers is not None:
-        raise InputError("the scheduler's workers do the work; --workers sizes a local cluster", argument="workers")
+        raise InputError(("the scheduler's workers do the work; ", Arg("workers"), " sizes a local cluster"),
+                         argument="workers")
     n_workers = workers or default_workers()
     results: list[LogResult | None] = [None] * len(tasks)
     failed = 0

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from elastocal.errors import InputError
+from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
 from elastocal.identify.calibration import Calibration
@@ -106,8 +106,8 @@ class Validation:
 
 
 def _value(cal: Calibration, name: str) -> float | None:
-    p = cal.parameters.get(name)
-    return None if p is None else float(p["value"])
+    p = cal.find(name)
+    return None if p is None else p.value
 
 
 def calibrated_robot(robot: Robot, calibration: Calibration) -> Robot:
@@ -123,8 +123,8 @@ def calibration_frame(calibration: Calibration) -> Registration:
     """The calibration's registration (``tracker_frame`` parameters rx..tz)."""
     values = [_value(calibration, n) for n in ("rx", "ry", "rz", "tx", "ty", "tz")]
     if any(v is None for v in values):
-        raise InputError("--keep-frame needs a calibration with tracker_frame (rx..tz); identify with "
-                         "--model ...,tracker_frame", argument="calibration")
+        raise InputError((Arg("keep_frame"), " needs a calibration with tracker_frame (rx..tz); identify with ",
+                          Arg("model", "...,tracker_frame")), argument="calibration")
     return Registration(rotation=pin.exp3(np.array(values[:3])), translation=np.array(values[3:]), rms=float("nan"))
 
 

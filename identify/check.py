@@ -197,12 +197,8 @@ def _reported_name(beta_name: str) -> str:
 
 
 def _param(cal: Calibration, name: str) -> tuple[float, float] | None:
-    p = cal.parameters.get(name)
-    if p is None:
-        return None
-    std = p.get("std")
-    std = float(std) if isinstance(std, (int, float)) and math.isfinite(std) else 0.0
-    return float(p["value"]), std
+    p = cal.find(name)
+    return None if p is None else (p.value, p.std_or_zero)
 
 
 def _model_allowance(calibration: Calibration, noise_var: float, n_params: int) -> float:
@@ -210,18 +206,18 @@ def _model_allowance(calibration: Calibration, noise_var: float, n_params: int) 
     ``rms^2`` minus what noise alone leaves. The calibration's own noise floor
     when it records one, else the check's noise per component reduced by the
     calibration's degrees of freedom (``1 - p/n``)."""
-    res = calibration.residual if isinstance(calibration.residual, dict) else {}
-    rms = res.get("rms")
-    if not isinstance(rms, (int, float)) or not math.isfinite(rms):
+    res = calibration.residual
+    rms = res.rms
+    if rms is None or not math.isfinite(rms):
         return 0.0
-    floor = res.get("noise_floor")
-    if isinstance(floor, (int, float)) and math.isfinite(floor):
-        expected = float(floor) ** 2
+    floor = res.noise_floor
+    if floor is not None and math.isfinite(floor):
+        expected = floor ** 2
     else:
-        n = res.get("n")
-        frac = 1.0 - n_params / n if isinstance(n, (int, float)) and n > n_params else 1.0
+        n = res.n
+        frac = 1.0 - n_params / n if n is not None and n > n_params else 1.0
         expected = noise_var * frac
-    return math.sqrt(max(float(rms) ** 2 - expected, 0.0))
+    return math.sqrt(max(rms ** 2 - expected, 0.0))
 
 
 def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, alpha: float = 1e-3,
@@ -229,7 +225,7 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
     """Compare the check's deflections with the calibration's prediction (module docstring)."""
     from elastocal.identify.static import identify_static
 
-    missing = [f"k{j}" for j in range(1, 7) if f"k{j}" not in calibration.parameters]
+    missing = [f"k{j}" for j in range(1, 7) if not calibration.has(f"k{j}")]
     if len(missing) == 6:
         raise InputError("the calibration holds no joint stiffness (k1..k6); a static check needs one",
                          source=calibration.source, argument="calibration")
@@ -296,7 +292,7 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
     if dof < 1:
         raise InputError(f"{n} deflection components cannot test the calibration once {len(nuisance)} session "
                          "parameters are fitted; add poses to the check", source=table.source)
-    untested = tuple(m for m in missing) + tuple(u for u in fit.unidentifiable if u in calibration.parameters)
+    untested = tuple(m for m in missing) + tuple(u for u in fit.unidentifiable if calibration.has(u))
     changes.sort(key=lambda c: -abs(c.z))
     return DeflectionCheck(measured=measured, predicted=predicted, chi2=chi2, dof=dof,
                            p_value=float(stats.chi2.sf(chi2, dof)), alpha=alpha, noise_floor_m=floor,
@@ -316,7 +312,7 @@ def check_friction(robot: Robot, calibration: Calibration, runs: RunTable, *, al
     None when the calibration holds no friction."""
     from elastocal.identify.friction import friction_samples
 
-    if not any(f"fc{j}" in calibration.parameters for j in range(1, 7)):
+    if not any(calibration.has(f"fc{j}") for j in range(1, 7)):
         return None
     if not 0.0 <= tolerance:
         raise InputError(f"must be >= 0, got {tolerance}", argument="friction_tolerance")
@@ -366,7 +362,7 @@ def check_calibration(robot: Robot, calibration: Calibration, *, static: StaticT
         raise InputError(f"must be between 0 and 1, got {alpha}", argument="alpha")
     if static is None and runs is None:
         raise InputError("the check holds neither static poses nor runs", argument="static")
-    has_friction = runs is not None and any(f"fc{j}" in calibration.parameters for j in range(1, 7))
+    has_friction = runs is not None and any(calibration.has(f"fc{j}") for j in range(1, 7))
     n_tests = int(static is not None) + int(has_friction)
     share = alpha / max(n_tests, 1)
     reasons: list[tuple[bool, str]] = []      # (failed, text)

@@ -400,8 +400,8 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
             kept = [o for o in ds.outliers if not o.excluded]
             if kept:
                 unexplained = (f"{len(kept)} reading(s) far off their repeats (lines "
-                               f"{', '.join(str(o.line) for o in kept)}) are in the fit: diagnose again with "
-                               "--exclude-outliers", *unexplained)
+                               f"{', '.join(str(o.line) for o in kept)}) are in the fit: diagnose again leaving "
+                               "them out", *unexplained)
             detail = replace(detail, follows=unexplained)
     abs_diag = None
     if absolute:     # the deflection model's final form against the absolute positions

@@ -127,8 +127,3 @@ def mark_stiffness(parameters: dict) -> dict:
                 p = {**p, "determined": False, "note": why}
         out[name] = p
     return out
-
-
-def undetermined(parameters: dict) -> list[str]:
-    """Names of the parameters marked not determined."""
-    return [name for name, p in parameters.items() if p.get("determined") is False]

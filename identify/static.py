@@ -32,7 +32,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
-from elastocal.errors import EffectRefused, InputError, UnidentifiableError
+from elastocal.errors import Arg, EffectRefused, InputError, UnidentifiableError
 from elastocal.identify.blas import one_blas_thread
 from elastocal.identify.effects import get_effect
 from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext
@@ -669,8 +669,8 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
             return first
         return identify_static(robot, refined, model=model, torque=torque, form=form, max_iter=max_iter, tol=tol)
     if torque == "current" and not ds.has_currents:
-        raise InputError("current-based identification needs the currents i1..i6 in every row; "
-                         "use --torque force", source=ds.source)
+        raise InputError(("current-based identification needs the currents i1..i6 in every row; use ",
+                          Arg("torque", "force")), source=ds.source)
     if torque == "force" and not ds.has_wrench:
         raise InputError("force-based identification needs the wrench fx..mz of every loaded state",
                          source=ds.source)

@@ -211,7 +211,7 @@ def test_calibration_units_are_converted(data, tmp_path):
     cal = read_calibration(tmp_path / "deg.json")
     for n, v in k_si.items():
         assert cal.value(n) == pytest.approx(v, rel=1e-12)
-        assert cal.parameters[n]["unit"] == "N*m/rad"
+        assert cal.find(n).unit == "N*m/rad"
     out = {}
     for name in ("deg.json", "si.json"):
         src = tmp_path / name if name == "deg.json" else data / "cal.json"
@@ -506,14 +506,13 @@ def test_a_check_without_terminal_runs_unattended(data, tmp_path, capsys, monkey
 
 def test_history_shows_friction_drift_and_plots_every_check(tmp_path, capsys):
     from elastocal.acquisition.history import History, drift_figure, drift_summary
-    from elastocal.identify.calibration import Calibration
+    from elastocal.identify.calibration import CalibratedParameter as P, Calibration, Residual
 
-    params = {f"k{j}": {"value": 5e5, "std": 5e2, "unit": "N*m/rad"} for j in range(1, 7)}
-    params.update(fc2={"value": 90.0, "std": 0.5, "unit": "N*m"}, fv2={"value": 600.0, "std": 3.0,
-                                                                       "unit": "N*m*s/rad"})
+    params = tuple(P(f"k{j}", 5e5, 5e2, "N*m/rad") for j in range(1, 7)) + (P("fc2", 90.0, 0.5, "N*m"),
+                                                                           P("fv2", 600.0, 3.0, "N*m*s/rad"))
     cal = Calibration(robot="HH-150", created="2026-01-05T08:00:00Z",
                       model=("joint_stiffness", "coulomb_friction", "viscous_friction"), torque="current",
-                      parameters=params, residual={"rms": 8e-6, "max": 3e-5, "n": 100})
+                      parameters=params, residual=Residual(rms=8e-6, max=3e-5, n=100))
     t0 = 1_767_600_000 * 10**9
     db = tmp_path / "h.sqlite"
     with History(db) as h:

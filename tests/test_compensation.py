@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import re
 from dataclasses import replace
@@ -17,7 +18,7 @@ from elastocal.compensation.model import CompensationModel
 from elastocal.compensation.trajectory import compensate_path, predicted_residual
 from elastocal.compensation.validate import YANG_WRENCH, validate_on_sim, yang_validation
 from elastocal.errors import InputError
-from elastocal.identify.calibration import Calibration, write_calibration
+from elastocal.identify.calibration import CalibratedParameter, Calibration, Residual, write_calibration
 from elastocal.identify.robot import LOAD_FRAME, bundled_robot_path
 from elastocal.sims.cell import CellTruth, SimCell
 
@@ -28,12 +29,12 @@ def path(robot):
 
 
 def _calibration(robot, stiffness, compensator=(4771.4, 0.9112), name=None) -> Calibration:
-    params = {f"k{j + 1}": {"value": float(k), "std": 1.0, "unit": "N*m/rad"} for j, k in enumerate(stiffness)}
+    params = tuple(CalibratedParameter(f"k{j + 1}", float(k), 1.0, "N*m/rad") for j, k in enumerate(stiffness))
     if compensator is not None:
-        params["C"] = {"value": compensator[0], "unit": "N*m"}
-        params["l_c"] = {"value": compensator[1], "unit": "m"}
+        params += (CalibratedParameter("C", compensator[0], unit="N*m"),
+                   CalibratedParameter("l_c", compensator[1], unit="m"))
     return Calibration(robot=name or robot.name, created="2026-11-22T10:00:00Z", model=("joint_stiffness",),
-                       torque="current", parameters=params, residual={"rms": 8e-6, "max": 3e-5, "n": 10})
+                       torque="current", parameters=params, residual=Residual(rms=8e-6, max=3e-5, n=10))
 
 
 def test_yang_path_follows_the_line(robot, path):
@@ -96,12 +97,12 @@ def test_calibration_checks(robot):
     with pytest.raises(InputError, match="robot 'KR-270'"):
         CompensationModel.from_calibration(robot, _calibration(robot, np.ones(6) * 1e5, name="KR-270"))
     cal = _calibration(robot, np.ones(6) * 1e5)
-    del cal.parameters["k4"]
+    cal = dataclasses.replace(cal, parameters=tuple(p for p in cal.parameters if p.name != "k4"))
     with pytest.raises(InputError, match="k4"):
         CompensationModel.from_calibration(robot, cal, source="cal.json")
     spring = _calibration(robot, np.ones(6) * 1e5, compensator=None)
-    spring.parameters["K_c"] = {"value": 1.0}
-    spring.parameters["s0"] = {"value": 1.0}
+    spring = dataclasses.replace(spring, parameters=spring.parameters + (CalibratedParameter("K_c", 1.0),
+                                                                         CalibratedParameter("s0", 1.0)))
     with pytest.raises(InputError, match="do not fit"):
         CompensationModel.from_calibration(robot, spring)
     nominal = CompensationModel.from_calibration(robot, _calibration(robot, np.ones(6) * 1e5, compensator=None))

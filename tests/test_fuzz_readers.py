@@ -213,7 +213,7 @@ def _fuzzed(inputs: pathlib.Path, name: str, text: str | bytes) -> tuple[pathlib
 
 def _calibration_ok(path: pathlib.Path) -> None:
     cal = read_calibration(path)
-    assert all(math.isfinite(cal.value(n)) for n in cal.parameters)
+    assert all(math.isfinite(p.value) for p in cal.parameters)
 
 
 # ----------------------------------------------------------------- the readers

@@ -14,7 +14,14 @@ from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
 from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.cli import main
 from elastocal.errors import InputError
-from elastocal.identify.calibration import Calibration, file_sha256, write_calibration
+from elastocal.identify.calibration import (
+    CalibratedParameter,
+    Calibration,
+    DataFile,
+    Residual,
+    file_sha256,
+    write_calibration,
+)
 from elastocal.identify.robot import bundled_robot
 from elastocal.sims.cell import CellTruth, SimCell
 
@@ -23,12 +30,12 @@ T0 = 1_767_600_000 * 10**9          # 2026-01-05
 
 
 def calibration(k2: float, created: str) -> Calibration:
-    params = {f"k{j}": {"value": v, "std": v * 1e-3, "unit": "N*m/rad"}
-              for j, v in enumerate((559e3, k2, 1829e3, 184e3, 171e3, 70e3), start=1)}
-    params["fc2"] = {"value": 180.0, "std": 0.5, "unit": "N*m"}
+    params = tuple(CalibratedParameter(f"k{j}", v, v * 1e-3, "N*m/rad")
+                   for j, v in enumerate((559e3, k2, 1829e3, 184e3, 171e3, 70e3), start=1))
+    params += (CalibratedParameter("fc2", 180.0, 0.5, "N*m"),)
     return Calibration(robot="HH-150", created=created, model=("joint_stiffness", "coulomb_friction"),
-                       torque="current", parameters=params, residual={"rms": 8e-6, "max": 3e-5, "n": 216},
-                       data=({"path": "log.mcap", "sha256": "ab" * 32},))
+                       torque="current", parameters=params, residual=Residual(rms=8e-6, max=3e-5, n=216),
+                       data=(DataFile("log.mcap", "ab" * 32),))
 
 
 def check_result(k2: float, k2_std: float, unexplained: float) -> dict:

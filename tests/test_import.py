@@ -174,7 +174,7 @@ def test_bad_files_get_one_line_errors_and_nothing_is_written(tmp_path, capsys):
         ([DATA / "import" / "leica_points.csv", "--joints", joints, "--by", "name"], "needs the point-name pattern"),
         ([DATA / "import" / "leica_points.csv", "--joints", joints, "--names", "P{pose}_{marker}"], "needs {load}"),
         ([DATA / "import" / "generic_points.csv", "--joints", joints, "--columns", "name=Name,x=East"],
-         "--columns must map y, z"),
+         "--columns: must map y, z"),
         ([DATA / "import" / "leica_points.csv", "--joints", DATA / "import" / "points.xyz"], "missing column(s) t"),
     ]
     for argv, message in cases:
@@ -271,7 +271,9 @@ def test_a_procedure_whose_tracker_its_own_software_reads(tmp_path, capsys):
     lines += [f"{m},{float(p[0]) * 1e3!r},{float(p[1]) * 1e3!r},{float(p[2]) * 1e3!r},{iso(t)}" for m, p, t in kept]
     (tmp_path / "sa.csv").write_text("\n".join(lines) + "\n")
     rc = main(["export", str(log), "--out", str(tmp_path / "export")])
-    assert rc == 2 and "elastocal import EXPORT --log" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert rc == 2 and "pair that software's export with the log (docs/import.md: `import` with --log LOG.mcap)" \
+        in err, err
     rc = main(["import", str(tmp_path / "sa.csv"), "--log", str(log), "--out", str(tmp_path / "static.csv"),
                "--tolerance", "0.005", "--json"])
     captured = capsys.readouterr()

@@ -18,7 +18,15 @@ from elastocal.cli import main
 from elastocal.compensation.files import read_path
 from elastocal.drivers.config import load_cell_config
 from elastocal.errors import InputError
-from elastocal.identify.calibration import Calibration, read_calibration, write_calibration
+from elastocal.identify.calibration import (
+    CalibratedParameter,
+    Calibration,
+    DataFile,
+    Residual,
+    calibration_from_json,
+    read_calibration,
+    write_calibration,
+)
 from elastocal.identify.robot import bundled_robot, bundled_robot_path, load_robot, parse_robot
 from elastocal.identify.tables import (
     format_run_table,
@@ -46,8 +54,9 @@ RUNS = simulate_runs(ROBOT, default_run_truth(CellTruth()), seed=5,
 
 def _calibration(robot: str | None = "HH-150") -> dict:
     doc = Calibration(robot=robot or "", created="2026-11-22T10:00:00Z", model=("joint_stiffness",),
-                      torque="current", parameters={f"k{j}": {"value": 5e5, "unit": "N*m/rad"} for j in range(1, 7)},
-                      residual={"rms": 8e-6, "max": 3e-5, "n": 10}).to_json()
+                      torque="current",
+                      parameters=tuple(CalibratedParameter(f"k{j}", 5e5, unit="N*m/rad") for j in range(1, 7)),
+                      residual=Residual(rms=8e-6, max=3e-5, n=10)).to_json()
     if robot is None:
         del doc["robot"]
     return doc
@@ -265,10 +274,13 @@ def test_cli_refuses_a_calibration_without_robot(sim_static, tmp_path, capsys, a
 
 def test_a_written_calibration_reads_back(tmp_path):
     doc = _calibration()
-    cal = Calibration(robot=doc["robot"], created=doc["created"], model=tuple(doc["model"]), torque=doc["torque"],
-                      parameters=doc["parameters"], residual=doc["residual"], data=({"path": "s.csv", "sha256": "0"},))
+    doc["data"] = [{"path": "s.csv", "sha256": "0"}]
+    cal = calibration_from_json(doc, "the test")
+    assert cal.data == (DataFile("s.csv", "0"),) and cal.residual == Residual(rms=8e-6, max=3e-5, n=10)
+    assert cal.find("k3") == CalibratedParameter("k3", 5e5, unit="N*m/rad")
     write_calibration(tmp_path / "cal.json", cal)
     assert read_calibration(tmp_path / "cal.json") == cal
+    assert json.loads((tmp_path / "cal.json").read_text()) == doc
 
 
 # ------------------------------------------------------------- 4. joint speeds
@@ -406,3 +418,29 @@ def sim_static(tmp_path_factory) -> pathlib.Path:
     out = tmp_path_factory.mktemp("sim")
     assert main(["sim", "static", "--seed", "1", "--poses", "3", "--out", str(out)]) == 0
     return out
+
+
+def test_fields_it_does_not_know_are_kept_and_the_history_keeps_the_whole_calibration(tmp_path):
+    """Typed end to end: what the reader does not know survives a read, a write and a record
+    in the history, and the history gives back the calibration it was given (the absolute
+    residual and the robot description included: `check --calibration` finds its record)."""
+    from elastocal.acquisition.history import History
+
+    doc = _calibration()
+    doc["parameters"]["k2"]["comment"] = {"by": "hand", "at": [1, 2]}
+    doc["parameters"]["k3"].update(std=4e3, determined=False, note="not determined: a test")
+    doc["residual"]["noise_floor"] = 7e-6
+    doc["residual"]["seed"] = 3
+    doc["data"] = [{"path": "log.mcap", "sha256": "ab" * 32, "bytes": 1024}]
+    doc["absolute_residual"] = {"rms": 2e-5, "max": 5e-5, "n": 30, "noise_floor": 1.8e-5}
+    doc["robot_description"] = ROBOT.to_toml()
+    (tmp_path / "cal.json").write_text(json.dumps(doc))
+    cal = read_calibration(tmp_path / "cal.json")
+    assert cal.find("k3").determined is False and cal.undetermined() == ("k3",)
+    assert cal.residual.noise_floor == 7e-6 and cal.absolute_residual.n == 30
+    assert cal.to_json() == doc
+    assert list(cal.to_json()["parameters"]["k3"]) == ["value", "std", "unit", "determined", "note"]
+    with History(tmp_path / "h.sqlite") as h:
+        h.add_calibration(cal, time_ns=1)
+        recorded = h.current().calibration
+    assert recorded == cal and recorded.to_json() == cal.to_json()

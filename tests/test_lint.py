@@ -1,9 +1,12 @@
-"""The packages are pyflakes-clean: no unused imports or variables, no undefined names
-(an unused import is a layer edge nobody needs; tests/test_layers.py counts it too)."""
+"""House rules read from the source: the packages are pyflakes-clean (no unused imports or
+variables, no undefined names; an unused import is a layer edge nobody needs), and the
+library's messages name its arguments, never the command line's flags (issue 11 part 4)."""
 
 from __future__ import annotations
 
+import ast
 import pathlib
+import re
 
 from pyflakes.api import checkPath, check
 from pyflakes.reporter import Reporter
@@ -40,3 +43,71 @@ def test_the_check_sees_an_unused_import():
     report = _Collect()
     check("import json\n", "example.py", report)
     assert report.messages and "'json' imported but unused" in report.messages[0]
+
+
+# ------------------------------------------------------------------ no CLI flags in the library
+#: the library's packages (the CLI, elastocal.cli and elastocal.commands, names its own flags)
+LIBRARY = ("drivers", "acquisition", "identify", "compensation", "sims", "fleet", "elastocal/errors.py",
+           "elastocal/units.py", "elastocal/textfiles.py", "elastocal/robots")
+FLAG = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
+#: texts that name a flag and are not messages of the library: (file, flag) -> why
+NOT_MESSAGES = {
+    ("acquisition/history.py", "--json"): "an SQL comment of the schema",
+    ("acquisition/logformat.py", "--yes"): "the log schema's description of a recorded field",
+    ("acquisition/ui.py", "--yes"): "the operator transcript of the terminal UI the CLI chose",
+    ("identify/runs.py", "--model"): "run fits: lane `runs` of issue 11 part 3 owns the module",
+}
+
+
+def _docstrings(tree: ast.AST) -> set[int]:
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant):
+                out.add(id(first.value))
+    return out
+
+
+def flags_in_messages(root: pathlib.Path) -> list[str]:
+    """``file:line: --flag`` for every text of the library (not a docstring) naming a command-line flag."""
+    found = []
+    for entry in LIBRARY:
+        path = root / entry
+        for f in sorted(path.rglob("*.py")) if path.is_dir() else [path] if path.exists() else []:
+            tree = ast.parse(f.read_text(encoding="utf-8"))
+            docs = _docstrings(tree)
+            rel = f.relative_to(root).as_posix()
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docs:
+                    for flag in FLAG.findall(node.value):
+                        if (rel, flag) not in NOT_MESSAGES:
+                            found.append(f"{rel}:{node.lineno}: {flag}")
+    return found
+
+
+def test_library_messages_name_arguments_not_flags():
+    """Errors, refusals and result texts of the library name its arguments (``Arg``); the CLI says
+    them as its flags (issue 11 part 4)."""
+    assert (ROOT / "identify" / "static.py").exists() and (ROOT / "elastocal" / "errors.py").exists()
+    assert flags_in_messages(ROOT) == []
+
+
+def test_the_flag_check_sees_a_flag(tmp_path):
+    (tmp_path / "identify").mkdir()
+    (tmp_path / "identify" / "x.py").write_text('"""Docs may say --model."""\nraise ValueError("use --torque force")\n')
+    assert flags_in_messages(tmp_path) == ["identify/x.py:2: --torque"]
+
+
+def test_an_argument_is_said_as_a_flag_on_the_command_line():
+    from elastocal.errors import Arg, InputError
+
+    exc = InputError(("choose another ", Arg("out"), ", or ", Arg("force", True), " to overwrite it; or use ",
+                      Arg("torque", "force")), source="cal.json")
+    assert str(exc) == "cal.json: choose another out, or force=True to overwrite it; or use torque='force'"
+    assert str(exc.on_command_line()) == ("cal.json: choose another --out, or --force to overwrite it; or use "
+                                          "--torque force")
+    bad = InputError("must be at least 1, got 0", argument="workers")
+    assert str(bad) == "workers: must be at least 1, got 0"
+    assert str(bad.on_command_line({"workers": "-j"})) == "-j: must be at least 1, got 0"
+    assert str(bad.on_command_line()) == "--workers: must be at least 1, got 0"

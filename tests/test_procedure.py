@@ -143,8 +143,10 @@ def test_abort_then_resume_gives_the_same_steps_once(robot, poses, tmp_path):
     assert sorted(set(static.pose)) == ["P1", "P2", "P3", "P4"]
     with pytest.raises(InputError, match="another plan"):
         run_procedures(virtual_io(robot), static_plan(poses[:3]), tmp_path / "third.mcap", resume_from=first)
-    with pytest.raises(InputError, match="--out a new file"):
+    with pytest.raises(InputError, match="resume must name the interrupted log, out a new file") as refused:
         run_procedures(virtual_io(robot), plan, first, resume_from=first, overwrite=True)
+    # the library names its arguments; a command line says them as its flags
+    assert str(refused.value.on_command_line()).endswith("--resume must name the interrupted log, --out a new file")
 
 
 def test_settle_timeout_is_a_recorded_device_error(robot, poses, tmp_path):

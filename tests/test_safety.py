@@ -565,7 +565,8 @@ def test_a_stiffness_the_data_do_not_determine_is_marked_never_a_finding(tmp_pat
     captured = capsys.readouterr()
     assert "k1 not determined by these data, marked" in captured.err
     cal = read_calibration(tmp_path / "cal.json")
-    assert cal.parameters["k1"]["determined"] is False and "determined" not in cal.parameters["k2"]
+    assert cal.find("k1").determined is False and cal.find("k2").determined is None
+    assert cal.undetermined() == ("k1",) and not cal.find("k1").is_result and cal.find("k2").is_result
     # a compensation with it says so
     from elastocal.compensation.files import write_path
     from elastocal.compensation.ik import yang_path

@@ -147,7 +147,7 @@ class Outputs:
         finals = {str(_temp_name(out)): str(out) for out, _ in self.files}
         if isinstance(exc, InputError) and exc.source in finals:
             # a writer's error about the temporary file: name the file the user gave
-            raise InputError(exc.detail, source=finals[exc.source], row=exc.row, column=exc.column) from None
+            raise InputError(exc.parts, source=finals[exc.source], row=exc.row, column=exc.column) from None
         if isinstance(exc, OSError):
             name = finals.get(str(exc.filename), exc.filename)
             raise InputError(f"cannot write: {exc.strerror or exc}", source=str(name or self.files[0][0])) from None

@@ -127,9 +127,7 @@ def run(args: argparse.Namespace) -> int:
     for effect, params in unmodelled.items():
         note(args, f"note: compensate does not model {effect} ({', '.join(params) or 'no parameters'} in "
                    f"{args.calibration}): the compensated path leaves its deflection uncorrected")
-    from elastocal.identify.evidence import undetermined
-
-    shaky = undetermined(cal.parameters)     # marked by identify: not a result (identify/evidence.py)
+    shaky = cal.undetermined()     # marked by identify: not a result (identify/evidence.py)
     if shaky:
         note(args, f"note: {', '.join(shaky)} in {args.calibration} not determined by the calibration's data "
                    f"(\"determined\": false): the compensation of {'these joints' if len(shaky) > 1 else 'this joint'} "

@@ -103,6 +103,8 @@ def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str
     for o in diag.outliers:
         lines.append(f"  outlier: line {o.line} (pose {o.pose}, load {o.load}, marker {o.marker}) is "
                      f"{_um(o.residual)} off its repeats{'; left out' if o.excluded else ''}")
+    if diag.unexplained_detail is not None and any(not o.excluded for o in diag.outliers):
+        lines.append("  to leave the outliers out: diagnose again with --exclude-outliers")
     if diag.not_testable:
         lines.append("  not testable from these data:")
         for n in diag.not_testable:

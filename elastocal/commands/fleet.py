@@ -124,6 +124,7 @@ def _tasks(args: argparse.Namespace, inputs, model: tuple[str, ...]):
     from elastocal.drivers.config import load_cell_config
     from elastocal.fleet import FleetTask, LogResult
     from elastocal.fleet.plant import current_calibration
+    from elastocal.fleet.tasks import error_text
 
     names: dict = {}
     calibrations: dict = {}
@@ -142,7 +143,8 @@ def _tasks(args: argparse.Namespace, inputs, model: tuple[str, ...]):
                 calibrations[cfg] = current_calibration(cfg)
             cal, cal_id, why = calibrations[cfg]
             if cal is None:
-                early[k] = LogResult(path=str(item.path), command="check", cell=cell, cell_config=cfg, error=why)
+                early[k] = LogResult(path=str(item.path), command="check", cell=cell, cell_config=cfg,
+                                     error=error_text(why))
                 continue
         tasks.append((k, FleetTask(command=args.action, path=str(item.path), tables=item.tables, cell_config=cfg,
                                    cell=cell, model=model, torque=args.torque, form=args.form,

@@ -85,9 +85,9 @@ def _add(args: argparse.Namespace, db: pathlib.Path) -> int:
         if text:
             note(args, text)
     else:
-        logs = [d for d in cal.data if str(d.get("path", "")).endswith(".mcap")] or list(cal.data)
+        logs = [d for d in cal.data if d.path.endswith(".mcap")] or list(cal.data)
         if logs:
-            log_sha, log_path = logs[0].get("sha256"), logs[0].get("path")
+            log_sha, log_path = logs[0].sha256, logs[0].path
     if args.plan:
         from elastocal.acquisition.plan import load_plan
 
@@ -102,8 +102,8 @@ def _add(args: argparse.Namespace, db: pathlib.Path) -> int:
 
 
 def _k(rec, name: str) -> float | None:
-    p = rec.calibration.parameters.get(name)
-    return float(p["value"]) if p is not None else None
+    p = rec.calibration.find(name)
+    return p.value if p is not None else None
 
 
 def _show(args: argparse.Namespace, db: pathlib.Path) -> int:
@@ -128,8 +128,8 @@ def _show(args: argparse.Namespace, db: pathlib.Path) -> int:
         obj = {"db": str(db),
                "calibrations": [{"id": r.id, "time": r.time, "created": r.created, "robot": r.robot,
                                  "model": list(r.calibration.model), "torque": r.calibration.torque,
-                                 "parameters": {k: dict(v) for k, v in r.calibration.parameters.items()},
-                                 "residual": dict(r.calibration.residual), "log_sha256": r.log_sha256,
+                                 "parameters": {p.name: p.to_json() for p in r.calibration.parameters},
+                                 "residual": r.calibration.residual.to_json(), "log_sha256": r.log_sha256,
                                  "log_path": r.log_path, "has_plan": r.plan is not None} for r in cals],
                "checks": [{"id": c.id, "time": c.time, "calibration": c.calibration_id, "verdict": c.verdict,
                            "reasons": list(c.reasons), "deflection": c.result.get("deflection"),
@@ -146,8 +146,8 @@ def _show(args: argparse.Namespace, db: pathlib.Path) -> int:
         for r in cals:
             ks = " ".join(f"{_k(r, f'k{j}') / 1e6:7.4f}" if _k(r, f"k{j}") is not None else f"{'-':>7}"
                           for j in range(1, 7))
-            rms = r.calibration.residual.get("rms")
-            rms_s = f"{rms * 1e6:6.1f}µm" if isinstance(rms, (int, float)) and rms < 1.0 else "-"
+            rms = r.calibration.residual.rms
+            rms_s = f"{rms * 1e6:6.1f}µm" if rms is not None and rms < 1.0 else "-"
             lines.append(f"  {r.id:>3}  {r.time:<20}  {r.robot[:10]:<10} {ks}  {rms_s:>8}  "
                          f"{(r.log_sha256 or '-')[:12]}")
     if checks:

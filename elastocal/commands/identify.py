@@ -17,7 +17,6 @@ from elastocal.commands._inputs import (
 from elastocal.commands._outputs import Outputs
 from elastocal.commands._format import format_fit
 from elastocal.errors import InputError
-from elastocal.identify.evidence import undetermined
 from elastocal.identify.calibration import calibration_from_fit, write_calibration
 from elastocal.identify.effects import parse_model
 from elastocal.identify.pipeline import identify_data
@@ -55,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         calibration = calibration_from_fit(inputs.robot.name, obj, inputs.files,
                                            robot_description=inputs.robot.to_toml())
-        bad = undetermined(obj["parameters"])
+        bad = calibration.undetermined()
         if bad:   # a stiffness the data do not determine is written marked, never as a finding
             args.notes.append(f"elastocal identify: note: {', '.join(bad)} not determined by these data, marked "
                               f"\"determined\": false in {args.out}: not a calibration of "

@@ -19,7 +19,7 @@ from elastocal.identify.effects.base import Effect, StaticContext
 
 def _refusal(ctx: StaticContext) -> str:
     return ("deflections barely show geometric errors; the absolute fit identifies them from the absolute "
-            "positions (identify --model ...,kinematic_errors,tracker_frame)")
+            "positions (a model with kinematic_errors and tracker_frame)")
 
 
 EFFECT = Effect(

@@ -45,7 +45,7 @@ def _basis(ctx: StaticContext) -> StaticBasis:
 def _refusal(ctx: StaticContext) -> str | None:
     if ctx.torque_source != "force":
         return ("currents measure the torque the gears carry after static friction took its share; "
-                "the current-based model does not need it (compare with --torque force)")
+                "the current-based model does not need it (only a force-based model can lack it)")
     return None
 
 
