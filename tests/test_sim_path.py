@@ -40,14 +40,14 @@ def test_sim_path_writes_yangs_line_under_the_wrench(tmp_path, capsys):
     np.testing.assert_allclose(tool[:, 0], [1.2, 1.5, 1.8], atol=1e-5)
 
 def test_sim_path_feeds_compensate(tmp_path, capsys):
-    from elastocal.identify.calibration import Calibration, write_calibration
+    from elastocal.identify.calibration import CalibratedParameter, Calibration, write_calibration
 
     assert main(["sim", "path", "--out", str(tmp_path)]) == 0
-    params = {f"k{j}": {"value": v, "std": v * 1e-3, "unit": "N*m/rad"}
-              for j, v in enumerate((559e3, 1435e3, 1829e3, 184e3, 171e3, 70e3), start=1)}
+    params = tuple(CalibratedParameter(f"k{j}", v, v * 1e-3, "N*m/rad")
+                   for j, v in enumerate((559e3, 1435e3, 1829e3, 184e3, 171e3, 70e3), start=1))
     write_calibration(tmp_path / "cal.json", Calibration(robot="HH-150", created="2026-01-05T08:00:00Z",
                                                           model=("joint_stiffness",), torque="current",
-                                                          parameters=params, residual={}))
+                                                          parameters=params))
     capsys.readouterr()
     assert main(["compensate", "--robot", str(tmp_path / "robot.toml"), "--calibration", str(tmp_path / "cal.json"),
                  "--path", str(tmp_path / "path.csv"), "--out", str(tmp_path / "out.csv"), "--json"]) == 0
