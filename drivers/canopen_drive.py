@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 import pathlib
+import queue
 import struct
 import time
 from importlib import resources
@@ -150,7 +151,8 @@ class CanopenDrive(Drive):
             return var.raw
         except SdoCommunicationError as exc:
             where = f"0x{index:04X}" + (f":{subindex}" if subindex is not None else "")
-            if "No SDO response" in str(exc):
+            # canopen raises it from the empty response queue when no reply came in time
+            if isinstance(exc.__context__, queue.Empty):
                 raise DeviceTimeout(f"{self.name} (node {self.node_id}): no SDO reply reading {where} "
                                     f"within {self.timeout_s:g} s") from exc
             raise ProtocolError(f"{self.name} (node {self.node_id}): bad SDO reply reading {where}: {exc}") from exc

@@ -300,8 +300,8 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
         except EffectRefused as exc:       # the effect module's own reason, typed
             skipped.append(NotTestable(exc.effect, exc.reason))
             continue
-        except UnidentifiableError as exc:
-            skipped.append(NotTestable(name, str(exc)))
+        except UnidentifiableError as exc:       # its own words, without the data's name
+            skipped.append(NotTestable(name, exc.detail))
             continue
         added = list(fitted.parameters)
         reported = list(fitted.reported_names)
