@@ -37,7 +37,7 @@ import numpy as np
 from elastocal.acquisition.export import StaticReading, static_readings
 from elastocal.acquisition.logreader import LogContents
 from elastocal.acquisition.trackerexports import ExportPoint, parse_time
-from elastocal.errors import InputError
+from elastocal.errors import Arg, InputError, Message, say
 from elastocal.identify.tables import I_COLS, Q_COLS, W_COLS, StaticTable, check_header, csv_records, \
     static_table_from_arrays
 from elastocal.textfiles import read_text_file
@@ -166,11 +166,12 @@ def read_joint_csv(path: str | pathlib.Path) -> JointLog:
 class ImportResult:
     table: StaticTable
     paired: tuple[tuple[ExportPoint, int], ...]      # (point, row of the table)
-    unpaired: tuple[tuple[ExportPoint, str], ...]    # (point, why)
+    #: (point, why): the why names the arguments that would pair it as :class:`~elastocal.errors.Arg`
+    unpaired: tuple[tuple[ExportPoint, Message], ...]
 
-    def unpaired_line(self) -> str:
-        """Every unpaired point in one line."""
-        items = [f"{p.source}:{p.line} {p.name} ({why})" for p, why in self.unpaired]
+    def unpaired_line(self, *, command_line: bool = False) -> str:
+        """Every unpaired point in one line (its arguments as flags with ``command_line``)."""
+        items = [f"{p.source}:{p.line} {p.name} ({say(why, command_line=command_line)})" for p, why in self.unpaired]
         return f"{len(items)} point(s) not paired: " + "; ".join(items)
 
 
@@ -273,8 +274,8 @@ def pair_with_joints(points: list[ExportPoint], log: JointLog, *, names: NamePat
                     continue
                 pose, load = states.pop()
             else:
-                unpaired.append((p, "neither its name (the names pattern) nor the joint log (pose, load columns) "
-                                    "says its pose and load"))
+                unpaired.append((p, ("neither its name (", Arg("names"), ") nor the joint log (pose, load columns) "
+                                     "says its pose and load")))
                 continue
         else:   # by name: the samples of its pose and load, around its time when it has one (docs/import.md)
             pose, load = fields["pose"], fields["load"]
@@ -292,8 +293,8 @@ def pair_with_joints(points: list[ExportPoint], log: JointLog, *, names: NamePat
                 sel = sel[np.abs(log.t_s[sel] - (p.t_s + clock_offset_s)) <= window_s / 2]
                 if sel.size == 0:
                     of = f" of pose {pose} load {load}" if log.pose is not None else ""
-                    unpaired.append((p, f"no joint sample{of} within ±{window_s / 2:g} s of its time "
-                                        "(the two clocks apart? --clock-offset)"))
+                    unpaired.append((p, (f"no joint sample{of} within ±{window_s / 2:g} s of its time "
+                                         "(the two clocks apart? ", Arg("clock_offset"), ")")))
                     continue
         t_rel = math.nan if p.t_s is None or t0 is None else p.t_s - t0
         rows.append(_Row(p, pose, load, marker, t_rel, log.q[sel].mean(axis=0), log.wrench[sel].mean(axis=0),
@@ -309,9 +310,11 @@ def pair_with_joints(points: list[ExportPoint], log: JointLog, *, names: NamePat
 
 def build_table(rows: list[_Row], unpaired: list, *, source: str, robot=None) -> ImportResult:
     if not rows:
-        reasons = "; ".join(f"{p.name}: {why}" for p, why in unpaired[:3])
-        raise InputError(f"no point of the export could be paired ({reasons}{' …' if len(unpaired) > 3 else ''})",
-                         source=source)
+        parts: list = ["no point of the export could be paired ("]
+        for k, (p, why) in enumerate(unpaired[:3]):
+            parts += ["; " if k else "", f"{p.name}: ", *((why,) if isinstance(why, str) else why)]
+        parts.append(f"{' …' if len(unpaired) > 3 else ''})")
+        raise InputError(parts, source=source)
     extra = {}
     for col, attr in (("u95", "u95_m"), ("temperature_c", "temperature_c"), ("pressure_hpa", "pressure_hpa"),
                       ("humidity_pct", "humidity_pct")):

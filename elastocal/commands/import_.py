@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from elastocal.errors import say
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("exports", nargs="+", metavar="EXPORT",
@@ -96,10 +98,10 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"out": str(out), "rows": len(result.table), "points": len(points), "by": by,
                           "columns": [k for k, _ in result.table.extra],
-                          "unpaired": [{"file": p.source, "line": p.line, "name": p.name, "reason": why}
-                                       for p, why in result.unpaired]}))
+                          "unpaired": [{"file": p.source, "line": p.line, "name": p.name,
+                                        "reason": say(why, command_line=True)} for p, why in result.unpaired]}))
     else:
         print(f"wrote {out}: {len(result.table)} rows from {len(points)} points, paired by {by}")
     if result.unpaired:
-        note(args, result.unpaired_line())
+        note(args, result.unpaired_line(command_line=True))
     return 0
