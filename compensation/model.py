@@ -156,9 +156,7 @@ class StaticKernel:
 
     def __init__(self, model: CompensationModel) -> None:
         self.m = model
-        self.pmodel = model.robot.model
-        self.data = self.pmodel.createData()
-        self.chain = BatchedChain(self.pmodel)
+        self.chain = BatchedChain(model.robot.model)
         self.fid = model.robot.frame_id(LOAD_FRAME)
         self.tool_fid = model.robot.frame_id(model.tool)
         self.offsets = model.robot.offsets
@@ -235,15 +233,6 @@ class StaticKernel:
     def base_angles(self, q: np.ndarray) -> Angles:
         """The planned link angles ``q + offset`` (6, n) with their cosines and sines."""
         return Angles.of((q + self.offsets).T)
-
-    def jacobians(self, theta: np.ndarray, base: Angles | None = None) -> np.ndarray:
-        """Load-point Jacobians (n, 6, 6), LOCAL_WORLD_ALIGNED; ``base``: angles near ``theta``
-        whose cosines and sines are known."""
-        th = theta.T
-        out = np.empty((6, 6, th.shape[1]))
-        for b in _blocks(th.shape[1]):
-            out[:, :, b] = self.chain.jacobian(self.chain.state(_angles(th, b, base)), self.fid)
-        return np.moveaxis(out, 2, 0)
 
     def positions(self, theta: np.ndarray, base: Angles | None = None) -> np.ndarray:
         """Tool-point positions (n, 3) in the base frame (the load point unless the model names a
