@@ -253,13 +253,32 @@ class ExportResult:
 
 def tracker_position_from_log(contents: LogContents) -> tuple[float, float, float] | None:
     """Where the cell.toml the log carries says the tracker stands (``[tracker]
-    base_p_tracker``, base coordinates [m]), or None when it does not say."""
-    if contents.cell is None:
+    base_p_tracker``, base coordinates [m]), or None when it does not say (no cell
+    document, an empty one, no such key, or text that is no TOML: a procedure run
+    without a cell file records an empty one). Only this key is read: the rest of
+    the cell file was the recording's business. A key that is there but not three
+    finite numbers is an error naming the log."""
+    if contents.cell is None or not contents.cell.text.strip():
         return None
-    from elastocal.drivers.config import parse_cell_config
+    import math
 
-    cell = parse_cell_config(contents.cell.text, source=f"{contents.path} ({lf.TOPIC_CELL})")
-    return None if cell.tracker is None else cell.tracker.base_p_tracker
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    try:
+        doc = tomllib.loads(contents.cell.text.removeprefix("\ufeff"))
+    except tomllib.TOMLDecodeError:
+        return None
+    tracker = doc.get("tracker")
+    if not isinstance(tracker, dict) or "base_p_tracker" not in tracker:
+        return None
+    v = tracker["base_p_tracker"]
+    if not (isinstance(v, list) and len(v) == 3 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+        raise InputError(f"expected 3 finite numbers [m], got {v!r}", source=f"{contents.path} ({lf.TOPIC_CELL})",
+                         column="tracker.base_p_tracker")
+    return tuple(float(x) for x in v)
 
 
 def export_files(contents: LogContents) -> dict[str, str | StaticTable | RunTable | None]:

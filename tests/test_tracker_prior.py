@@ -139,3 +139,22 @@ def test_bad_tracker_position_is_one_line_exit_2(cell_data, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "--tracker-position" in err[0]
 
+
+
+def test_a_log_whose_cell_file_says_nothing_or_garbage(cell_data, tmp_path, capsys):
+    d, table, _ = cell_data
+    # a procedure run without a cell file records an empty one; a cell file without [tracker]
+    for name, text in (("empty", ""), ("no-tracker", '[cell]\nname = "c"\nrobot = "hh150"\n'),
+                       ("not-toml", "[cell\nname = ")):
+        log = tmp_path / f"{name}.mcap"
+        write_log_from_tables(log, ROBOT, static=table, cell_text=text)
+        obj = run_json(capsys, ["identify", str(log), "--model", FULL, "--json"])
+        assert "prior" not in obj["registration"], name
+    # a base_p_tracker that is there but not three numbers is refused, naming the log and the key
+    bad = tmp_path / "bad.mcap"
+    write_log_from_tables(bad, ROBOT, static=table, cell_text=cell_text(None) + "base_p_tracker = [1.0, 2.0]\n")
+    capsys.readouterr()
+    assert main(["identify", str(bad), "--json"]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert captured.out == "" and len(err) == 1 and "bad.mcap" in err[0] and "tracker.base_p_tracker" in err[0]
