@@ -111,3 +111,46 @@ def test_an_argument_is_said_as_a_flag_on_the_command_line():
     assert str(bad) == "workers: must be at least 1, got 0"
     assert str(bad.on_command_line({"workers": "-j"})) == "-j: must be at least 1, got 0"
     assert str(bad.on_command_line()) == "--workers: must be at least 1, got 0"
+
+
+def _library_arguments(root: pathlib.Path) -> dict[str, str]:
+    """Every argument name the library's errors name (``argument="x"``, ``Arg("x")``) -> where."""
+    names: dict[str, str] = {}
+    for entry in LIBRARY:
+        path = root / entry
+        for f in sorted(path.rglob("*.py")) if path.is_dir() else [path] if path.exists() else []:
+            for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
+                if not isinstance(node, ast.Call):
+                    continue
+                for kw in node.keywords:
+                    if kw.arg == "argument" and isinstance(kw.value, ast.Constant) and isinstance(kw.value.value, str):
+                        names.setdefault(kw.value.value, f"{f.relative_to(root)}:{node.lineno}")
+                if (isinstance(node.func, ast.Name) and node.func.id == "Arg" and node.args
+                        and isinstance(node.args[0], ast.Constant)):
+                    names.setdefault(node.args[0].value, f"{f.relative_to(root)}:{node.lineno}")
+    return names
+
+
+def test_every_argument_the_library_names_is_a_flag_of_the_command_line():
+    """The CLI says a library argument as ``--`` and its name with dashes (``InputError.on_command_line``):
+    every argument an error of the library names must be such a flag of some command."""
+    import argparse
+
+    from elastocal.cli import COMMANDS, build_parser
+
+    def options(parser) -> set[str]:
+        out = set()
+        for action in parser._actions:
+            out.update(s for s in action.option_strings if s.startswith("--"))
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    out |= options(sub)
+        return out
+
+    flags: set[str] = set()
+    for name in COMMANDS:
+        flags |= options(build_parser(name)[0])
+    names = _library_arguments(ROOT)
+    assert {"model", "torque", "out", "workers", "calibration"} <= set(names)
+    missing = {n: where for n, where in names.items() if "--" + n.replace("_", "-") not in flags}
+    assert not missing, missing
