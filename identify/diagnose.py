@@ -305,6 +305,10 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
             continue
         added = list(fitted.parameters)
         reported = list(fitted.reported_names)
+        if sel is not None and sel.controls:
+            # the controls are fitted (the joint springs stay honest) but neither tested nor named
+            added = [nm for nm in added if nm not in sel.controls]
+            reported = [nm for nm in reported if nm not in sel.controls]
         unident = tuple(nm for nm in reported if nm in aug.unidentifiable)
         if eff.selectable and not added:
             skipped.append(NotTestable(name, "none of its components can be separated from the model's parameters "

@@ -30,6 +30,9 @@ SELECT_P = 0.01
 SELECT_DELTA_BIC = -10.0
 #: a component this many std below zero has the wrong sign and is not kept
 WRONG_SIGN_STD = 3.0
+#: a component not kept whose addition moves a parameter of the model by more than this
+#: many of its std is fitted as a control (its omission would bias that parameter)
+CONTROL_SHIFT = 0.5
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,15 @@ class Selection:
     #: the best component not kept (None when every one was kept or none is identifiable)
     next_best: str | None
     next_statistic: float
+    #: components not kept that are fitted all the same: leaving them out would move a
+    #: parameter of the model (a joint spring) by more than CONTROL_SHIFT of its std
+    #: (post-double selection, see confounders); fitted, never named as a finding
+    controls: tuple[str, ...] = ()
+
+    def fitted(self, kept: tuple[str, ...] | None = None) -> tuple[str, ...]:
+        """The components a fit holds: ``kept`` (default the kept ones) and the controls."""
+        kept = self.kept if kept is None else tuple(kept)
+        return (*kept, *(c for c in self.controls if c not in kept))
 
 
 def _sigma(fit) -> scipy.sparse.csr_matrix | None:
@@ -54,54 +66,74 @@ def _sigma(fit) -> scipy.sparse.csr_matrix | None:
     return stacked[order][:, order]
 
 
-def forward_select(full_fit, effect: str, components: tuple[str, ...]) -> Selection:
-    """Select among ``components`` (beta names of ``full_fit``) by forward selection."""
-    names = list(full_fit.design_names)
-    d = full_fit.design
-    mask_beta = np.array([n in names for n in full_fit.beta_names])
-    y = full_fit.residuals.reshape(-1) + d @ full_fit.beta[mask_beta]
-    n = len(y)
-    scale = np.linalg.norm(d, axis=0)
-    scale[scale == 0] = 1.0
-    ds = d / scale
-    white = full_fit.whitening is not None
-    if white:        # GLS: in the whitened metric the noise is white, the covariance (X'X)^-1
-        ds, y = full_fit.whiten(ds), full_fit.whiten(y)
-    gram = ds.T @ ds
-    dy = ds.T @ y
-    yy = float(y @ y)
-    sigma = None if white else _sigma(full_fit)
-    if sigma is not None:
-        h = ds.T @ (sigma @ ds)
-        tr_sigma = float(sigma.diagonal().sum())
-    base = [i for i, nm in enumerate(names) if nm not in components]
-    pool = [nm for nm in components if nm in names]
-    kept: list[str] = []
-    limit = threshold(n)
-    next_best, next_stat = None, 0.0
-    def last(comps: list[str]) -> tuple[float, float] | None:
-        """(value, Wald statistic) of the last of ``comps`` fitted with the base and the others."""
-        cols = base + [names.index(k) for k in comps]
-        g = gram[np.ix_(cols, cols)]
+class _Linear:
+    """The linearisation of a fit with every component: each subset of its columns
+    is a small least-squares problem on precomputed Gram matrices."""
+
+    def __init__(self, full_fit, components: tuple[str, ...]):
+        self.names = list(full_fit.design_names)
+        d = full_fit.design
+        mask_beta = np.array([n in self.names for n in full_fit.beta_names])
+        y = full_fit.residuals.reshape(-1) + d @ full_fit.beta[mask_beta]
+        self.n = len(y)
+        scale = np.linalg.norm(d, axis=0)
+        scale[scale == 0] = 1.0
+        ds = d / scale
+        self.white = full_fit.whitening is not None
+        if self.white:   # GLS: in the whitened metric the noise is white, the covariance (X'X)^-1
+            ds, y = full_fit.whiten(ds), full_fit.whiten(y)
+        self.gram = ds.T @ ds
+        self.dy = ds.T @ y
+        self.yy = float(y @ y)
+        self.sigma = None if self.white else _sigma(full_fit)
+        if self.sigma is not None:
+            self.h = ds.T @ (self.sigma @ ds)
+            self.tr_sigma = float(self.sigma.diagonal().sum())
+        #: the model's own columns (every parameter outside the selectable effect)
+        self.base = [i for i, nm in enumerate(self.names) if nm not in components]
+
+    def solve(self, comps) -> tuple[np.ndarray, np.ndarray] | None:
+        """(values, covariance) of the base columns and then ``comps``, in scaled units."""
+        cols = self.base + [self.names.index(k) for k in comps]
+        g = self.gram[np.ix_(cols, cols)]
         try:
             g_inv = np.linalg.inv(g)
         except np.linalg.LinAlgError:
             return None
-        b = g_inv @ dy[cols]
-        rss = max(yy - 2.0 * float(b @ dy[cols]) + float(b @ g @ b), 0.0)
-        if white:
+        b = g_inv @ self.dy[cols]
+        rss = max(self.yy - 2.0 * float(b @ self.dy[cols]) + float(b @ g @ b), 0.0)
+        n = self.n
+        if self.white:
             cov = g_inv * max(1.0, rss / max(n - len(cols), 1))
-        elif sigma is not None:
-            meat = h[np.ix_(cols, cols)]
-            expected = tr_sigma - float(np.trace(g_inv @ meat))
+        elif self.sigma is not None:
+            meat = self.h[np.ix_(cols, cols)]
+            expected = self.tr_sigma - float(np.trace(g_inv @ meat))
             cov = g_inv @ meat @ g_inv * (max(1.0, rss / expected) if expected > 0 else 1.0)
         else:
             cov = g_inv * rss / max(n - len(cols), 1)
+        return b, cov
+
+    def last(self, comps) -> tuple[float, float] | None:
+        """(z, Wald statistic) of the last of ``comps`` fitted with the base and the others."""
+        got = self.solve(comps)
+        if got is None:
+            return None
+        b, cov = got
         var = float(cov[-1, -1])
         if not var > 0:
             return None
         return float(b[-1] / math.sqrt(var)), float(b[-1] ** 2 / var)
 
+
+def forward_select(full_fit, effect: str, components: tuple[str, ...]) -> Selection:
+    """Select among ``components`` (beta names of ``full_fit``) by forward selection;
+    then the components to fit as controls (:func:`confounders`)."""
+    lin = _Linear(full_fit, components)
+    pool = [nm for nm in components if nm in lin.names]
+    kept: list[str] = []
+    limit = threshold(lin.n)
+    next_best, next_stat = None, 0.0
+    last = lin.last
     rounds = 0
     while pool:
         best, best_stat = None, -1.0
@@ -133,7 +165,45 @@ def forward_select(full_fit, effect: str, components: tuple[str, ...]) -> Select
         rounds += 1
         if rounds > 3 * len(components):      # never cycle
             break
-    return Selection(effect, tuple(kept), next_best, next_stat)
+    return Selection(effect, tuple(kept), next_best, next_stat,
+                     controls=confounders(full_fit, tuple(kept), components, lin=lin))
+
+
+def confounders(full_fit, kept: tuple[str, ...], components: tuple[str, ...], *,
+                lin: _Linear | None = None) -> tuple[str, ...]:
+    """The components not kept whose omission the data say would bias the model's
+    own parameters (post-double selection, Belloni, Chernozhukov & Hansen 2014).
+
+    A component the test does not keep may still be there, below the test's
+    threshold; when it is confounded with a joint spring, leaving it out moves
+    that spring by the component's value times their alias, and the spring's
+    reported std (which assumes the component is zero) is no longer honest. So a
+    component is fitted as a control when adding it to the model moves some
+    parameter of the model by more than CONTROL_SHIFT of that parameter's std,
+    the largest first, until none does. Controls are fitted, never named: the
+    test and the words are the kept components'."""
+    lin = _Linear(full_fit, components) if lin is None else lin
+    nb = len(lin.base)
+    pool = [nm for nm in components if nm in lin.names and nm not in kept]
+    chosen: list[str] = []
+    while pool:
+        now = lin.solve([*kept, *chosen])
+        if now is None:
+            break
+        std_now = np.sqrt(np.clip(np.diag(now[1])[:nb], 1e-300, None))
+        best, best_shift = None, CONTROL_SHIFT
+        for c in pool:
+            got = lin.solve([*kept, *chosen, c])
+            if got is None:
+                continue
+            shift = float(np.max(np.abs(got[0][:nb] - now[0][:nb]) / std_now))
+            if shift > best_shift:
+                best, best_shift = c, shift
+        if best is None:
+            break
+        chosen.append(best)
+        pool.remove(best)
+    return tuple(nm for nm in components if nm in chosen)
 
 
 def threshold(n: int) -> float:

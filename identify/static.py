@@ -25,7 +25,7 @@ physics is not here but in identify/effects, one module each.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -608,27 +608,28 @@ def _unwhiten(whitening, v: np.ndarray) -> np.ndarray:
 def _select_columns(a: np.ndarray, names: Sequence[str],
                     later: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Column scales and the mask of identifiable columns (pivoted QR on the
-    scaled regressor). ``later`` (bool per column): columns that count only for
-    what the others leave (a selectable effect's components never displace a
-    joint spring they alias)."""
+    scaled regressor). ``later`` (int per column, 0 for the model's own): columns
+    that count only for what the columns of lower order leave (a selectable
+    effect's components never displace a joint spring they alias, nor a component
+    of higher priority, Effect.priority)."""
     scale = np.linalg.norm(a, axis=0)
     # a column that is rounding noise next to the largest moves nothing (the twist of joint 6
     # seen by one marker on its axis): it is not identifiable, however the noise is scaled
     keep = scale > ZERO_COLUMN * float(np.max(scale, initial=0.0))
     mask = np.zeros(len(names), dtype=bool)
-    first = keep if later is None else keep & ~later
+    order = np.zeros(len(names), dtype=int) if later is None else np.asarray(later, dtype=int)
     scaled = a / np.where(scale > 0, scale, 1.0)
     largest = None
     q = np.zeros((a.shape[0], 0))
-    for group in ([first] if later is None else [first, keep & later]):
-        idx = np.flatnonzero(group)
+    for level in np.unique(order):
+        idx = np.flatnonzero(keep & (order == level))
         if idx.size == 0:
             continue
         block = scaled[:, idx] - q @ (q.T @ scaled[:, idx])
         qb, r, piv = scipy.linalg.qr(block, mode="economic", pivoting=True)
         diag = np.abs(np.diag(r))
         largest = diag[0] if largest is None else largest
-        good = diag > RANK_TOL * max(largest, 1e-300) if group is first else diag > RANK_TOL * 1.0
+        good = diag > RANK_TOL * max(largest, 1e-300) if level == 0 else diag > RANK_TOL * 1.0
         mask[idx[piv[good]]] = True
         q = np.column_stack([q, qb[:, good]])
     return np.where(scale > 0, scale, 1.0), mask
@@ -682,18 +683,21 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     for k, eff in enumerate(effects):
         if eff.selectable and eff.selected_from is None:
             # the components the data support (identify/selection.py), from the fit with all of them
-            from elastocal.identify.selection import confirm_selection, forward_select
+            from elastocal.identify.selection import confirm_selection, confounders, forward_select
 
             # (first-order: one linear solve; the kept components are then fitted in ``form``)
             full = identify_static(robot, ds, model=[*effects[:k], eff.restricted(eff.parameters), *effects[k + 1:]],
                                    torque=torque, form="first-order", max_iter=max_iter, tol=tol)
             sel = forward_select(full, eff.name, eff.parameters)
             if form != "first-order" and sel.kept:
-                sel = confirm_selection(sel, lambda keep: identify_static(
-                    robot, ds, model=[*effects[:k], eff.restricted(keep), *effects[k + 1:]], torque=torque,
-                    form=form, max_iter=max_iter, tol=tol), n=ds.dP.size)
+                confirmed = confirm_selection(sel, lambda keep: identify_static(
+                    robot, ds, model=[*effects[:k], eff.restricted(sel.fitted(keep)), *effects[k + 1:]],
+                    torque=torque, form=form, max_iter=max_iter, tol=tol), n=ds.dP.size)
+                if confirmed.kept != sel.kept:     # the controls of what stays
+                    sel = replace(confirmed, controls=confounders(full, confirmed.kept, eff.parameters))
             selections.append(sel)
-            effects = (*effects[:k], eff.restricted(sel.kept), *effects[k + 1:])
+            # the kept components and the controls (fitted, not named: identify/selection.py)
+            effects = (*effects[:k], eff.restricted(sel.fitted()), *effects[k + 1:])
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     for m in ds.markers:
         robot.frame_id(m)
@@ -722,7 +726,8 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
 
     # first-order linear solve: starting point, and the answer for form=first-order
     _, a = _evaluate(pr, np.zeros(len(beta_names)), bases, exact=False)
-    later = np.array([eff.selected_from is not None for eff in effects for _ in eff.parameters], dtype=bool)
+    later = np.array([0 if eff.selected_from is None else 1 + (0 if eff.priority is None else eff.priority[i])
+                      for eff in effects for i in range(len(eff.parameters))], dtype=int)
     scale, mask = _select_columns(a, beta_names, later if later.any() else None)
     beta = np.zeros(len(beta_names))
     # rows weighted by the readings' U95 when the table has them (1 / sigma, mean weight 1)

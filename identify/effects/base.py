@@ -171,6 +171,10 @@ class Effect:
     selectable: bool = False
     #: the parameters of the effect it was restricted from (None: not restricted)
     selected_from: tuple[str, ...] | None = None
+    #: a selectable effect's components count for identifiability in this order (lower
+    #: first, per parameter; None: all alike): a component that the joint springs and the
+    #: components before it already express is unidentifiable, not a second name for them
+    priority: tuple[int, ...] | None = None
     #: names under which parameters are reported (default: ``parameters``)
     report_names: tuple[str, ...] | None = None
     #: how the effect enters the static model and the run (torque) model, in words
@@ -231,6 +235,7 @@ class Effect:
         out = replace(base, parameters=names, units=tuple(base.units[i] for i in idx), static_basis=basis,
                       absolute_basis=None if inner_absolute is None else absolute,
                       torque_sensitivity=None if sens is None else sensitivity, selected_from=full,
+                      priority=None if base.priority is None else tuple(base.priority[i] for i in idx),
                       report_names=None if base.report_names is None else tuple(base.report_names[i] for i in idx))
         object.__setattr__(out, "_unrestricted", base)
         return out

@@ -208,6 +208,10 @@ EFFECT = Effect(
     describe=_describe,
     plausibility=_plausibility,
     selectable=True,
+    # the classic springs first: at a spherical wrist the distal ends of links 3, 4 and 5 are one
+    # point, where link 4's and 5's bending equal joint springs plus link 3's (I - a4 a4' =
+    # a5 a5' + w4 w4'); they count only for what the joint springs and cl2x..cl3y leave
+    priority=tuple(0 if name in _IN_LINK_MODEL else 1 for name in PARAMETERS),
     static_model="rotations about the two axes normal to the joint axis at the base and at the distal end of "
                  "each link, cl times the moment of the load change there; the data choose the components",
     run_model="not in the torque model: link springs change positions, not joint torques",
