@@ -293,7 +293,10 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
             aug = identify_static(robot, ds, model=(*given, name), torque=torque, form=form)
             fitted = next(e for e in aug.effects if e.name == name) if aug.effects else eff
             sel = next((sl for sl in aug.selections if sl.effect == name), None)
+            # the controls are fitted (the joint springs stay honest) but neither tested nor named
+            controls = () if sel is None else sel.controls
             if sel is not None and not sel.kept and sel.next_best is not None:
+                controls = ()
                 # nothing passes: test the best component, to say how far it is from passing
                 fitted = eff.restricted((sel.next_best,))
                 aug = identify_static(robot, ds, model=(*given, fitted), torque=torque, form=form)
@@ -305,10 +308,9 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
             continue
         added = list(fitted.parameters)
         reported = list(fitted.reported_names)
-        if sel is not None and sel.controls:
-            # the controls are fitted (the joint springs stay honest) but neither tested nor named
-            added = [nm for nm in added if nm not in sel.controls]
-            reported = [nm for nm in reported if nm not in sel.controls]
+        if controls:
+            added = [nm for nm in added if nm not in controls]
+            reported = [nm for nm in reported if nm not in controls]
         unident = tuple(nm for nm in reported if nm in aug.unidentifiable)
         if eff.selectable and not added:
             skipped.append(NotTestable(name, "none of its components can be separated from the model's parameters "
