@@ -180,8 +180,10 @@ def confounders(full_fit, kept: tuple[str, ...], components: tuple[str, ...], *,
     reported std (which assumes the component is zero) is no longer honest. So a
     component is fitted as a control when adding it to the model moves some
     parameter of the model by more than CONTROL_SHIFT of that parameter's std,
-    the largest first, until none does. Controls are fitted, never named: the
-    test and the words are the kept components'."""
+    the largest first, until none does. A component whose value there is below
+    zero is not one: with its physical sign (a compliance is positive) its
+    least-squares value is zero, and it moves nothing. Controls are fitted, never
+    named: the test and the words are the kept components'."""
     lin = _Linear(full_fit, components) if lin is None else lin
     nb = len(lin.base)
     pool = [nm for nm in components if nm in lin.names and nm not in kept]
@@ -194,8 +196,8 @@ def confounders(full_fit, kept: tuple[str, ...], components: tuple[str, ...], *,
         best, best_shift = None, CONTROL_SHIFT
         for c in pool:
             got = lin.solve([*kept, *chosen, c])
-            if got is None:
-                continue
+            if got is None or got[0][-1] <= 0.0:
+                continue        # a compliance below zero is at its physical bound: it moves nothing
             shift = float(np.max(np.abs(got[0][:nb] - now[0][:nb]) / std_now))
             if shift > best_shift:
                 best, best_shift = c, shift
