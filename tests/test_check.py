@@ -151,6 +151,29 @@ def test_check_command_on_tables_records_verdicts(robot, cell, capsys):
     capsys.readouterr()
 
 
+
+def test_check_of_a_calibration_file_finds_its_record_in_the_history(robot, cell, calibration, capsys):
+    """A cal.json as identify writes it (with its absolute residual and the robot description) is
+    found in the history it was recorded in: the check is recorded against it. (The history used to
+    give back the calibration without those fields, so it was never found: exit 2.)"""
+    import dataclasses
+
+    from elastocal.identify.calibration import Residual
+
+    full = dataclasses.replace(calibration, robot_description=robot.to_toml(),
+                               absolute_residual=Residual(rms=2e-5, max=6e-5, n=108, noise_floor=1.9e-5))
+    write_calibration(cell / "full.json", full)
+    static, _ = check_data(robot, TRUTH, 33)
+    write_static_table(cell / "same.csv", static)
+    assert main(["history", "add", "--cell", str(cell / "cell.toml"), "--calibration", str(cell / "full.json")]) == 0
+    capsys.readouterr()
+    assert main(["check", "--cell", str(cell / "cell.toml"), "--calibration", str(cell / "full.json"),
+                 "--static", str(cell / "same.csv"), "--json"]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    assert obj["recorded"] == 1 and obj["calibration"] == 1
+    with History(cell / "history.sqlite") as h:
+        assert h.current().calibration == full and [c.calibration_id for c in h.checks()] == [1]
+
 def _check_plan() -> str:
     poses = {"P1": (0.2, 0.3, -0.4, 0.3, 1.0, 0.2), "P2": (0.5, 0.55, -0.2, 0.6, 1.2, 0.5),
              "P3": (-0.3, 0.1, -0.6, -0.5, 0.8, -0.4)}
