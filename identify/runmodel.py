@@ -113,7 +113,8 @@ class StiffnessUsed:
     values: tuple[float, ...] | None             # k1..k6 [N·m/rad]; None for the rigid model
     #: rigid model: rms change of the sweep torques [N·m] with REFERENCE_STIFFNESS on every joint
     bias_torque_rms: float | None = None
-    #: rigid model: (name, relative change) of each fitted sweep parameter with that stiffness
+    #: rigid model: (name, relative bias) of each fitted sweep parameter, the rigid value against
+    #: the value with that stiffness, (rigid - deflected) / deflected
     bias_parameters: tuple[tuple[str, float], ...] = ()
 
     @property
@@ -126,7 +127,8 @@ class StiffnessUsed:
             text += (f"; with every joint at {REFERENCE_STIFFNESS:.0e} N*m/rad they would change the joint-2 "
                      f"sweep torque by {self.bias_torque_rms:.2g} N*m rms")
         if self.bias_parameters:
-            text += " and " + ", ".join(f"{n} by {100 * v:+.2g} %" for n, v in self.bias_parameters)
+            text += (", and the rigid model's " + ", ".join(f"{n} would be off by {100 * v:+.2g} %"
+                                                             for n, v in self.bias_parameters))
         return text + " (in proportion to 1/k for another stiffness)"
 
     def to_json(self) -> dict:
@@ -224,7 +226,7 @@ def with_rigid_bias(data: RunData, table, sweep_effects: Sequence[Effect], fitte
         except UnidentifiableError:
             rigid = soft = None
         if rigid is not None:   # the physical parameters (nonlinear terms), not gravity's combinations
-            rel = tuple((p.name, (s.value - p.value) / p.value)
+            rel = tuple((p.name, (p.value - s.value) / s.value)
                         for e in wanted if not data.sweep_terms[e].linear
                         for p, s in zip(rigid.parameters(e), soft.parameters(e)) if p.value != 0.0)
     return replace(data, stiffness=replace(data.stiffness, bias_torque_rms=torque_rms, bias_parameters=rel))

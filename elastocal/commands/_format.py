@@ -64,7 +64,9 @@ def format_fit(obj: Mapping, title: str, truth: Mapping[str, Mapping] | None = N
             lines.append(obj["stiffness"]["note"])
     if "torque_residual" in obj:
         tr = obj["torque_residual"]
-        lines.append(f"torque residual {tr['rms']:.4g} {tr['unit']} rms over {tr['n']} samples")
+        floor = obj.get("torque_noise_floor")
+        lines.append(f"torque residual {tr['rms']:.4g} {tr['unit']} rms over {tr['n']} samples"
+                     + (f", noise floor {floor:.4g} {tr['unit']} ({tr['rms'] / floor:.2f}x)" if floor else ""))
     if obj.get("absolute_residual"):
         lines.append("absolute positions (after the registration): " + absolute_line(
             obj["absolute_residual"], obj.get("absolute_noise_floor")))
