@@ -238,3 +238,20 @@ def test_two_hidden_run_effects_are_found_in_two_steps():
         comp = next(s for s in diag.steps if s.effect == "compensator").candidate
         c = {p.name: p.value for p in comp.parameters}
         np.testing.assert_allclose([c["C"], c["l_c"]], TRUE_C, rtol=0.02)
+
+
+def test_the_floor_follows_other_noise_levels_and_samplings():
+    """Another noise level (0.05 A, joint 4 at 0.01 A) and other runs (three speeds, 90 samples):
+    the floor follows the noise, complete runs sit at it."""
+    clean = _clean("friction", sweeps=SweepPlan(step_rad=0.03, q3_values=(0.0,)),
+                   friction=FrictionPlan(samples=90, speeds_rad_s=(0.03, 0.08, 0.2)))
+    sigma = np.array([0.05, 0.05, 0.05, 0.01, 0.05, 0.05])
+    ratios = []
+    for seed in range(5):
+        table = _noisy(clean, seed, sigma_a=sigma)
+        est = current_noise(table)
+        assert np.all(np.abs(est / sigma - 1.0) < 0.15)
+        diag = diagnose_runs(ROBOT, table, model=FRICTION_MODEL, stiffness=CellTruth().stiffness)
+        ratios.append(diag.residual_rms / diag.noise_floor)
+        assert diag.verdict is None
+    assert np.all(np.abs(np.array(ratios) - 1.0) < 0.1), ratios
