@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -288,8 +289,8 @@ class StaticFit:
     #: the effects fitted (selectable ones restricted to the kept parameters)
     effects: tuple = field(default=(), repr=False)
     #: per-pose (row indices, lower Cholesky factor of the noise covariance) of a
-    #: GLS fit; None for an unweighted one
-    whitening: tuple | None = field(default=None, repr=False)
+    #: GLS fit (:class:`Whitening`: iterates as those pairs); None for an unweighted one
+    whitening: "Whitening | None" = field(default=None, repr=False)
     #: residual sum of squares in the whitened metric (chi-square with n - p
     #: degrees of freedom under noise alone); None for an unweighted fit
     rss_whitened: float | None = None
@@ -362,6 +363,61 @@ class _Problem:
     complementary: bool
     frames: tuple[str, ...]
 
+    @cached_property
+    def nominal_theta(self) -> np.ndarray:
+        """(S, 6) link-side angles of every state's commanded pose (``robot.theta``)."""
+        return self.ds.q[self.ds.state_pose] + self.robot.offsets
+
+    @cached_property
+    def nominal_kinematics(self) -> tuple[np.ndarray, np.ndarray]:
+        """Marker positions (P, M, 3) and position Jacobians (P, M, 3, nv) of every pose
+        at its commanded configuration: computed once per problem, read by the
+        first-order form, the noise covariance and its rank."""
+        theta = _link_configurations(self.ds.q + self.robot.offsets)
+        return _kinematics_batch(self.robot, theta, self.frames)
+
+    @cached_property
+    def load_jacobians(self) -> np.ndarray:
+        """(P, 6, nv) Jacobian of the load point of every pose at its commanded
+        configuration (LOCAL_WORLD_ALIGNED, as ``Robot.jacobians``)."""
+        model = self.robot.link_model
+        data, (fid,) = _work(model, (LOAD_FRAME,))
+        theta = _link_configurations(self.ds.q + self.robot.offsets)
+        out = np.empty((len(theta), 6, model.nv))
+        for pi, th in enumerate(theta):
+            pin.computeJointJacobians(model, data, th)
+            pin.updateFramePlacements(model, data)
+            out[pi] = pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+        return out
+
+    @cached_property
+    def pose_deflections(self) -> tuple[np.ndarray, ...]:
+        """The deflection indices of each pose (ascending), one array per pose."""
+        pose_of = self.ds.state_pose[self.ds.defl_state]
+        order = np.argsort(pose_of, kind="stable")
+        bounds = np.searchsorted(pose_of[order], np.arange(len(self.ds.pose_ids) + 1))
+        return tuple(order[bounds[i]:bounds[i + 1]] for i in range(len(self.ds.pose_ids)))
+
+    @cached_property
+    def state_rank(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each state's place among its pose's states (ascending), and each pose's number of states."""
+        sp = self.ds.state_pose
+        order = np.argsort(sp, kind="stable")
+        counts = np.bincount(sp, minlength=len(self.ds.pose_ids))
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        rank = np.empty(len(sp), dtype=np.intp)
+        rank[order] = np.arange(len(sp)) - start[sp[order]]
+        return rank, counts
+
+
+def _link_configurations(theta: np.ndarray, link_angles: np.ndarray | None = None) -> np.ndarray:
+    """``Robot.theta_links`` of many states at once: (S, 10) from (S, 6) and (S, 4)."""
+    out = np.zeros((len(theta), len(ACTUATED_IN_LINK_MODEL) + len(SPRINGS_IN_LINK_MODEL)))
+    out[:, ACTUATED_IN_LINK_MODEL] = theta
+    if link_angles is not None:
+        out[:, SPRINGS_IN_LINK_MODEL] = link_angles
+    return out
+
 
 def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
     """Absolute gear torque (S, 6) of each state."""
@@ -379,27 +435,26 @@ def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
 def _context(pr: _Problem, tau: np.ndarray, estimate: np.ndarray | None = None) -> StaticContext:
     robot, ds = pr.robot, pr.ds
     delta_tau = tau - tau[ds.state_ref]
-    delta_link = np.zeros((ds.n_states, 4))
-    delta_wrench = np.zeros((ds.n_states, 6))
-    wrench = np.zeros((ds.n_states, 6))
-    for pi in range(len(ds.pose_ids)):
-        states = np.flatnonzero(ds.state_pose == pi)
-        theta10 = robot.theta_links(robot.theta(ds.q[pi]))
-        jac = robot.jacobians(theta10, [LOAD_FRAME], links=True)[0]
-        j_act = jac[:, ACTUATED_IN_LINK_MODEL]
-        j_spr = jac[:, SPRINGS_IN_LINK_MODEL]
-        for s in states:
-            if pr.torque == "current":
+    # every state at once: the wrench change the torque change carries (J_act^T dW = dtau), and
+    # what it puts on the link springs (J_spr^T dW)
+    jac = pr.load_jacobians[ds.state_pose]
+    j_act_t = np.swapaxes(jac[:, :, ACTUATED_IN_LINK_MODEL], 1, 2)
+    j_spr_t = np.swapaxes(jac[:, :, SPRINGS_IN_LINK_MODEL], 1, 2)
+    if pr.torque == "current":
+        try:
+            delta_wrench = np.linalg.solve(j_act_t, delta_tau[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:       # a singular pose: least squares for that one
+            delta_wrench = np.empty((ds.n_states, 6))
+            for s in range(ds.n_states):
                 try:
-                    dw = np.linalg.solve(j_act.T, delta_tau[s])
+                    delta_wrench[s] = np.linalg.solve(j_act_t[s], delta_tau[s])
                 except np.linalg.LinAlgError:
-                    dw = np.linalg.lstsq(j_act.T, delta_tau[s], rcond=None)[0]
-            else:
-                dw = ds.state_wrench[s] - ds.state_wrench[ds.state_ref[s]]
-            delta_link[s] = j_spr.T @ dw
-            delta_wrench[s] = dw
-            # the whole wrench: with currents the change is all they show (the reference carries none)
-            wrench[s] = dw if pr.torque == "current" else ds.state_wrench[s]
+                    delta_wrench[s] = np.linalg.lstsq(j_act_t[s], delta_tau[s], rcond=None)[0]
+    else:
+        delta_wrench = ds.state_wrench - ds.state_wrench[ds.state_ref]
+    delta_link = (j_spr_t @ delta_wrench[:, :, None])[:, :, 0]
+    # the whole wrench: with currents the change is all they show (the reference carries none)
+    wrench = delta_wrench.copy() if pr.torque == "current" else ds.state_wrench.copy()
     torque_noise = None
     if ds.sigma_current is not None and pr.torque == "current":
         torque_noise = robot.torque_constants * ds.sigma_current / np.sqrt(ds.state_n_currents)[:, None]
@@ -429,9 +484,10 @@ def _bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np
 _WORK = threading.local()
 
 
-def _work_data(model: pin.Model) -> pin.Data:
+def _work(model: pin.Model, frames: Sequence[str] = ()) -> tuple[pin.Data, tuple[int, ...]]:
     """One Pinocchio Data per model and thread, reused by every kinematics call of a fit
-    (creating one costs more than the kinematics; each call overwrites what it reads)."""
+    (creating one costs more than the kinematics; each call overwrites what it reads),
+    and the ids of ``frames`` in that model (looked up once)."""
     cache = getattr(_WORK, "data", None)
     if cache is None:
         cache = _WORK.data = {}
@@ -439,43 +495,56 @@ def _work_data(model: pin.Model) -> pin.Data:
     if entry is None or entry[0] is not model:
         if len(cache) > 8:
             cache.clear()
-        entry = cache[id(model)] = (model, model.createData())
-    return entry[1]
+        entry = cache[id(model)] = (model, model.createData(), {})
+    key = tuple(frames)
+    ids = entry[2].get(key)
+    if ids is None:
+        ids = entry[2][key] = tuple(model.getFrameId(f) for f in key)
+    return entry[1], ids
+
+
+def _work_data(model: pin.Model) -> pin.Data:
+    """The Pinocchio Data of :func:`_work`."""
+    return _work(model)[0]
 
 
 def _kinematics(robot: Robot, theta10: np.ndarray, frames: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """Positions (M, 3) and position Jacobians (M, 3, 10) of frames in the link model."""
+    pos, jac = _kinematics_batch(robot, np.asarray(theta10, dtype=float)[None], tuple(frames))
+    return pos[0], jac[0]
+
+
+def _kinematics_batch(robot: Robot, theta10: np.ndarray, frames: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (S, M, 3) and position Jacobians (S, M, 3, 10) of frames in the link
+    model at each of the configurations ``theta10`` (S, 10): one Pinocchio pass
+    (joint Jacobians and frame placements) per configuration, into arrays made once."""
     model = robot.link_model
-    data = _work_data(model)
-    pin.computeJointJacobians(model, data, theta10)
-    pin.updateFramePlacements(model, data)
-    pos = np.empty((len(frames), 3))
-    jac = np.empty((len(frames), 3, model.nv))
-    for k, f in enumerate(frames):
-        fid = model.getFrameId(f)
-        pos[k] = data.oMf[fid].translation
-        jac[k] = pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)[:3]
+    data, fids = _work(model, frames)
+    theta10 = np.ascontiguousarray(theta10, dtype=float)
+    pos = np.empty((len(theta10), len(fids), 3))
+    jac = np.empty((len(theta10), len(fids), 3, model.nv))
+    world = pin.LOCAL_WORLD_ALIGNED
+    for s, th in enumerate(theta10):
+        pin.computeJointJacobians(model, data, th)
+        pin.updateFramePlacements(model, data)
+        for k, fid in enumerate(fids):
+            pos[s, k] = data.oMf[fid].translation
+            jac[s, k] = pin.getFrameJacobian(model, data, fid, world)[:3]
     return pos, jac
 
 
-def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted deflections (D, 3) and their Jacobian (D*3, p)."""
-    robot, ds = pr.robot, pr.ds
+def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Predicted deflections (D, 3), their Jacobian (D*3, p) and the marker positions
+    (S, M, 3) the kinematics gave (exact: at the deflected configurations; first
+    order: at the commanded ones)."""
+    ds = pr.ds
     b_theta, b_links, b_add = bases
-    nominal = np.array([robot.theta(ds.q[ds.state_pose[s]]) for s in range(ds.n_states)])
-    pos = np.empty((ds.n_states, len(pr.frames), 3))
-    jac = np.empty((ds.n_states, len(pr.frames), 3, robot.link_model.nv))
     if exact:
-        dtheta = b_theta @ beta
-        dlink = b_links @ beta
-        for s in range(ds.n_states):
-            th10 = robot.theta_links(nominal[s] + dtheta[s], dlink[s])
-            pos[s], jac[s] = _kinematics(robot, th10, pr.frames)
+        theta10 = _link_configurations(pr.nominal_theta + b_theta @ beta, b_links @ beta)
+        pos, jac = _kinematics_batch(pr.robot, theta10, pr.frames)
     else:
-        for pi in range(len(ds.pose_ids)):
-            states = np.flatnonzero(ds.state_pose == pi)
-            p0, j0 = _kinematics(robot, robot.theta_links(nominal[states[0]]), pr.frames)
-            pos[states], jac[states] = p0, j0
+        pos0, jac0 = pr.nominal_kinematics
+        pos, jac = pos0[ds.state_pose], jac0[ds.state_pose]
     d_idx = np.arange(ds.n_deflections)
     m = ds.defl_marker
     sl, sr = ds.defl_state, ds.defl_ref
@@ -490,7 +559,7 @@ def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.nd
     else:
         a = j_act_l @ (b_theta[sl] - b_theta[sr]) + j_spr_l @ (b_links[sl] - b_links[sr]) + b_add
         pred = a @ beta
-    return pred, a.reshape(-1, a.shape[2])
+    return pred, a.reshape(-1, a.shape[2]), pos
 
 
 def _absolute_bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -507,12 +576,8 @@ def absolute_positions(robot: Robot, ds: StaticDataset, frames: Sequence[str], b
     (:func:`_absolute_bases`): the joint angles carry the absolute torques, the link springs
     and the located compliance the moments of gravity and of the load."""
     b_theta, b_links, b_add = bases
-    dtheta, dlink = b_theta @ beta, b_links @ beta
-    out = np.empty((ds.n_states, len(frames), 3))
-    for s in range(ds.n_states):
-        th10 = robot.theta_links(robot.theta(ds.q[ds.state_pose[s]]) + dtheta[s], dlink[s])
-        out[s] = _kinematics(robot, th10, frames)[0]
-    return out + b_add @ beta
+    theta10 = _link_configurations(ds.q[ds.state_pose] + robot.offsets + b_theta @ beta, b_links @ beta)
+    return _kinematics_batch(robot, theta10, tuple(frames))[0] + b_add @ beta
 
 
 def _absolute_base(pr: _Problem, beta: np.ndarray, ctx: StaticContext) -> np.ndarray:
@@ -524,85 +589,150 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
                   sensitivity: np.ndarray | None = None) -> list[tuple[np.ndarray, np.ndarray]] | None:
     """Per-pose (row indices, covariance) of the deflection noise, or None
     when the data hold no repeated readings. ``sensitivity`` (S, 6): d dtheta /
-    d tau of each state (default: the joint compliances)."""
+    d tau of each state (default: the joint compliances).
+
+    Tracker noise: a deflection's own readings and those of its reference, which the
+    deflections of one marker at one pose share. Current noise: through the
+    compliance and the marker's Jacobian at the pose, into the loaded state and the
+    reference of each deflection. The blocks of all poses of one shape in a few array operations."""
     robot, ds = pr.robot, pr.ds
     if ds.sigma_tracker is None and ds.defl_u95_var is None:
         return None
-    blocks = []
     sig_i = ds.sigma_current if (pr.torque == "current" and ds.sigma_current is not None) else None
     c = None
     if sig_i is not None:
         # d dtheta / d tau for each state: the joint-stiffness part of the basis,
         # plus what torque-dependent effects (backlash) add
         c = np.tile(beta[:6], (ds.n_states, 1)) if sensitivity is None else sensitivity
-    for pi in range(len(ds.pose_ids)):
-        dl = np.flatnonzero(ds.state_pose[ds.defl_state] == pi)
-        if dl.size == 0:
-            continue
-        rows = (3 * dl[:, None] + np.arange(3)).reshape(-1)
-        n = len(dl)
-        cov = np.zeros((3 * n, 3 * n))
-        for a_, da in enumerate(dl):
-            for b_, db in enumerate(dl):
-                if ds.defl_marker[da] != ds.defl_marker[db]:
-                    continue
-                if ds.defl_u95_var is not None:       # the readings' own U95 (docs/import.md)
-                    v = ds.defl_u95_var_ref[da]
-                    if da == db:
-                        v = ds.defl_u95_var[da]
-                else:
-                    v = ds.sigma_tracker**2 / ds.defl_n_ref[da]
-                    if da == db:
-                        v += ds.sigma_tracker**2 / ds.defl_n[da]
-                cov[3 * a_:3 * a_ + 3, 3 * b_:3 * b_ + 3] += v * np.eye(3)
+        jac0 = pr.nominal_kinematics[1][:, :, :, ACTUATED_IN_LINK_MODEL]     # (P, M, 3, 6)
+        rank, n_states_of = pr.state_rank
+        var_i = (robot.torque_constants * sig_i) ** 2 / ds.state_n_currents[:, None]   # (S, 6)
+        order = np.argsort(ds.state_pose, kind="stable")
+    if ds.defl_u95_var is not None:          # the readings' own U95 (docs/import.md)
+        v_ref, v_own = ds.defl_u95_var_ref, ds.defl_u95_var
+    else:
+        v_ref = ds.sigma_tracker**2 / ds.defl_n_ref
+        v_own = v_ref + ds.sigma_tracker**2 / ds.defl_n
+    # poses of one shape (deflections, states) are done together: every block of a group in
+    # one array operation
+    state_start = np.concatenate([[0], np.cumsum(n_states_of)[:-1]]) if sig_i is not None else None
+    shapes: dict[tuple[int, int], list[int]] = {}
+    for pi, dl in enumerate(pr.pose_deflections):
+        if dl.size:
+            shapes.setdefault((dl.size, int(n_states_of[pi]) if sig_i is not None else 0), []).append(pi)
+    out: list = [None] * len(pr.pose_deflections)
+    for (n, k), poses in shapes.items():
+        dl = np.stack([pr.pose_deflections[pi] for pi in poses])          # (G, n)
+        g_n = len(poses)
+        mk = ds.defl_marker[dl]
+        shared = np.where(mk[:, :, None] == mk[:, None, :], v_ref[dl][:, :, None], 0.0)
+        shared[:, np.arange(n), np.arange(n)] = v_own[dl]
+        cov = np.zeros((g_n, n, 3, n, 3))
+        for i in range(3):
+            cov[:, :, i, :, i] = shared
+        cov = cov.reshape(g_n, 3 * n, 3 * n)
         if sig_i is not None:
-            states = np.flatnonzero(ds.state_pose == pi)
-            theta10 = robot.theta_links(robot.theta(ds.q[pi]))
-            _, jac = _kinematics(robot, theta10, pr.frames)
-            g = np.zeros((3 * n, 6 * len(states)))
-            var = np.zeros(6 * len(states))
-            for k, s in enumerate(states):
-                var[6 * k:6 * k + 6] = (robot.torque_constants * sig_i) ** 2 / ds.state_n_currents[s]
-            for a_, da in enumerate(dl):
-                jm = jac[ds.defl_marker[da]][:, ACTUATED_IN_LINK_MODEL]
-                kl = int(np.flatnonzero(states == ds.defl_state[da])[0])
-                kr = int(np.flatnonzero(states == ds.defl_ref[da])[0])
-                g[3 * a_:3 * a_ + 3, 6 * kl:6 * kl + 6] += jm * c[ds.defl_state[da]]
-                g[3 * a_:3 * a_ + 3, 6 * kr:6 * kr + 6] -= jm * c[ds.defl_ref[da]]
-            cov += (g * var) @ g.T
-        blocks.append((rows, cov))
-    return blocks
+            pis = np.array(poses)
+            jm = jac0[pis[:, None], mk]                                   # (G, n, 3, 6)
+            g = np.zeros((g_n, n, 3, k, 6))
+            at_g, at_d = np.arange(g_n)[:, None], np.arange(n)[None, :]
+            g[at_g, at_d, :, rank[ds.defl_state[dl]], :] = jm * c[ds.defl_state[dl]][:, :, None, :]
+            g[at_g, at_d, :, rank[ds.defl_ref[dl]], :] = -(jm * c[ds.defl_ref[dl]][:, :, None, :])
+            g = g.reshape(g_n, 3 * n, 6 * k)
+            states = order[state_start[pis][:, None] + np.arange(k)]      # (G, k)
+            var = var_i[states].reshape(g_n, 6 * k)
+            cov += (g * var[:, None, :]) @ np.swapaxes(g, 1, 2)
+        rows = (3 * dl[:, :, None] + np.arange(3)).reshape(g_n, -1)
+        for j, pi in enumerate(poses):
+            out[pi] = (rows[j], cov[j])
+    return [b for b in out if b is not None]
 
 
-def _cholesky_blocks(blocks) -> tuple[tuple[np.ndarray, np.ndarray], ...] | None:
+@dataclass(frozen=True, eq=False)
+class Whitening:
+    """The per-pose lower Cholesky factors ``L`` of a GLS fit's noise covariance
+    (iterates as (row indices, L) pairs, pose by pose). ``L^-1 v`` is LAPACK's
+    triangular solve of each block, called directly (the very call
+    ``scipy.linalg.solve_triangular`` makes, without its per-call checks): the
+    fit downstream of it (the absolute fits) is that sensitive to its last bits;
+    ``L v`` is one batched product per block size."""
+
+    blocks: tuple[tuple[np.ndarray, np.ndarray], ...]
+    #: (rows (G, m), L (G, m, m)) per block size m
+    stacks: tuple[tuple[np.ndarray, np.ndarray], ...]
+
+    @classmethod
+    def of(cls, blocks: Sequence[tuple[np.ndarray, np.ndarray]]) -> "Whitening":
+        stacks = []
+        sizes = np.array([len(rows) for rows, _ in blocks])
+        for m in dict.fromkeys(sizes.tolist()):
+            pick = [b for b, size in zip(blocks, sizes) if size == m]
+            stacks.append((np.stack([r for r, _ in pick]), np.stack([c for _, c in pick])))
+        return cls(tuple(blocks), tuple(stacks))
+
+    def __iter__(self):
+        return iter(self.blocks)
+
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.blocks[i]
+
+    def whiten(self, v: np.ndarray) -> np.ndarray:
+        """``L^-1 v`` for a vector (N,) or the columns of a matrix (N, p)."""
+        v = np.asarray(v, dtype=float)
+        out = np.empty_like(v)
+        if not self.blocks:
+            return out
+        trtrs = scipy.linalg.lapack.dtrtrs
+        for rows, chol in self.blocks:
+            # solve_triangular's call for a C-ordered lower factor: the transposed (upper,
+            # Fortran-ordered) system, transposed back
+            x, info = trtrs(chol.T, v[rows], lower=0, trans=1, unitdiag=0)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"singular noise covariance block (trtrs info {info})")
+            out[rows] = x
+        return out
+
+    def unwhiten(self, v: np.ndarray) -> np.ndarray:
+        """``L v``."""
+        v = np.asarray(v, dtype=float)
+        out = np.empty_like(v)
+        for rows, chol in self.stacks:
+            x = v[rows]
+            out[rows] = (chol @ x[..., None])[..., 0] if v.ndim == 1 else chol @ x
+        return out
+
+
+def _cholesky_blocks(blocks) -> Whitening | None:
     """Cholesky factors of the noise covariance blocks, or None when the data carry
     no noise to weight by (noise-free data: every block zero): the fit is then
-    unweighted."""
-    out = []
-    for rows, cov in blocks:
-        trace = float(np.trace(cov))
-        if not np.isfinite(trace) or trace <= 0.0:
+    unweighted. Blocks of one size are factored together."""
+    chol: list = [None] * len(blocks)
+    sizes = np.array([len(cov) for _, cov in blocks])
+    for m in dict.fromkeys(sizes.tolist()):
+        idx = np.flatnonzero(sizes == m)
+        covs = np.stack([blocks[i][1] for i in idx])
+        trace = np.trace(covs, axis1=1, axis2=2)
+        if not np.all(np.isfinite(trace)) or np.any(trace <= 0.0):
             return None
-        jitter = 1e-12 * trace / max(len(cov), 1)
+        jitter = 1e-12 * trace / max(m, 1)
         try:
-            out.append((rows, np.linalg.cholesky(cov + jitter * np.eye(len(cov)))))
+            factors = np.linalg.cholesky(covs + jitter[:, None, None] * np.eye(m))
         except np.linalg.LinAlgError:
             return None
-    return tuple(out)
+        for i, f in zip(idx, factors):
+            chol[i] = f
+    return Whitening.of([(rows, f) for (rows, _), f in zip(blocks, chol)])
 
 
-def _whiten(whitening, v: np.ndarray) -> np.ndarray:
-    out = np.empty_like(v, dtype=float)
-    for rows, chol in whitening:
-        out[rows] = scipy.linalg.solve_triangular(chol, v[rows], lower=True)
-    return out
+def _whiten(whitening: Whitening, v: np.ndarray) -> np.ndarray:
+    return whitening.whiten(v)
 
 
-def _unwhiten(whitening, v: np.ndarray) -> np.ndarray:
-    out = np.empty_like(v, dtype=float)
-    for rows, chol in whitening:
-        out[rows] = chol @ v[rows]
-    return out
+def _unwhiten(whitening: Whitening, v: np.ndarray) -> np.ndarray:
+    return whitening.unwhiten(v)
 
 
 def _select_columns(a: np.ndarray, names: Sequence[str],
@@ -725,7 +855,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
                                   "parameters (measure more poses, loads or markers)", source=ds.source)
 
     # first-order linear solve: starting point, and the answer for form=first-order
-    _, a = _evaluate(pr, np.zeros(len(beta_names)), bases, exact=False)
+    _, a, _ = _evaluate(pr, np.zeros(len(beta_names)), bases, exact=False)
     later = np.array([0 if eff.selected_from is None else 1 + (0 if eff.priority is None else eff.priority[i])
                       for eff in effects for i in range(len(eff.parameters))], dtype=int)
     scale, mask = _select_columns(a, beta_names, later if later.any() else None)
@@ -742,13 +872,12 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         iterations = 0
         for iterations in range(1, max_iter + 1):
             if tau_dependent:
-                theta_states = np.array([robot.theta(ds.q[ds.state_pose[s]]) for s in range(ds.n_states)])
-                theta_states = theta_states + state["bases"][0] @ beta
+                theta_states = pr.nominal_theta + state["bases"][0] @ beta
                 state["tau"] = _torques(pr, theta_states)
             if tau_dependent or iterative:
                 state["ctx"] = _context(pr, state["tau"], beta if iterative else None)
                 state["bases"] = _bases(pr, state["ctx"])
-            pred, a = _evaluate(pr, beta, state["bases"], exact=exact)
+            pred, a, _ = _evaluate(pr, beta, state["bases"], exact=exact)
             r = y - pred.reshape(-1)
             x = a[:, mask] / scale[mask]
             if whitening is not None:
@@ -789,7 +918,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
             blocks = noise_blocks(beta)
             whitening = _cholesky_blocks(blocks)
     ctx, bases, tau = state["ctx"], state["bases"], state["tau"]
-    pred, a = _evaluate(pr, beta, bases, exact=exact)
+    pred, a, _ = _evaluate(pr, beta, bases, exact=exact)
     resid = ds.dP - pred
     r = resid.reshape(-1)
     rss = float(r @ r)
