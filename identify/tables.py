@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import operator
 import pathlib
 from dataclasses import dataclass
 from typing import Iterable, Iterator
@@ -179,14 +180,21 @@ class _Rows:
             raise InputError(f"unknown column(s) {', '.join(unknown)}", source=source, row=1)
         self.index = {c: i for i, c in enumerate(self.header)}
         self.rows: list[tuple[int, list[str]]] = []
+        width = len(self.header)
         for lineno, row in reader:
-            if not row or all(not cell.strip() for cell in row):
+            cells = list(map(str.strip, row))
+            if not any(cells):          # a blank record (no fields, or only blanks)
                 continue
-            if len(row) != len(self.header):
-                raise InputError(f"{len(row)} fields, the header has {len(self.header)}", source=source, row=lineno)
-            self.rows.append((lineno, [cell.strip() for cell in row]))
+            if len(row) != width:
+                raise InputError(f"{len(row)} fields, the header has {width}", source=source, row=lineno)
+            self.rows.append((lineno, cells))
         if not self.rows:
             raise InputError("the table has no rows", source=source)
+
+    def columns(self) -> dict[str, tuple[str, ...]]:
+        """Each column's cells, top to bottom (one pass over the rows)."""
+        cols = list(zip(*(cells for _, cells in self.rows)))
+        return {c: cols[i] for c, i in self.index.items()}
 
     def check_groups(self, groups: Iterable[tuple[tuple[str, ...], str]]) -> None:
         """Columns that go together (a vector) are all in the header or none is."""
@@ -278,9 +286,91 @@ def _check_currents(source: str, lineno: int, currents: list[float]) -> None:
                              source=source, row=lineno, column=col)
 
 
+def _numbers(cells: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The cells of a column as numbers (NaN where empty) and where they are empty, or None
+    when a cell is not a finite number (``float`` reads each cell, as the per-row reader does)."""
+    empty = np.fromiter(map(operator.not_, cells), dtype=bool, count=len(cells))
+    try:
+        if empty.any():
+            values = np.full(len(cells), math.nan)
+            values[~empty] = np.array([c for c in cells if c], dtype=float)
+        else:
+            values = np.array(cells, dtype=float)
+    except ValueError:
+        return None
+    if not np.all(np.isfinite(values[~empty])):
+        return None
+    return values, empty
+
+
+def _fast_static_table(rows: _Rows, robot: Robot | None, extra_cols: list[str]) -> StaticTable | None:
+    """The static table from its columns in whole-column operations (no Python work per row),
+    or None when any row may fail a check of the per-row reader: that reader then runs and names
+    the first bad row exactly as it always did. Every check of :func:`_parse_static_rows` is
+    screened here with the same comparisons, so what this returns is what that returns."""
+    cols = rows.columns()
+    n = len(rows.rows)
+    text = {}
+    for c in ("pose", "load", "marker"):
+        text[c] = np.array(cols[c], dtype=str)
+        if not np.all(text[c] != ""):
+            return None
+    numbers = {}
+    for c in ("t", *Q_COLS, *W_COLS, *I_COLS, *XYZ_COLS, *extra_cols):
+        got = _numbers(cols[c])
+        if got is None:
+            return None
+        numbers[c] = got
+    for required in (*Q_COLS, *XYZ_COLS):
+        if numbers[required][1].any():
+            return None
+    for group in (W_COLS, I_COLS):            # all of a vector or none of it, row by row
+        empty = np.column_stack([numbers[c][1] for c in group])
+        if np.any(empty.any(axis=1) & ~empty.all(axis=1)):
+            return None
+
+    def values(group: tuple[str, ...]) -> np.ndarray:
+        return np.column_stack([numbers[c][0] for c in group]).reshape(n, len(group))
+
+    t, q, w, cur, xyz = numbers["t"][0], values(Q_COLS), values(W_COLS), values(I_COLS), values(XYZ_COLS)
+    with np.errstate(invalid="ignore"):
+        if np.any(np.abs(t) > MAX_TIME_S) or np.any(np.abs(w) > MAX_WRENCH) or np.any(np.abs(cur) > MAX_CURRENT_A):
+            return None
+        if np.any(np.abs(xyz) > MAX_POSITION_M):
+            return None
+        if robot is not None:
+            lo = np.array([j.lower for j in robot.joints]) - 1e-3
+            hi = np.array([j.upper for j in robot.joints]) + 1e-3
+            if not np.all((lo <= q) & (q <= hi)):
+                return None
+            if not np.all(np.isin(text["marker"], np.array(robot.marker_names, dtype=str))):
+                return None
+        elif np.any(np.abs(q) > 2 * math.pi):
+            return None
+        if "u95" in extra_cols:
+            u95 = numbers["u95"][0]
+            if not np.all(np.isnan(u95) | ((0 <= u95) & (u95 < 0.01))):
+                return None
+    line = np.fromiter((lineno for lineno, _ in rows.rows), dtype=int, count=n)
+    return StaticTable(rows.source, text["pose"], text["load"], t, q, w, cur, text["marker"], xyz, line,
+                       tuple((c, numbers[c][0]) for c in extra_cols))
+
+
 def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "<static.csv>") -> StaticTable:
+    """Read and validate a static table (docs/formats.md §2): in whole-column operations when
+    every row passes the checks (the usual case), else row by row to the first bad one."""
     rows = _Rows(text, source, required=STATIC_COLUMNS, known=STATIC_COLUMNS + STATIC_OPTIONAL_COLUMNS)
     extra_cols = [c for c in STATIC_OPTIONAL_COLUMNS if c in rows.index]
+    table = _fast_static_table(rows, robot, extra_cols)
+    if table is None:
+        table = _parse_static_rows(rows, robot, extra_cols)
+    _check_static_structure(table)
+    return table
+
+
+def _parse_static_rows(rows: _Rows, robot: Robot | None, extra_cols: list[str]) -> StaticTable:
+    """The per-row reader: the first row that fails a check raises, naming its line and column."""
+    source = rows.source
     extra: dict[str, list[float]] = {c: [] for c in extra_cols}
     markers = set(robot.marker_names) if robot is not None else None
     pose, load, t, q, w, cur, marker, xyz, line = [], [], [], [], [], [], [], [], []
@@ -318,13 +408,43 @@ def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "
                         np.array(q, dtype=float), np.array(w, dtype=float), np.array(cur, dtype=float),
                         np.array(marker, dtype=str), np.array(xyz, dtype=float), np.array(line, dtype=int),
                         tuple((c, np.array(extra[c], dtype=float)) for c in extra_cols))
-    _check_static_structure(table)
     return table
+
+
+def _static_structure_holds(table: StaticTable) -> bool:
+    """Whether :func:`_check_static_structure` finds nothing, in whole-column operations:
+    rows grouped by pose, (pose, load) and (pose, marker, load) with ``np.unique``."""
+    if len(table) == 0:
+        return True
+    _, first_of_pose, pose = np.unique(table.pose, return_index=True, return_inverse=True)
+    pose = pose.reshape(-1)
+    _, load = np.unique(table.load, return_inverse=True)
+    _, marker = np.unique(table.marker, return_inverse=True)
+    load, marker = load.reshape(-1), marker.reshape(-1)
+    n_pose, n_load, n_marker = int(pose.max()) + 1, int(load.max()) + 1, int(marker.max()) + 1
+    if not np.all(np.bincount(pose[table.load == "0"], minlength=n_pose) > 0):
+        return False                                 # a pose without its unloaded reference
+    pose_load = np.unique(pose * n_load + load)
+    loads_of_pose = np.bincount(pose_load // n_load, minlength=n_pose)
+    if np.any(loads_of_pose < 2):
+        return False                                 # a pose with one load state
+    if np.any(np.abs(table.q - table.q[first_of_pose[pose]]) > 1e-6):
+        return False                                 # a pose that changes its configuration
+    pose_marker = np.unique(pose * n_marker + marker)
+    triples = np.unique((pose * n_marker + marker) * n_load + load)
+    if len(triples) != int(np.sum(loads_of_pose[pose_marker // n_marker])):
+        return False                                 # a marker without a reading under one of its pose's loads
+    _, first_of_state, state = np.unique(pose * n_load + load, return_index=True, return_inverse=True)
+    w = table.wrench
+    with np.errstate(invalid="ignore"):
+        return not np.any(np.abs(w - w[first_of_state[state.reshape(-1)]]) > 1e-9)
 
 
 def _check_static_structure(table: StaticTable) -> None:
     """Every pose has an unloaded reference and at least one load state, for each
     marker; one configuration per pose; the wrench of the reference is zero or empty."""
+    if _static_structure_holds(table):
+        return
     src = table.source
     for p in dict.fromkeys(table.pose):
         rows = table.pose == p
