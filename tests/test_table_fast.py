@@ -1,0 +1,87 @@
+"""The static table read in whole columns is the table the per-row reader makes (issue 15, part 1).
+
+identify/tables.py reads a static table column by column when every row passes the
+checks, and falls back to the per-row reader (which names the first bad line and column)
+otherwise. Both are compared here on the same text, value for value, and the screening is
+shown to send every bad row to the per-row reader.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from elastocal.errors import InputError
+from elastocal.identify.robot import bundled_robot
+from elastocal.identify.tables import (
+    STATIC_COLUMNS,
+    STATIC_OPTIONAL_COLUMNS,
+    StaticTable,
+    _fast_static_table,
+    _parse_static_rows,
+    _Rows,
+    format_static_table,
+    parse_static_table,
+)
+from elastocal.sims.cell import CellTruth
+from elastocal.sims.static import StaticPlan, simulate_static
+
+ROBOT = bundled_robot()
+
+
+def _text(**changes) -> str:
+    table = simulate_static(ROBOT, CellTruth(), seed=5, plan=StaticPlan(n_poses=4, n_loads=2, repeats=2))
+    if changes.get("u95"):
+        table = StaticTable(table.source, table.pose, table.load, table.t, table.q, table.wrench, table.currents,
+                            table.marker, table.xyz, table.line,
+                            (("u95", np.linspace(1e-5, 3e-5, len(table))), ("temperature_c", np.full(len(table), 20.5))))
+    text = format_static_table(table)
+    if changes.get("spaces"):        # cells with blanks around them, blank records between rows
+        lines = text.splitlines()
+        text = "\n".join([lines[0]] + [" " + ln.replace(",", " , ") + "\n,,," for ln in lines[1:]]) + "\n"
+    return text
+
+
+def _both(text: str, robot=ROBOT):
+    rows = _Rows(text, "<t>", required=STATIC_COLUMNS, known=STATIC_COLUMNS + STATIC_OPTIONAL_COLUMNS)
+    extra = [c for c in STATIC_OPTIONAL_COLUMNS if c in rows.index]
+    return _fast_static_table(rows, robot, extra), _parse_static_rows(rows, robot, extra)
+
+
+@pytest.mark.parametrize("changes", [{}, {"u95": True}, {"spaces": True}])
+@pytest.mark.parametrize("robot", [ROBOT, None])
+def test_whole_columns_equal_the_per_row_reader(changes, robot):
+    fast, slow = _both(_text(**changes), robot)
+    assert fast is not None, "a valid table takes the whole-column way"
+    for field in ("pose", "load", "marker", "t", "q", "wrench", "currents", "xyz", "line"):
+        a, b = getattr(fast, field), getattr(slow, field)
+        assert a.dtype == b.dtype and a.shape == b.shape, field
+        np.testing.assert_array_equal(a, b, err_msg=field)
+    assert [k for k, _ in fast.extra] == [k for k, _ in slow.extra]
+    for (_, a), (_, b) in zip(fast.extra, slow.extra):
+        np.testing.assert_array_equal(a, b)
+
+
+def _spoil(text: str, row: int, column: str, value: str) -> str:
+    lines = text.splitlines()
+    header = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[header.index(column)] = value
+    lines[row] = ",".join(cells)
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("column, value, message", [
+    ("q2", "", "empty value"), ("q2", "abc", "not a number"), ("q3", "9.0", "outside the joint limits"),
+    ("x", "1500.0", "millimetres"), ("t", "1e12", "not a plausible time"), ("fx", "", "partly empty"),
+    ("i4", "1e5", "not a plausible motor current"), ("marker", "R9", "unknown marker"), ("mz", "inf", "finite"),
+    ("u95", "0.5", "u95"), ("pose", "", "empty value"),
+])
+def test_a_bad_row_is_named_by_the_per_row_reader(column, value, message):
+    text = _spoil(_text(u95=True), 7, column, value)
+    rows = _Rows(text, "<t>", required=STATIC_COLUMNS, known=STATIC_COLUMNS + STATIC_OPTIONAL_COLUMNS)
+    fast = _fast_static_table(rows, ROBOT, [c for c in STATIC_OPTIONAL_COLUMNS if c in rows.index])
+    assert fast is None, "the screen must send the bad row to the per-row reader"
+    with pytest.raises(InputError, match=message) as info:
+        parse_static_table(text, ROBOT, source="<t>")
+    assert info.value.row == 8, str(info.value)      # the header is line 1
