@@ -5,18 +5,26 @@ where a killed recorder left it (a truncated record ends the walk; the complete
 chunks before it are read). :func:`read_log` gathers the samples and procedure
 events into :class:`LogContents`; :mod:`elastocal.acquisition.export` turns them
 into tables (docs/log-format.md).
+
+A finished log (closing magic, summary, every message in an indexed chunk) is read
+faster: mcap's summary gives the chunks, which are read in file order without the
+message-index records the streaming reader parses entry by entry (one per message),
+and only the messages of the topics wanted are cut out of each decompressed chunk
+(:mod:`elastocal.acquisition.logchunks`) and JSON-decoded, one decode per topic and chunk
+(benchmarks/bench_log.py measures it against mcap's own readers on the same file).
 """
 
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import operator
 import os
 import pathlib
 import struct
 from dataclasses import dataclass
-from typing import IO, Iterator
+from typing import IO, Collection, Iterator
 
 import numpy as np
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError
@@ -24,6 +32,7 @@ from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 
 from elastocal.acquisition import logformat as lf
+from elastocal.acquisition.logchunks import chunk_messages, ends_with_magic, indexed_chunks, read_chunk
 from elastocal.errors import InputError
 
 #: samples of the k-th recording session of a log (a resumed log holds several,
@@ -31,7 +40,9 @@ from elastocal.errors import InputError
 #: reading windows only ever see samples of their own session
 SEGMENT_NS = 10**17
 MAX_SEGMENTS = 90
-
+#: the topics :func:`read_log` gathers; the Foxglove views (docs/log-format.md) are for viewers
+READ_TOPICS = frozenset({*lf.DRIVE_TOPICS, lf.TOPIC_TRACKER, lf.TOPIC_EVENT, lf.TOPIC_ROBOT, lf.TOPIC_CELL,
+                         lf.TOPIC_PLAN, lf.TOPIC_SESSION})
 
 class _ExactReads:
     """File wrapper for StreamReader: a short read (the file ends inside a
@@ -71,20 +82,6 @@ class _Position:
         return self._raw.tell()
 
 
-def _ends_with_magic(f: IO[bytes]) -> bool:
-    from mcap.writer import MCAP0_MAGIC
-
-    f.seek(0, 2)
-    size = f.tell()
-    if size < 2 * len(MCAP0_MAGIC):
-        f.seek(0)
-        return False
-    f.seek(size - len(MCAP0_MAGIC))
-    tail = f.read(len(MCAP0_MAGIC))
-    f.seek(0)
-    return tail == MCAP0_MAGIC
-
-
 class LogReader:
     """Messages of a (possibly truncated) elastocal log, in file order.
 
@@ -110,7 +107,7 @@ class LogReader:
         with f:
             # a finished log ends with the MCAP magic: read it directly; otherwise
             # every read is checked so that a truncated record ends the walk
-            stream = _ExactReads(f) if not _ends_with_magic(f) else _Position(f)
+            stream = _ExactReads(f) if not ends_with_magic(f) else _Position(f)
             reader = StreamReader(stream, emit_chunks=True, record_size_limit=1 << 30)  # type: ignore[arg-type]
             it = reader.records
             while True:
@@ -198,10 +195,28 @@ class LogReader:
                              source=str(self.path)) from None
         return value
 
-    def grouped(self) -> Iterator[dict[str, tuple[list[int], list]]]:
-        """Decoded messages, one dict per chunk: topic -> (log times, payloads),
-        each in file order. The fastest way through a log: one JSON decode per
-        topic and chunk."""
+    def grouped(self, topics: Collection[str] | None = None) -> Iterator[tuple[int, dict[str, tuple[list[int], list]]]]:
+        """Decoded messages, one item per chunk: (messages in it, {topic -> (log
+        times, payloads)}), each topic's in file order; only ``topics`` are decoded
+        (all when None). The fastest way through a log: one JSON decode per topic
+        and chunk, and a finished log read by its summary (module docstring)."""
+        chunks = self._indexed_chunks()
+        source = self._streamed_groups() if chunks is None else self._summary_groups(chunks, topics)
+        for count, by_channel in source:
+            out = {}
+            for cid, (times, datas) in by_channel.items():
+                topic = self._topic_of(cid)
+                if topics is not None and topic not in topics:
+                    continue
+                try:
+                    values = json.loads(b"[" + b",".join(datas) + b"]")
+                except ValueError:
+                    values = [self._decode_data(topic, t, d) for t, d in zip(times, datas)]
+                out[topic] = (times, values)
+            yield count, out
+
+    def _streamed_groups(self) -> Iterator[tuple[int, dict[int, tuple[list[int], list[bytes]]]]]:
+        """Every record through mcap's streaming reader (any log, a truncated one too)."""
         for record in self._records():
             msgs = self._expand(record)
             if not msgs:
@@ -213,15 +228,41 @@ class LogReader:
                     entry = by_channel[m.channel_id] = ([], [])
                 entry[0].append(m.log_time)
                 entry[1].append(m.data)
-            out = {}
-            for cid, (times, datas) in by_channel.items():
-                topic = self._topic_of(cid)
+            yield len(msgs), by_channel
+
+    def _indexed_chunks(self) -> list | None:
+        """The chunk indexes of a finished log read by its summary (logchunks.indexed_chunks), its
+        channels and schemas remembered; None: the streaming reader reads the file."""
+        found = indexed_chunks(self.path)
+        if found is None:
+            return None
+        chunks, summary = found
+        self.topics.update({cid: ch.topic for cid, ch in summary.channels.items()})
+        self.schemas.update({sid: sc.name for sid, sc in summary.schemas.items()})
+        return chunks
+
+    def _summary_groups(self, chunks: list, topics: Collection[str] | None
+                        ) -> Iterator[tuple[int, dict[int, tuple[list[int], list[bytes]]]]]:
+        """The chunks of :meth:`_indexed_chunks`, each read at its offset, checked against
+        its CRC, and cut into the messages of ``topics``."""
+        wanted = None if topics is None else {cid for cid, t in self.topics.items() if t in topics}
+        with open(self.path, "rb") as f:
+            for ci in chunks:
+                self.end_offset = ci.chunk_start_offset + ci.chunk_length
                 try:
-                    values = json.loads(b"[" + b",".join(datas) + b"]")
-                except ValueError:
-                    values = [self._decode_data(topic, t, d) for t, d in zip(times, datas)]
-                out[topic] = (times, values)
-            yield out
+                    data = read_chunk(f, ci)
+                except CRCValidationError as exc:
+                    raise InputError(f"corrupt chunk before byte {self.end_offset}: {exc}",
+                                     source=str(self.path)) from None
+                except Exception as exc:  # zstandard raises its own error type on bad data
+                    raise InputError(f"cannot decompress chunk before byte {self.end_offset}: {exc}",
+                                     source=str(self.path)) from None
+                try:
+                    yield chunk_messages(data, wanted)
+                except (McapError, struct.error) as exc:
+                    raise InputError(f"corrupt chunk before byte {self.end_offset}: {exc}",
+                                     source=str(self.path)) from None
+        self.complete = True
 
     def _topic_of(self, channel_id: int) -> str:
         try:
@@ -334,7 +375,8 @@ def _check_messages(topic: str, times: list[int], values: list, source: str) -> 
 
 
 def read_log(path: str | pathlib.Path) -> LogContents:
-    """Gather a log's documents, events and samples (tolerates a truncated file)."""
+    """Gather a log's documents, events and samples (tolerates a truncated file).
+    Only the topics of :data:`READ_TOPICS` are decoded; ``messages`` counts all."""
     reader = LogReader(path)
     source = str(reader.path)
     docs: dict[str, Document] = {}
@@ -347,11 +389,11 @@ def read_log(path: str | pathlib.Path) -> LogContents:
     get_drive = operator.itemgetter("position_rad", "velocity_rad_s", "current_a")
     get_xyz = operator.itemgetter("x", "y", "z")
     segment = 0
-    for groups in reader.grouped():
+    for count, groups in reader.grouped(READ_TOPICS):
         offset = segment * SEGMENT_NS
         resumes = 0
+        n_messages += count
         for topic, (log_times, values) in groups.items():
-            n_messages += len(log_times)
             times = _monotonic(log_times, values)
             if topic in lf.CHECKED_TOPICS:
                 _check_messages(topic, log_times, values, source)
@@ -426,7 +468,10 @@ def _monotonic(log_times: list[int], values: list) -> list[int]:
     if not values or not isinstance(values[0], dict) or "monotonic_ns" not in values[0]:
         if not any(isinstance(v, dict) and "monotonic_ns" in v for v in values):
             return log_times
-    return [v.get("monotonic_ns", t) if isinstance(v, dict) else t for t, v in zip(log_times, values)]
+    try:        # every payload an object (the usual case): dict.get over them in one C loop
+        return list(map(dict.get, values, itertools.repeat("monotonic_ns"), log_times))
+    except TypeError:
+        return [v.get("monotonic_ns", t) if isinstance(v, dict) else t for t, v in zip(log_times, values)]
 
 
 def _keys(times: list[int], offset: int, source: str) -> np.ndarray:
