@@ -10,34 +10,25 @@ pass over the rows) and of reading the same table from CSV; last, the goal of is
 poses, exact, current, under 0.5 s on a quiet machine whose FK takes 0.48 us: one million FK)
 as the ratio of this run's figure to it.
 
-The numeric libraries run one thread, as the ``elastocal`` command sets them
-(elastocal.cli.NUMERIC_THREADS_ENV) unless OMP/OPENBLAS/MKL_NUM_THREADS are set: run with
-OPENBLAS_NUM_THREADS=2 to see what BLAS threads cost.
+(The fit runs its linear algebra on one BLAS thread itself: identify/blas.py.)
 """
 
 from __future__ import annotations
 
-import os
+import argparse
+import pathlib
+import statistics
+import tempfile
+import time
 
-from elastocal.cli import NUMERIC_THREADS_ENV
+import numpy as np
+import pinocchio as pin
 
-for _name, _value in NUMERIC_THREADS_ENV.items():     # before numpy is imported, as the command does
-    os.environ.setdefault(_name, _value)
-
-import argparse  # noqa: E402
-import pathlib  # noqa: E402
-import statistics  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-
-import numpy as np  # noqa: E402
-import pinocchio as pin  # noqa: E402
-
-from elastocal.identify.robot import bundled_robot  # noqa: E402
-from elastocal.identify.static import build_dataset, identify_static  # noqa: E402
-from elastocal.identify.tables import read_static_table, write_static_table  # noqa: E402
-from elastocal.sims.cell import CellTruth  # noqa: E402
-from elastocal.sims.static import StaticPlan, simulate_static  # noqa: E402
+from elastocal.identify.robot import bundled_robot
+from elastocal.identify.static import build_dataset, identify_static
+from elastocal.identify.tables import read_static_table, write_static_table
+from elastocal.sims.cell import CellTruth
+from elastocal.sims.static import StaticPlan, simulate_static
 
 
 def one_fk_s(robot, n: int = 50_000) -> float:
@@ -76,8 +67,7 @@ def main() -> None:
     robot = bundled_robot()
     truth = CellTruth()
     fk_s = one_fk_s(robot)
-    threads = ", ".join(f"{k}={os.environ.get(k, '-')}" for k in NUMERIC_THREADS_ENV)
-    print(f"one pinocchio.forwardKinematics: {fk_s * 1e6:.3f} us (measured in this run); {threads}")
+    print(f"one pinocchio.forwardKinematics: {fk_s * 1e6:.3f} us (measured in this run)")
     print(f"{'poses':>6} {'rows':>7} {'form':<12} {'torque':<8} {'median s':>9} {'cpu s':>7} {'x one FK':>10} "
           f"{'max |k err| %':>14}")
     goal = None

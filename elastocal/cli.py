@@ -62,12 +62,6 @@ COMMAND_DOCS: dict[str, str] = {
 #: keep it for 5 ms); benchmarks/bench_devices.py measures the difference
 STREAMING_COMMANDS = frozenset({"demo", "sim", "devices", "calibrate", "check"})
 STREAMING_SWITCH_INTERVAL_S = 2e-4
-#: the numeric libraries' thread pools run one thread unless the user set them: elastocal's linear
-#: algebra is many small problems (a pose's 27 x 27 noise block, a 10,000 x 10 regressor), where
-#: waking BLAS threads costs more than they give, and on a shared machine they oversubscribe it
-#: (benchmarks/bench_identify.py: the 300-pose fit takes 3x the CPU time with them). Set before
-#: the command's module imports numpy; fleet workers get the same (elastocal.fleet.pool).
-NUMERIC_THREADS_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 #: third-party libraries whose log records would reach stderr through logging's last resort
@@ -135,9 +129,6 @@ def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if "numpy" not in sys.modules:      # (imported already, as in a caller's process: its pools are made)
-        for name, value in NUMERIC_THREADS_ENV.items():
-            os.environ.setdefault(name, value)
     first = next((a for a in argv if not a.startswith("-")), None)
     parser, modules = build_parser(first if first in COMMANDS else None)
     args = parser.parse_args(argv)
