@@ -338,14 +338,9 @@ def _fast_static_table(rows: _Rows, robot: Robot | None, extra_cols: list[str]) 
             return None
         if np.any(np.abs(xyz) > MAX_POSITION_M):
             return None
-        if robot is not None:
-            lo = np.array([j.lower for j in robot.joints]) - 1e-3
-            hi = np.array([j.upper for j in robot.joints]) + 1e-3
-            if not np.all((lo <= q) & (q <= hi)):
-                return None
-            if not np.all(np.isin(text["marker"], np.array(robot.marker_names, dtype=str))):
-                return None
-        elif np.any(np.abs(q) > 2 * math.pi):
+        if not _joints_within(q, robot):
+            return None
+        if robot is not None and not np.all(np.isin(text["marker"], np.array(robot.marker_names, dtype=str))):
             return None
         if "u95" in extra_cols:
             u95 = numbers["u95"][0]
@@ -486,11 +481,93 @@ def read_static_table(path: str | pathlib.Path, robot: Robot | None = None) -> S
     return parse_static_table(text, robot, source=source)
 
 
+def _joints_within(q: np.ndarray, robot: Robot | None) -> bool:
+    """Whether every angle of ``q`` (n, 6) passes :func:`_check_joint_units`."""
+    if robot is None:
+        return not np.any(np.abs(q) > 2 * math.pi)
+    lo = np.array([j.lower for j in robot.joints]) - 1e-3
+    hi = np.array([j.upper for j in robot.joints]) + 1e-3
+    return bool(np.all((lo <= q) & (q <= hi)))
+
+
+def _fast_run_table(rows: _Rows, robot: Robot | None) -> RunTable | None:
+    """The run table in whole-column operations, or None when any row may fail a check of
+    :func:`_parse_run_rows` (which then names the first bad row), as for the static table."""
+    cols = rows.columns()
+    n = len(rows.rows)
+    text = {}
+    for c in ("run", "direction", "load", "marker"):
+        text[c] = np.array(cols[c], dtype=str) if c in cols else np.full(n, "", dtype=str)
+    if not all(np.all(text[c] != "") for c in ("run", "direction", "load")):
+        return None
+    if not np.all(np.isin(text["direction"], np.array(DIRECTIONS, dtype=str))):
+        return None
+    numbers = {}
+    for c in ("t", *Q_COLS, *DQ_COLS, *I_COLS, *W_COLS, *XYZ_COLS):
+        if c not in cols:
+            numbers[c] = (np.full(n, math.nan), np.ones(n, dtype=bool))
+            continue
+        got = _numbers(cols[c])
+        if got is None:
+            return None
+        numbers[c] = got
+    if any(numbers[c][1].any() for c in ("t", *Q_COLS)):
+        return None
+    for group in (DQ_COLS, I_COLS, W_COLS, XYZ_COLS):     # all of a vector or none of it, row by row
+        empty = np.column_stack([numbers[c][1] for c in group])
+        if np.any(empty.any(axis=1) & ~empty.all(axis=1)):
+            return None
+
+    def values(group: tuple[str, ...]) -> np.ndarray:
+        return np.column_stack([numbers[c][0] for c in group]).reshape(n, len(group))
+
+    t, q, dq, cur, w, xyz = (numbers["t"][0], values(Q_COLS), values(DQ_COLS), values(I_COLS), values(W_COLS),
+                             values(XYZ_COLS))
+    named = text["marker"] != ""
+    with np.errstate(invalid="ignore"):
+        if np.any(np.abs(t) > MAX_TIME_S) or not _joints_within(q, robot):
+            return None
+        if np.any(np.abs(dq) > MAX_SPEED_RAD_S) or np.any(np.abs(cur) > MAX_CURRENT_A):
+            return None
+        if np.any(np.abs(w) > MAX_WRENCH) or np.any(named[:, None] & (np.abs(xyz) > MAX_POSITION_M)):
+            return None
+    if np.any(named == np.isnan(xyz[:, 0])):       # a marker without a position, or a position without one
+        return None
+    if robot is not None and not np.all(np.isin(text["marker"][named], np.array(robot.marker_names, dtype=str))):
+        return None
+    line = np.fromiter((lineno for lineno, _ in rows.rows), dtype=int, count=n)
+    return RunTable(rows.source, text["run"], text["direction"], text["load"], t, q, dq, cur, w, text["marker"],
+                    xyz, line)
+
+
 def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<runs.csv>") -> RunTable:
+    """Read and validate a run table (docs/formats.md §3): in whole-column operations when every
+    row passes the checks, else row by row to the first bad one; then the checks per run."""
     required = ("run", "direction", "load", "t") + Q_COLS
     rows = _Rows(text, source, required=required, known=RUN_COLUMNS)
     rows.check_groups([(DQ_COLS, "the joint speed vector"), (I_COLS, "the current vector"), (W_COLS, "the wrench"),
                        (("marker",) + XYZ_COLS, "a followed marker")])
+    table = _fast_run_table(rows, robot)
+    if table is None:
+        table = _parse_run_rows(rows, robot)
+    for r in dict.fromkeys(table.run):
+        rr = table.run == r
+        dirs = set(table.direction[rr])
+        if len(dirs) != 1:
+            raise InputError(f"run {r} mixes directions {', '.join(sorted(dirs))}; one run, one direction",
+                             source=source, row=int(table.line[rr][0]), column="direction")
+        tt = table.t[rr]
+        back = np.flatnonzero(np.diff(tt) < 0)
+        if back.size:
+            raise InputError(f"run {r}: time goes backwards", source=source,
+                             row=int(table.line[rr][back[0] + 1]), column="t")
+    _check_speeds_against_motion(table)
+    return table
+
+
+def _parse_run_rows(rows: _Rows, robot: Robot | None) -> RunTable:
+    """The per-row reader of run tables: the first row that fails a check raises, naming its line."""
+    source = rows.source
     markers = set(robot.marker_names) if robot is not None else None
     run, direction, load, t, q, dq, cur, w, marker, xyz, line = ([] for _ in range(11))
     for lineno, row in rows.rows:
@@ -537,18 +614,6 @@ def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<ru
                      np.array(t, dtype=float), np.array(q, dtype=float), np.array(dq, dtype=float),
                      np.array(cur, dtype=float), np.array(w, dtype=float), np.array(marker, dtype=str),
                      np.array(xyz, dtype=float), np.array(line, dtype=int))
-    for r in dict.fromkeys(table.run):
-        rr = table.run == r
-        dirs = set(table.direction[rr])
-        if len(dirs) != 1:
-            raise InputError(f"run {r} mixes directions {', '.join(sorted(dirs))}; one run, one direction",
-                             source=source, row=int(table.line[rr][0]), column="direction")
-        tt = table.t[rr]
-        back = np.flatnonzero(np.diff(tt) < 0)
-        if back.size:
-            raise InputError(f"run {r}: time goes backwards", source=source,
-                             row=int(table.line[rr][back[0] + 1]), column="t")
-    _check_speeds_against_motion(table)
     return table
 
 

@@ -85,3 +85,51 @@ def test_a_bad_row_is_named_by_the_per_row_reader(column, value, message):
     with pytest.raises(InputError, match=message) as info:
         parse_static_table(text, ROBOT, source="<t>")
     assert info.value.row == 8, str(info.value)      # the header is line 1
+
+
+def _run_text(drop: tuple[str, ...] = ()) -> str:
+    from elastocal.identify.tables import format_run_table
+    from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
+
+    table = simulate_runs(ROBOT, default_run_truth(CellTruth()), seed=2, friction=FrictionPlan(samples=40))
+    lines = [ln.split(",") for ln in format_run_table(table).splitlines()]
+    keep = [i for i, c in enumerate(lines[0]) if c not in drop]
+    return "\n".join(",".join(ln[i] for i in keep) for ln in lines) + "\n"
+
+
+def _both_runs(text: str, robot=ROBOT):
+    from elastocal.identify.tables import RUN_COLUMNS, _fast_run_table, _parse_run_rows
+
+    rows = _Rows(text, "<r>", required=("run", "direction", "load", "t", "q1", "q2", "q3", "q4", "q5", "q6"),
+                 known=RUN_COLUMNS)
+    return _fast_run_table(rows, robot), _parse_run_rows(rows, robot)
+
+
+@pytest.mark.parametrize("drop", [(), ("dq1", "dq2", "dq3", "dq4", "dq5", "dq6", "marker", "x", "y", "z")])
+@pytest.mark.parametrize("robot", [ROBOT, None])
+def test_run_table_whole_columns_equal_the_per_row_reader(drop, robot):
+    fast, slow = _both_runs(_run_text(drop), robot)
+    assert fast is not None
+    for field in ("run", "direction", "load", "t", "q", "dq", "currents", "wrench", "marker", "xyz", "line"):
+        a, b = getattr(fast, field), getattr(slow, field)
+        assert a.dtype == b.dtype and a.shape == b.shape, field
+        np.testing.assert_array_equal(a, b, err_msg=field)
+
+
+@pytest.mark.parametrize("column, value, message", [
+    ("direction", "UP", "direction must be one of"), ("t", "", "empty value"), ("dq2", "50", "too fast"),
+    ("i1", "", "partly empty"), ("marker", "R9", "unknown marker"), ("x", "0.5", "partly empty"),
+    ("q1", "7.5", "outside the joint limits"), ("run", "", "empty value"),
+])
+def test_a_bad_run_row_is_named_by_the_per_row_reader(column, value, message):
+    from elastocal.identify.tables import parse_run_table
+
+    row = 7
+    text = _spoil(_run_text(), row, column, value)
+    from elastocal.identify.tables import RUN_COLUMNS, _fast_run_table
+
+    rows = _Rows(text, "<r>", required=("run", "direction", "load", "t"), known=RUN_COLUMNS)
+    assert _fast_run_table(rows, ROBOT) is None
+    with pytest.raises(InputError, match=message) as info:
+        parse_run_table(text, ROBOT, source="<r>")
+    assert info.value.row == row + 1, str(info.value)
