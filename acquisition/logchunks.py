@@ -31,6 +31,7 @@ _MESSAGE_HEAD = struct.Struct("<H4xQ")     # Message: channel id, (sequence), lo
 _MESSAGE_FIXED = 2 + 4 + 8 + 8
 _INDEX_HEAD = struct.Struct("<BQHI")       # MessageIndex: opcode, length, channel id, byte length of its entries
 _INDEX_ENTRY = 16                          # (log time, offset)
+_CHUNK_HEAD = struct.Struct("<BQQQQII")    # Chunk: opcode, length, start, end, uncompressed size, crc, name length
 
 
 def chunk_messages(data: bytes, wanted: Collection[int] | None = None
@@ -99,6 +100,8 @@ def indexed_chunks(path: str | pathlib.Path):
             if f.tell() != size - len(MCAP0_MAGIC):   # the footer read is not the file's last: a log appended
                 return None
             chunks = sorted(summary.chunk_indexes, key=operator.attrgetter("chunk_start_offset"))
+            if not all(_chunk_agrees(f, ci) for ci in chunks):
+                return None
             in_chunks = 0
             for ci in chunks:            # the message indexes' entry counts, from their length fields
                 for offset in ci.message_index_offsets.values():
@@ -114,10 +117,25 @@ def indexed_chunks(path: str | pathlib.Path):
     return chunks, summary
 
 
+def _chunk_agrees(f: IO[bytes], ci: ChunkIndex) -> bool:
+    """Whether the chunk record at ``ci`` has the lengths, sizes and compression its index
+    gives (a corrupt length field sends the file to the streaming reader, which names it)."""
+    f.seek(ci.chunk_start_offset)
+    opcode, length, _, _, uncompressed, _, name_len = _CHUNK_HEAD.unpack(f.read(_CHUNK_HEAD.size))
+    if opcode != Opcode.CHUNK or 9 + length != ci.chunk_length or uncompressed != ci.uncompressed_size:
+        return False
+    if f.read(name_len).decode("utf-8") != ci.compression:
+        return False
+    (records,) = struct.unpack("<Q", f.read(8))
+    return records == ci.compressed_size and _CHUNK_HEAD.size + name_len + 8 + records == ci.chunk_length
+
+
 def read_chunk(f: IO[bytes], index: ChunkIndex) -> bytes:
     """The decompressed records of the chunk at ``index`` (its CRC checked), as mcap's seeking
     reader reads it."""
     f.seek(index.chunk_start_offset + 1 + 8)
     chunk = Chunk.read(ReadDataStream(io.BytesIO(f.read(index.chunk_length - 9))))
+    if len(chunk.data) != index.compressed_size:
+        raise McapError(f"a chunk of {len(chunk.data)} compressed bytes, its index says {index.compressed_size}")
     stream, length = get_chunk_data_stream(chunk, validate_crc=True)
     return stream.read(length) if length else b""
