@@ -425,10 +425,25 @@ def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
     if pr.torque == "current":
         return ds.state_currents * robot.torque_constants
     comp = robot.compensator.nominal_parameters() if robot.compensator is not None else None
+    theta = pr.nominal_theta if theta_states is None else np.ascontiguousarray(theta_states, dtype=float)
+    # Robot.load_torque's J_f^T W - g(theta) - M e2, step for step, on Data made once
+    model = robot.model
+    data, (fid,) = _work(model, (LOAD_FRAME,))
+    gravity_data = model.createData() if robot.has_masses else None
+    world = pin.LOCAL_WORLD_ALIGNED
+    offset2 = robot.joints[1].offset
     out = np.empty((ds.n_states, 6))
     for s in range(ds.n_states):
-        theta = robot.theta(ds.q[ds.state_pose[s]]) if theta_states is None else theta_states[s]
-        out[s] = robot.load_torque(theta, ds.state_wrench[s], comp)
+        th = theta[s]
+        tau = np.zeros(model.nv)
+        pin.computeJointJacobians(model, data, th)
+        pin.updateFramePlacements(model, data)
+        tau += pin.getFrameJacobian(model, data, fid, world).T @ ds.state_wrench[s]
+        if gravity_data is not None:
+            tau -= pin.computeGeneralizedGravity(model, gravity_data, th)
+        if comp is not None:
+            tau[1] -= float(robot.compensator.torque(th[1] - offset2, comp))
+        out[s] = tau
     return out
 
 
