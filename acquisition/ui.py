@@ -221,13 +221,16 @@ class TerminalUI(OperatorUI):
 
 class AutoUI(TerminalUI):
     """Answers every prompt with "yes" (``--yes``); ``stream=None`` with
-    ``quiet=True`` prints nothing."""
+    ``quiet=True`` prints nothing. ``answered_by`` says who answered in the
+    transcript (the CLI names its flag)."""
 
     automatic = True
 
-    def __init__(self, stream: TextIO | None = None, *, quiet: bool = False) -> None:
+    def __init__(self, stream: TextIO | None = None, *, quiet: bool = False,
+                 answered_by: str = "answered automatically") -> None:
         super().__init__(stream)
         self.quiet = quiet
+        self.answered_by = answered_by
         self.prompts: list[str] = []
 
     def message(self, text: str) -> None:
@@ -244,7 +247,7 @@ class AutoUI(TerminalUI):
     def confirm(self, text: str) -> str:
         self.prompts.append(text)
         if not self.quiet:
-            self.message(f">>> {text}: yes (--yes)")
+            self.message(f">>> {text}: yes ({self.answered_by})")
         return "yes"
 
     def close(self) -> None:

@@ -254,7 +254,8 @@ def test_progress_and_time_left_shown_during_a_procedure(robot, poses, tmp_path)
     text = out.getvalue()
     assert "0/2  static pose P1" in text and "1/2  static pose P2" in text
     assert "2/2  static pose P2 done" in text and "left" in text
-    assert ">>> remove load L1, then hang load L2, 110 kg, on the load point; step out of the cell: yes (--yes)" in text
+    assert (">>> remove load L1, then hang load L2, 110 kg, on the load point; step out of the cell: yes "
+            "(answered automatically)") in text
 
 
 def test_plan_file_errors_name_file_and_key(tmp_path):

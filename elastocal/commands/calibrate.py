@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     if args.yes and not args.sim and not config.sim.get("load_url"):
         raise InputError("--yes answers the prompts of simulated devices only; add --sim (or use the cell "
                          "`elastocal sim serve --write-cell` wrote), or let a person answer", source="--yes")
-    ui = AutoUI(sys.stderr, quiet=args.json) if args.yes else TerminalUI(sys.stderr)
+    ui = AutoUI(sys.stderr, quiet=args.json, answered_by="--yes") if args.yes else TerminalUI(sys.stderr)
     try:
         outcome = run_calibration(config, plan, args.out, yes=args.yes, ui=ui, procedures=procedures,
                                   resume_from=args.resume, overwrite=args.force, simulate=args.sim)

@@ -113,7 +113,7 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
                          "`elastocal sim serve --write-cell` wrote), or let a person answer", source="--yes")
     if args.yes and args.unattended:
         raise InputError("--yes answers prompts, --unattended runs without them: give one", source="--unattended")
-    ui = AutoUI(sys.stderr, quiet=args.json) if args.yes else TerminalUI(sys.stderr)
+    ui = AutoUI(sys.stderr, quiet=args.json, answered_by="--yes") if args.yes else TerminalUI(sys.stderr)
     if args.out:
         out = pathlib.Path(args.out)
     elif db is not None:
