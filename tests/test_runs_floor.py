@@ -255,3 +255,25 @@ def test_the_floor_follows_other_noise_levels_and_samplings():
         ratios.append(diag.residual_rms / diag.noise_floor)
         assert diag.verdict is None
     assert np.all(np.abs(np.array(ratios) - 1.0) < 0.1), ratios
+
+
+def test_robot_toml_nominal_stiffness_key(tmp_path):
+    """[[joint]] stiffness (docs/formats.md §1, optional): parsed, checked, written back; run data
+    alone then place the sweeps with it."""
+    from elastocal.errors import InputError
+    from elastocal.identify.robot import bundled_robot_path, parse_robot
+
+    text = bundled_robot_path().read_text()
+    k = CellTruth().stiffness
+    parts = text.split("[[joint]]")
+    with_k = parts[0] + "".join(f"[[joint]]\nstiffness = {float(kj)!r}" + p for kj, p in zip(k, parts[1:]))
+    robot = parse_robot(with_k)
+    np.testing.assert_array_equal(robot.nominal_stiffness, k)
+    assert parse_robot(robot.to_toml()).nominal_stiffness.tolist() == k.tolist()
+    assert ROBOT.nominal_stiffness is None
+    bad = with_k.replace(f"stiffness = {float(k[1])!r}", "stiffness = -1.0", 1)
+    with pytest.raises(InputError) as err:
+        parse_robot(bad, source="robot.toml")
+    assert "joint[2].stiffness" in str(err.value) and "positive" in str(err.value)
+    table = _noisy(_clean("none", friction=None), 0)
+    assert diagnose_runs(robot, table).stiffness.source == "robot.toml"
