@@ -82,6 +82,19 @@ def test_complete_runs_sit_at_the_floor_and_name_nothing(complete_friction, stif
     assert sum(unexplained) <= 1
 
 
+def test_frictionless_cell_and_the_default_model_name_nothing():
+    """A cell without friction and the default model (the description's compensator and masses):
+    complete too: null verdict in >= 19 of 20 seeds, rms/floor within 1 +- 0.1."""
+    clean = _clean("none")
+    ratios, verdicts = [], []
+    for seed in SEEDS:
+        diag = diagnose_runs(ROBOT, _noisy(clean, seed), stiffness=CellTruth().stiffness)
+        ratios.append(diag.residual_rms / diag.noise_floor)
+        verdicts.append(diag.verdict)
+    assert np.all(np.abs(np.array(ratios) - 1.0) < 0.1), ratios
+    assert sum(v is None for v in verdicts) >= 19, verdicts
+
+
 def test_default_model_finds_the_three_friction_terms_stepwise(complete_friction):
     diag = diagnose_runs(ROBOT, _noisy(complete_friction, 1), stiffness=CellTruth().stiffness)
     assert diag.verdict == "coulomb_friction"
