@@ -52,6 +52,8 @@ SWEEP_EFFECTS = run_effects("sweep")
 RUN_EFFECTS = (*FRICTION_EFFECTS, *SWEEP_EFFECTS)
 #: a feature the excess follows is reported below this p (rank correlation)
 FEATURE_P = 1e-3
+#: at most this many features the excess follows are listed (most significant first)
+MAX_FOLLOWS = 4
 #: rigid model: a sweep effect whose values differ from the description's by no more than
 #: this many times the rigid model's bias (at REFERENCE_STIFFNESS) is not a finding: the
 #: neglected deflection of a robot down to a third of that stiffness would explain it
@@ -269,6 +271,7 @@ def _test_one(data: RunData, fit: RunModelFit, model_effects: Sequence[Effect], 
 def _run_structure(data: RunData, fit: RunModelFit) -> tuple[str, ...]:
     """What the excess of the final model's residual over the noise follows: sentences."""
     found: list[tuple[float, str]] = []
+    joints: list[tuple[float, int]] = []      # (residual / noise, joint) of the joints above their noise
     if data.friction is not None and data.friction_var is not None and fit.friction_residual is not None:
         r, var, s = fit.friction_residual, data.friction_var, data.friction
         for j in range(6):
@@ -280,8 +283,7 @@ def _run_structure(data: RunData, fit: RunModelFit) -> tuple[str, ...]:
             p = float(scipy.stats.chi2.sf(chi2, dof))
             if p >= FEATURE_P:
                 continue
-            ratio = math.sqrt(chi2 / dof)      # the joints first, worst first; then what the excess follows
-            found.append((-1.0 / ratio, f"friction residual on joint {j + 1} is {ratio:.1f}x its noise"))
+            joints.append((math.sqrt(chi2 / dof), j + 1))
             ratio_i = r[ok, j] ** 2 / var[ok, j]
             for name, values in (("speed", s.speed[ok, j]), ("the load torque", np.abs(s.load_torque[ok, j]))):
                 if np.ptp(values) == 0.0:
@@ -303,10 +305,15 @@ def _run_structure(data: RunData, fit: RunModelFit) -> tuple[str, ...]:
         if dof > 0:
             p = float(scipy.stats.chi2.sf(fit.sweep_chi2, dof))
             if p < FEATURE_P:
-                found.append((-1.0 / math.sqrt(fit.sweep_chi2 / dof), f"joint-2 sweep means stay {math.sqrt(fit.sweep_chi2 / dof):.1f}x their noise "
+                found.append((0.0, f"joint-2 sweep means stay {math.sqrt(fit.sweep_chi2 / dof):.1f}x their noise "
                                  f"(they follow q2: see where['sweep q2'])"))
     found.sort(key=lambda x: x[0])
-    return tuple(text for _, text in found)
+    head = ()
+    if joints:
+        joints.sort(reverse=True)
+        head = ("friction residual above its noise on joint" + ("s " if len(joints) > 1 else " ")
+                + ", ".join(f"{j} ({r:.1f}x)" for r, j in joints),)
+    return (*head, *(text for _, text in found[:MAX_FOLLOWS]))
 
 
 def diagnose_runs(robot, table, *, model: Sequence[str] = ("joint_stiffness",),

@@ -126,7 +126,7 @@ def test_a_friction_law_outside_the_named_effects_ends_unexplained(complete_fric
         outcomes.append((diag.verdict, diag.unexplained_detail is not None))
         if seed == 0:
             assert diag.unexplained_detail.ratio > 1.3
-            assert diag.unexplained[0].startswith("friction residual on joint")
+            assert diag.unexplained[0].startswith("friction residual above its noise on joints")
             assert any("follows the angle of joint" in u for u in diag.unexplained)
             obj = diag.to_json()
             assert obj["verdict"] is None and obj["unexplained"]["unit"] == "N*m"
