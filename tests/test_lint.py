@@ -54,7 +54,6 @@ FLAG = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
 NOT_MESSAGES = {
     ("acquisition/history.py", "--json"): "an SQL comment of the schema",
     ("acquisition/logformat.py", "--yes"): "the log schema's description of a recorded field",
-    ("identify/runs.py", "--model"): "run fits: lane `runs` of issue 11 part 3 owns the module",
 }
 
 
