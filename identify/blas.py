@@ -8,7 +8,10 @@ machine (load average 10): ``lstsq`` of 2160 x 90 took 1.6-2.4 s with OpenBLAS's
 two threads and 0.05-0.06 s on one; a 27 x 27 triangular solve 3.9 ms against
 0.19 ms. :func:`one_blas_thread` limits BLAS to one thread while a fit runs
 (threadpoolctl, the library for it) and restores the setting after; results
-differ at most in their last bits (sums taken in another order).
+differ at most in their last bits (sums taken in another order). The setting is
+the process's: fits running at once in several threads (a viewer's server, a
+thread pool) may restore it in another order and leave BLAS on one thread after
+them, which changes speed on a large machine, never a result.
 """
 
 from __future__ import annotations
