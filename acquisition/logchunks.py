@@ -27,8 +27,8 @@ from mcap.stream_reader import get_chunk_data_stream
 from mcap.writer import MCAP0_MAGIC
 
 _RECORD_HEAD = struct.Struct("<BQ")        # MCAP record: opcode, content length
-_MESSAGE_HEAD = struct.Struct("<H4xQ")     # Message: channel id, (sequence), log time; publish time follows
 _MESSAGE_FIXED = 2 + 4 + 8 + 8
+_MESSAGE_RECORD_HEAD = struct.Struct("<BQH4xQ")   # opcode, length, then the message's channel id, log time
 _INDEX_HEAD = struct.Struct("<BQHI")       # MessageIndex: opcode, length, channel id, byte length of its entries
 _INDEX_ENTRY = 16                          # (log time, offset)
 _CHUNK_HEAD = struct.Struct("<BQQQQII")    # Chunk: opcode, length, start, end, uncompressed size, crc, name length
@@ -48,26 +48,29 @@ def chunk_messages(data: bytes, wanted: Collection[int] | None = None
     off = 0
     count = 0
     out: dict[int, tuple[list[int], list[bytes]]] = {}
-    head, message = _RECORD_HEAD.unpack_from, _MESSAGE_HEAD.unpack_from
+    head, whole = _RECORD_HEAD.unpack_from, _MESSAGE_RECORD_HEAD.unpack_from
+    whole_size, message_op, fixed, every = _MESSAGE_RECORD_HEAD.size, int(Opcode.MESSAGE), _MESSAGE_FIXED, wanted is None
     while off < n:
-        opcode, length = head(data, off)
+        if off + whole_size <= n:     # a message's head in one unpack (other records: their first bytes)
+            opcode, length, channel, log_time = whole(data, off)
+        else:
+            (opcode, length), channel, log_time = head(data, off), None, None
         body = off + 9
         off = body + length
         if off > n:
             raise McapError(f"a record of {length} bytes runs past the end of its chunk")
-        if opcode != Opcode.MESSAGE:
+        if opcode != message_op:
             continue
-        if length < _MESSAGE_FIXED:
+        if length < fixed:
             raise McapError(f"a message record of {length} bytes, shorter than its fixed fields")
         count += 1
-        channel, log_time = message(data, body)
-        if wanted is not None and channel not in wanted:
+        if not (every or channel in wanted):
             continue
         entry = out.get(channel)
         if entry is None:
             entry = out[channel] = ([], [])
         entry[0].append(log_time)
-        entry[1].append(data[body + _MESSAGE_FIXED:off])
+        entry[1].append(data[body + fixed:off])
     return count, out
 
 
