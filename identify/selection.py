@@ -33,6 +33,8 @@ WRONG_SIGN_STD = 3.0
 #: a component not kept whose addition moves a parameter of the model by more than this
 #: many of its std is fitted as a control (its omission would bias that parameter)
 CONTROL_SHIFT = 0.5
+#: a control must have the physical sign (a compliance is positive)
+CONTROL_SIGN = True
 
 
 @dataclass(frozen=True)
@@ -196,7 +198,7 @@ def confounders(full_fit, kept: tuple[str, ...], components: tuple[str, ...], *,
         best, best_shift = None, CONTROL_SHIFT
         for c in pool:
             got = lin.solve([*kept, *chosen, c])
-            if got is None or got[0][-1] <= 0.0:
+            if got is None or (CONTROL_SIGN and got[0][-1] <= 0.0):
                 continue        # a compliance below zero is at its physical bound: it moves nothing
             shift = float(np.max(np.abs(got[0][:nb] - now[0][:nb]) / std_now))
             if shift > best_shift:
