@@ -46,7 +46,8 @@ def _opt(x: float) -> float | None:
 
 
 def write_log_from_tables(path: str | pathlib.Path, robot: Robot, *, static: StaticTable | None = None,
-                          runs: RunTable | None = None, overwrite: bool = True, cell_text: str | None = None) -> None:
+                          runs: RunTable | None = None, overwrite: bool = True, cell_text: str | None = None,
+                          started_unix_ns: int | None = None) -> None:
     """Write a log whose export gives back ``static`` and ``runs`` (datasets made
     without devices, e.g. ``elastocal sim``): one reading window per static row
     holding exactly that row's tracker sample and currents, one drive sample per
@@ -54,11 +55,16 @@ def write_log_from_tables(path: str | pathlib.Path, robot: Robot, *, static: Sta
     comes back to the nanosecond when the table's times are increasing, else as
     10 ms slots; runs that overlap in time are moved after one another.
     ``cell_text``: a cell.toml recorded with the log, as ``calibrate`` records its cell.
+    ``started_unix_ns``: when the log says it was measured (its session's wall-clock
+    start, UTC ns; default now), e.g. the dates of a simulated plant's logs.
     """
+    import time
+
     from elastocal.acquisition.recorder import Recorder
 
     clock = _SetClock(SYNTHETIC_ORIGIN_NS)
-    with Recorder(path, overwrite=overwrite, clock=clock) as rec:
+    unix_clock = time.time_ns if started_unix_ns is None else (lambda: int(started_unix_ns))
+    with Recorder(path, overwrite=overwrite, clock=clock, unix_clock=unix_clock) as rec:
         rec.document("robot", robot.name, robot.to_toml())
         if cell_text is not None:
             rec.document("cell", "cell", cell_text)

@@ -1,4 +1,5 @@
-"""`elastocal sim static|runs|path|serve`: datasets from the simulated cell, a process path, or simulated devices."""
+"""`elastocal sim static|runs|path|plant|serve`: datasets from the simulated cell, a process path, a plant of
+cells (elastocal.commands.sim_plant), or simulated devices."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ YANG_WRENCH = (0.0, 0.0, 1500.0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    sub = parser.add_subparsers(dest="sim_command", metavar="{static,runs,path,serve}")
+    sub = parser.add_subparsers(dest="sim_command", metavar="{static,runs,path,plant,serve}")
     sub.required = True
     for name, text in (("static", "a static before/after-load experiment: robot.toml, static.csv, truth.json"),
                        ("runs", "friction runs and joint-2 sweeps: robot.toml, runs.csv, truth.json")):
@@ -63,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="distance between path points [m] (default 0.005)")
     path.add_argument("--force", action="store_true", help="overwrite the files of an earlier path in --out")
     add_json(path)
+    from elastocal.commands import sim_plant
+
+    sim_plant.add_arguments(sub)
     serve = sub.add_parser("serve", help="serve simulated devices on loopback and a CAN bus",
                            description="serve simulated devices on 127.0.0.1 and a CAN bus on the loopback "
                                        "interface (udp_loopback on a port of its own, so other processes on this "
@@ -189,6 +193,10 @@ def run(args: argparse.Namespace) -> int:
         return _serve(args)
     if args.sim_command == "path":
         return _path(args)
+    if args.sim_command == "plant":
+        from elastocal.commands import sim_plant
+
+        return sim_plant.run(args)
     from elastocal.commands._outputs import Outputs, check_folder
     from elastocal.sims.cell import HIDDEN_EFFECTS, CellTruth
     from elastocal.sims.runs import RUN_HIDDEN
