@@ -66,6 +66,7 @@ def _view(argv: list[str]) -> None:
 @pytest.mark.slow
 def test_every_offline_readme_workflow_runs_from_simulated_data(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
+    outputs = {}
     for argv in readme_blocks()[0]:
         if argv[0] == "view":
             _view(argv)
@@ -73,6 +74,7 @@ def test_every_offline_readme_workflow_runs_from_simulated_data(tmp_path, monkey
         code = main(argv)
         out = capsys.readouterr()
         assert code == 0, (argv, out.err)
+        outputs[tuple(argv)] = out.out
     for f in ("sim/report.html", "sim/cal.json", "sim/export/static.csv", "drift.png", "runs/sweep.csv",
               "plan.toml", "abs/cal.json", "calibrated.toml", "calibrated.urdf", "history.sqlite",
               "path/path.csv", "path/compensated.csv", "path/compensated.src", "path/compensated.mod",
@@ -93,6 +95,73 @@ def test_every_offline_readme_workflow_runs_from_simulated_data(tmp_path, monkey
     assert all(r["error"] == "" and float(r["k2"]) > 1e6 for r in rows)
     header = (tmp_path / "path/compensated.csv").read_text().splitlines()[0].split(",")
     assert header[:7] == ["t", "q1", "q2", "q3", "q4", "q5", "q6"] and "qc1" in header and "dz" in header
+    _the_simulated_plant_shows_its_drift(tmp_path, outputs, capsys)
+
+
+def _the_simulated_plant_shows_its_drift(root: pathlib.Path, outputs: dict, capsys) -> None:
+    """The README's plant lines (sim plant, fleet check/identify --record, fleet history): the drifting
+    cell fails its checks from the log its joint softened on, the others hold; the drift table shows the
+    softening; a rerun with --record records nothing twice."""
+    import sqlite3
+
+    from elastocal.fleet.table import read_table
+
+    truth = json.loads((root / "plant/truth.json").read_text())
+    cells = [c["cell"] for c in truth["cells"]]
+    drifting = [c for c in truth["cells"] if c["drift"]]
+    assert len(cells) == 3 and len(drifting) == 1, truth
+    drift = drifting[0]["drift"]
+    # every check says what the truth says: recalibrate exactly for the drifted logs of the drifting cell
+    rows = read_table(root / "checks.csv")
+    assert len(rows) == sum(len(c["logs"]) for c in truth["cells"]) == 12
+    expected = {str(pathlib.Path("plant", c["cell"], log["log"])): "recalibrate" if log["drifted"] else "holds"
+                for c in truth["cells"] for log in c["logs"]}
+    assert {r["path"]: r["decision"] for r in rows} == expected
+    assert sum(v == "recalibrate" for v in expected.values()) == 2
+    # the first calibrations were in the histories already; the later logs' are recorded once
+    def printed(*words: str) -> str:
+        """What the README's command starting with ``words`` printed."""
+        (out,) = [out for argv, out in outputs.items() if argv[:len(words)] == words]
+        return out
+
+    assert "recorded 0 calibration(s) and 12 check(s) in 3 histories; 0 already recorded" \
+        in printed("fleet", "check", "plant")
+    assert "recorded 9 calibration(s) and 0 check(s) in 3 histories; 3 already recorded" \
+        in printed("fleet", "identify", "plant")
+
+    def counts() -> dict:
+        out = {}
+        for name in cells:
+            with sqlite3.connect(root / "plant" / name / "history.sqlite") as db:
+                out[name] = (db.execute("select count(*) from calibration").fetchone()[0],
+                             db.execute("select count(*) from check_run").fetchone()[0])
+        return out
+
+    assert counts() == {name: (4, 4) for name in cells}
+    # the drift table: the drifting cell's joint moved by the truth's change (its built stiffness is the
+    # first calibration's truth), within 2 % of the stiffness; the others' within 2 %
+    assert main(["fleet", "history", "plant", "--json"]) == 0
+    table = {c["cell"]: c for c in json.loads(capsys.readouterr().out)["cells"]}
+    joint = f"k{drift['joint']}"
+    for name, c in table.items():
+        assert c["calibrations"] == 4 and c["checks"] == 4 and c["error"] == "", c
+        change = c["drift"][joint]["change"]
+        if name == drifting[0]["cell"]:
+            assert abs(change + drift["fraction"]) < 0.02, (name, change)
+            assert c["checks_failed"] == 2 and c["last_verdict"] == "recalibrate"
+        else:
+            assert abs(change) < 0.02, (name, change)
+            assert c["checks_failed"] == 0 and c["last_verdict"] == "holds"
+    line = next(x for x in printed("fleet", "history", "plant").splitlines()
+                if x.split()[:1] == [drifting[0]["cell"]])
+    assert "2 of 4" in line and f"{table[drifting[0]['cell']]['drift'][joint]['change'] * 100:+6.2f}%" in line
+    # a rerun with --record records nothing twice
+    before = counts()
+    for action, out in (("identify", "plant-cals.csv"), ("check", "checks.csv")):
+        assert main(["fleet", action, "plant", "--out", out, "--record", "--force"]) == 0
+        assert "recorded 0 calibration(s) and 0 check(s) in 3 histories; 12 already recorded" \
+            in capsys.readouterr().out
+    assert counts() == before
 
 
 @pytest.mark.slow

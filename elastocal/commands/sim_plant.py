@@ -38,8 +38,8 @@ def add_arguments(sub) -> None:
     p.add_argument("--out", required=True, help="the plant's folder (cell-01/, cell-02/, ..., truth.json)")
     p.add_argument("--cells", type=int, default=3, help="number of cells (default 3)")
     p.add_argument("--logs", type=int, default=4, help="logs per cell, one a week (default 4)")
-    p.add_argument("--drift-cell", type=int, default=2, metavar="N",
-                   help="the cell whose joint softens (cell-0N; default 2; 0: none)")
+    p.add_argument("--drift-cell", type=int, default=None, metavar="N",
+                   help="the cell whose joint softens (cell-0N; 0: none; default 2, none when --cells is 1)")
     p.add_argument("--drift-joint", type=int, default=2, metavar="J", help="the joint that softens (default 2)")
     p.add_argument("--drift", type=float, default=0.10,
                    help="how much softer it gets, a fraction of its stiffness (default 0.10)")
@@ -83,8 +83,9 @@ def _spec(args: argparse.Namespace) -> PlantSpec:
             raise InputError(f"must be between {low} and {high}, got {value}", source=f"--{flag}")
     if args.seed < 0:
         raise InputError(f"must be >= 0, got {args.seed}", source="--seed")
-    if not 0 <= args.drift_cell <= args.cells:
-        raise InputError(f"must be 0 (none) or a cell between 1 and --cells ({args.cells}), got {args.drift_cell}",
+    drift_cell = (2 if args.cells >= 2 else 0) if args.drift_cell is None else args.drift_cell
+    if not 0 <= drift_cell <= args.cells:
+        raise InputError(f"must be 0 (none) or a cell between 1 and --cells ({args.cells}), got {drift_cell}",
                          source="--drift-cell")
     if not 1 <= args.drift_joint <= 6:
         raise InputError(f"must be a joint between 1 and 6, got {args.drift_joint}", source="--drift-joint")
@@ -95,7 +96,7 @@ def _spec(args: argparse.Namespace) -> PlantSpec:
     if not 2 <= drift_from <= args.logs:
         raise InputError(f"must be a log between 2 and --logs ({args.logs}): the first log is the cell's first "
                          f"calibration, got {drift_from}", source="--drift-from")
-    return PlantSpec(cells=args.cells, logs=args.logs, drift_cell=args.drift_cell, drift_joint=args.drift_joint,
+    return PlantSpec(cells=args.cells, logs=args.logs, drift_cell=drift_cell, drift_joint=args.drift_joint,
                      drift=args.drift, drift_from=drift_from, poses=args.poses, seed=args.seed)
 
 
