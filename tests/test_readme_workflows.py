@@ -140,6 +140,7 @@ def _the_simulated_plant_shows_its_drift(root: pathlib.Path, outputs: dict, caps
     assert counts() == {name: (4, 4) for name in cells}
     # the drift table: the drifting cell's joint moved by the truth's change (its built stiffness is the
     # first calibration's truth), within 2 % of the stiffness; the others' within 2 %
+    capsys.readouterr()      # what the view printed when it stopped
     assert main(["fleet", "history", "plant", "--json"]) == 0
     table = {c["cell"]: c for c in json.loads(capsys.readouterr().out)["cells"]}
     joint = f"k{drift['joint']}"
@@ -156,12 +157,19 @@ def _the_simulated_plant_shows_its_drift(root: pathlib.Path, outputs: dict, caps
                 if x.split()[:1] == [drifting[0]["cell"]])
     assert "2 of 4" in line and f"{table[drifting[0]['cell']]['drift'][joint]['change'] * 100:+6.2f}%" in line
     # a rerun with --record records nothing twice
-    before = counts()
-    for action, out in (("identify", "plant-cals.csv"), ("check", "checks.csv")):
-        assert main(["fleet", action, "plant", "--out", out, "--record", "--force"]) == 0
-        assert "recorded 0 calibration(s) and 0 check(s) in 3 histories; 12 already recorded" \
-            in capsys.readouterr().out
-    assert counts() == before
+    assert main(["fleet", "identify", "plant", "--out", "plant-cals.csv", "--record", "--force"]) == 0
+    assert "recorded 0 calibration(s) and 0 check(s) in 3 histories; 12 already recorded" in capsys.readouterr().out
+    assert counts() == {name: (4, 4) for name in cells}
+    # checked again, now against each cell's latest calibration: new evidence, recorded once; cell-02's logs
+    # from before the change no longer agree with its (soft) current calibration
+    for again, recorded in ((False, "recorded 0 calibration(s) and 12 check(s) in 3 histories; 0 already"),
+                            (True, "recorded 0 calibration(s) and 0 check(s) in 3 histories; 12 already")):
+        assert main(["fleet", "check", "plant", "--out", "checks.csv", "--record", "--force"]) == 0
+        assert recorded in capsys.readouterr().out
+        assert counts() == {name: (4, 8) for name in cells}
+    decisions = {r["path"]: r["decision"] for r in read_table(root / "checks.csv")}
+    assert decisions == {path: ("recalibrate" if path.startswith(f"plant/{drifting[0]['cell']}/")
+                                and expected[path] == "holds" else "holds") for path in expected}
 
 
 @pytest.mark.slow
