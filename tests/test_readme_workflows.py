@@ -145,7 +145,7 @@ def _the_simulated_plant_shows_its_drift(root: pathlib.Path, outputs: dict, caps
     table = {c["cell"]: c for c in json.loads(capsys.readouterr().out)["cells"]}
     joint = f"k{drift['joint']}"
     for name, c in table.items():
-        assert c["calibrations"] == 4 and c["checks"] == 4 and c["error"] == "", c
+        assert c["calibrations"] == 4 and c["checks"] == 4 and not c["error"], c
         change = c["drift"][joint]["change"]
         if name == drifting[0]["cell"]:
             assert abs(change + drift["fraction"]) < 0.02, (name, change)
