@@ -348,6 +348,8 @@ class StaticFit:
             out["rank"] = self.n_params
         for sel in self.selections:
             out.setdefault("selected", {})[sel.effect] = list(sel.kept)
+            if sel.controls:     # fitted so that the joint springs stay honest, not findings
+                out.setdefault("controls", {})[sel.effect] = list(sel.controls)
         out["condition_number"] = self.condition_number
         return out
 

@@ -127,6 +127,9 @@ def test_a_component_confounded_with_a_joint_spring_is_fitted_as_a_control():
     sel = fit.selections[0]
     assert not set(sel.kept) & set(sel.controls)
     assert {p.name for p in fit.parameters} >= set(sel.kept) | set(sel.controls)
+    obj = fit.to_json()         # identify --json says which are controls, not findings
+    assert obj["selected"]["link_compliance"] == list(sel.kept)
+    assert obj.get("controls", {}).get("link_compliance", []) == list(sel.controls)
     ks = [f"k{j}" for j in range(1, 7)]
     z = (fit.values(ks) - truth.stiffness) / fit.stds(ks)
     assert np.all(np.abs(z) < 3.5), z
