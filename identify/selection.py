@@ -174,7 +174,7 @@ def forward_select(full_fit, effect: str, components: tuple[str, ...]) -> Select
 def confounders(full_fit, kept: tuple[str, ...], components: tuple[str, ...], *,
                 lin: _Linear | None = None) -> tuple[str, ...]:
     """The components not kept whose omission the data say would bias the model's
-    own parameters (post-double selection, Belloni, Chernozhukov & Hansen 2014).
+    own parameters (post-double selection).
 
     A component the test does not keep may still be there, below the test's
     threshold; when it is confounded with a joint spring, leaving it out moves
