@@ -21,29 +21,16 @@ import argparse
 import statistics
 import time
 
-import numpy as np
-import pinocchio as pin
 
 from elastocal.identify.absolute import identify_absolute
 from elastocal.identify.robot import bundled_robot
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
 
+from fk_limit import fk_batches_s  # benchmarks/fk_limit.py: the run's own FK limit
+
 LIMIT_S = 5.0
 MODEL = ("joint_stiffness", "link_compliance", "thermal_drift", "backlash", "kinematic_errors", "tracker_frame")
-
-
-def fk_batches_s(robot, batches: int = 10, n: int = 50_000) -> list[float]:
-    """Seconds per forward kinematics (one Data reused) of each of ``batches`` batches of ``n``."""
-    data = robot.model.createData()
-    theta = robot.theta(np.array([0.1, 0.3, 0.2, 0.0, 0.5, 0.0]))
-    out = []
-    for _ in range(batches):
-        t0 = time.perf_counter_ns()
-        for _ in range(n):
-            pin.forwardKinematics(robot.model, data, theta)
-        out.append((time.perf_counter_ns() - t0) * 1e-9 / n)
-    return out
 
 
 def main() -> None:

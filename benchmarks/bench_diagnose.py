@@ -24,8 +24,6 @@ import argparse
 import statistics
 import time
 
-import numpy as np
-import pinocchio as pin
 
 from elastocal.identify.diagnose import diagnose_static
 from elastocal.identify.report import render_report
@@ -44,20 +42,9 @@ def _median_time(fn, repeat: int):
     return statistics.median(times), out
 
 
+from fk_limit import fk_batches_s  # benchmarks/fk_limit.py: the run's own FK limit
+
 LIMIT_S = 10.0
-
-
-def fk_batches_s(robot, batches: int = 5, n: int = 50_000) -> list[float]:
-    """Seconds per forward kinematics (one Data reused) of each of ``batches`` batches of ``n``."""
-    data = robot.model.createData()
-    theta = robot.theta(np.array([0.1, 0.3, 0.2, 0.0, 0.5, 0.0]))
-    out = []
-    for _ in range(batches):
-        t0 = time.perf_counter_ns()
-        for _ in range(n):
-            pin.forwardKinematics(robot.model, data, theta)
-        out.append((time.perf_counter_ns() - t0) * 1e-9 / n)
-    return out
 
 
 def main() -> None:
@@ -76,12 +63,12 @@ def main() -> None:
           f"hidden {args.hidden} (simulated in {t_sim:.2f} s)")
     print(f"{'torque':<8} {'identify s':>10} {'diagnose s':>10} {'candidates':>10} {'tested':>6}  verdict")
     diag = None
-    fk = fk_batches_s(robot)
+    fk = fk_batches_s(robot, batches=5)
     t_current = None
     for torque in ("current", "force"):
         t_fit, _ = _median_time(lambda: identify_static(robot, ds, torque=torque), args.repeat)
         t_diag, diag_t = _median_time(lambda: diagnose_static(robot, ds, torque=torque), args.repeat)
-        fk += fk_batches_s(robot)
+        fk += fk_batches_s(robot, batches=5)
         if torque == "current":
             t_current = t_diag
         n_all = len(diag_t.candidates) + len(diag_t.not_testable)
