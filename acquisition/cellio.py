@@ -26,7 +26,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from elastocal.drivers.samples import DriveSample, TrackerSample
-from elastocal.identify.robot import Robot
+from elastocal.model.robot import Robot
 
 
 @dataclass(frozen=True)

@@ -19,11 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from elastocal.acquisition import logformat as lf
+from elastocal.formats import logformat as lf
 from elastocal.acquisition.logreader import SEGMENT_NS, LogContents, read_log
 from elastocal.errors import Arg, InputError
-from elastocal.identify.robot import Robot, parse_robot
-from elastocal.identify.tables import (
+from elastocal.model.robot import Robot, parse_robot
+from elastocal.formats.tables import (
     RunTable,
     StaticTable,
     run_table_from_arrays,

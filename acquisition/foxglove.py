@@ -34,8 +34,8 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 
-from elastocal.acquisition.logformat import TOPIC_FRAMES, TOPIC_LOG, TOPIC_ROBOT_SCENE, TOPIC_TRACKER_SCENE
-from elastocal.identify.robot import FLANGE_FRAME, LOAD_FRAME, Robot
+from elastocal.formats.logformat import TOPIC_FRAMES, TOPIC_LOG, TOPIC_ROBOT_SCENE, TOPIC_TRACKER_SCENE
+from elastocal.model.robot import FLANGE_FRAME, LOAD_FRAME, Robot
 
 BASE_FRAME = "base"
 MEASURED = "measured"

@@ -23,8 +23,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.identify.calibration import FORMAT, CalibratedParameter, Calibration, calibration_from_json
-from elastocal.identify.check import VERDICTS
+from elastocal.formats.calibration import FORMAT, CalibratedParameter, Calibration, calibration_from_json
+from elastocal.diagnose.check import VERDICTS
 
 SCHEMA_VERSION = 1
 APPLICATION = "elastocal.history"
@@ -368,7 +368,7 @@ def _friction_drift(result: object, calibration: Calibration | None, names: Sequ
 
 def _friction_levels(result: object, verdict: str, relative: np.ndarray, failed: np.ndarray) -> float:
     """A check's friction per joint (measured / predicted - 1) and the joints that failed it: significant
-    at the check's level (alpha over the joints) and beyond its tolerance, as identify/check.py decides;
+    at the check's level (alpha over the joints) and beyond its tolerance, as diagnose/check.py decides;
     a record without p-values fails a joint beyond the tolerance of a check that asked to recalibrate.
     Returns the tolerance (NaN when the check has no friction)."""
     friction = result.get("friction") if isinstance(result, Mapping) else None
@@ -420,19 +420,19 @@ def drift_summary(drift: Drift) -> dict:
 
 
 def plot_drift(drift: Drift, path: str | pathlib.Path) -> None:
-    """Write the drift plot (PNG or SVG by suffix): :func:`elastocal.acquisition.drift_plot.drift_figure`."""
+    """Write the drift plot (PNG or SVG by suffix): :func:`elastocal.report.drift_plot.drift_figure`."""
     path = pathlib.Path(path)
     if path.suffix.lower() not in (".png", ".svg"):
         raise InputError("the drift plot is written as .png or .svg", source=str(path))
     if not len(drift.calibration_time_ns):
         raise InputError("the history holds no calibration to plot", source=str(path))
-    from elastocal.acquisition.drift_plot import drift_figure
+    from elastocal.report.drift_plot import drift_figure
 
     drift_figure(drift).savefig(path, dpi=110)
 
 
 def drift_figure(drift: Drift):
-    """The drift plot (:mod:`elastocal.acquisition.drift_plot`)."""
-    from elastocal.acquisition.drift_plot import drift_figure as figure
+    """The drift plot (:mod:`elastocal.report.drift_plot`)."""
+    from elastocal.report.drift_plot import drift_figure as figure
 
     return figure(drift)

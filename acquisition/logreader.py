@@ -31,7 +31,7 @@ from mcap.exceptions import EndOfFile, InvalidMagic, McapError
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 
-from elastocal.acquisition import logformat as lf
+from elastocal.formats import logformat as lf
 from elastocal.acquisition.logchunks import chunk_messages, ends_with_magic, indexed_chunks, read_chunk
 from elastocal.errors import InputError
 

@@ -8,8 +8,8 @@ import pathlib
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.identify.robot import Robot
-from elastocal.identify.tables import RunTable, StaticTable
+from elastocal.model.robot import Robot
+from elastocal.formats.tables import RunTable, StaticTable
 
 
 # ------------------------------------------------------------------ tables -> log

@@ -26,16 +26,16 @@ from dataclasses import dataclass
 from typing import Sequence
 
 
-from elastocal.acquisition import logformat as lf
+from elastocal.formats import logformat as lf
 from elastocal.acquisition.cellio import CellIO
 from elastocal.acquisition.logreader import LogReader, read_log
-from elastocal.acquisition.plan import UNLOADED, Plan
+from elastocal.formats.plan import UNLOADED, Plan
 from elastocal.acquisition.recorder import Recorder
 from elastocal.acquisition.session import Session
 from elastocal.acquisition.steps import PERSON_S, build_steps
 from elastocal.acquisition.ui import Aborted, AutoUI, OperatorUI
 from elastocal.errors import Arg, DeviceError, InputError
-from elastocal.textfiles import read_text_file
+from elastocal.formats.textfiles import read_text_file
 
 
 @dataclass(frozen=True)

@@ -33,10 +33,10 @@ from typing import Any, Callable, Sequence
 from mcap.writer import CompressionType, Writer
 
 from elastocal import __version__
-from elastocal.acquisition import logformat as lf
+from elastocal.formats import logformat as lf
 from elastocal.acquisition.foxglove import CellPublisher
 from elastocal.errors import Arg, InputError
-from elastocal.identify.robot import parse_robot
+from elastocal.model.robot import parse_robot
 
 Clock = Callable[[], int]
 

@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.acquisition.cellio import CellIO, LoadWorld, Samples
-from elastocal.acquisition.plan import UNLOADED, Plan, PoseSpec
+from elastocal.formats.plan import UNLOADED, Plan, PoseSpec
 from elastocal.acquisition.recorder import Recorder
 from elastocal.acquisition.steps import Step
 from elastocal.acquisition.ui import Aborted, OperatorUI

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
-from elastocal.acquisition.plan import UNLOADED, FrictionSpec, Plan, PoseSpec
+from elastocal.formats.plan import UNLOADED, FrictionSpec, Plan, PoseSpec
 from elastocal.errors import InputError
 
 if TYPE_CHECKING:  # the session runs the steps; the steps only name it

@@ -28,8 +28,8 @@ import re
 from dataclasses import dataclass
 
 from elastocal.errors import Arg, InputError
-from elastocal.identify.tables import check_header
-from elastocal.textfiles import read_text_file
+from elastocal.formats.tables import check_header
+from elastocal.formats.textfiles import read_text_file
 
 #: length unit -> metres
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "cm": 1e-2, "in": 0.0254, "inch": 0.0254,

@@ -38,9 +38,9 @@ from elastocal.acquisition.export import StaticReading, static_readings
 from elastocal.acquisition.logreader import LogContents
 from elastocal.acquisition.trackerexports import ExportPoint, parse_time
 from elastocal.errors import Arg, InputError, Message, say
-from elastocal.identify.tables import I_COLS, Q_COLS, W_COLS, StaticTable, check_header, csv_records, \
+from elastocal.formats.tables import I_COLS, Q_COLS, W_COLS, StaticTable, check_header, csv_records, \
     static_table_from_arrays
-from elastocal.textfiles import read_text_file
+from elastocal.formats.textfiles import read_text_file
 
 PATTERN_FIELDS = ("pose", "load", "marker", "repeat")
 

@@ -25,9 +25,9 @@ import statistics
 import time
 
 
-from elastocal.identify.diagnose import diagnose_static
-from elastocal.identify.report import render_report
-from elastocal.identify.robot import bundled_robot
+from elastocal.diagnose.static import diagnose_static
+from elastocal.report.html import render_report
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static

@@ -24,9 +24,9 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
-from elastocal.identify.tables import read_static_table, write_static_table
+from elastocal.formats.tables import read_static_table, write_static_table
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
 

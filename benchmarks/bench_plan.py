@@ -1,4 +1,4 @@
-"""Planning time: 12 poses out of 2,000 candidate poses (identify/design.py).
+"""Planning time: 12 poses out of 2,000 candidate poses (design/search.py).
 
     python benchmarks/bench_plan.py [--candidates 2000] [--poses 12] [--loads-per-pose 2] [--repeat 3]
 
@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from elastocal.identify import design as dz
-from elastocal.identify import design_candidates as dzc
-from elastocal.identify.robot import bundled_robot
+from elastocal.design import search as dz
+from elastocal.design import candidates as dzc
+from elastocal.model.robot import bundled_robot
 
 
 def main() -> None:

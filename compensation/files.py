@@ -21,9 +21,9 @@ import numpy as np
 from elastocal.compensation.ik import PlannedPath
 from elastocal.compensation.trajectory import CompensatedPath
 from elastocal.errors import InputError
-from elastocal.identify.robot import Robot
-from elastocal.identify.tables import check_header, csv_records
-from elastocal.textfiles import read_text_file
+from elastocal.model.robot import Robot
+from elastocal.formats.tables import check_header, csv_records
+from elastocal.formats.textfiles import read_text_file
 
 Q_COLS = tuple(f"q{j}" for j in range(1, 7))
 W_COLS = ("fx", "fy", "fz", "mx", "my", "mz")

@@ -12,7 +12,7 @@ import numpy as np
 import pinocchio as pin
 
 from elastocal.errors import InputError
-from elastocal.identify.robot import LOAD_FRAME, Robot
+from elastocal.model.robot import LOAD_FRAME, Robot
 
 
 @dataclass(frozen=True, eq=False)

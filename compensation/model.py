@@ -22,8 +22,8 @@ import numpy as np
 
 from elastocal.compensation.chain import Angles, BatchedChain, ChainState, log6_local
 from elastocal.errors import InputError
-from elastocal.identify.calibration import Calibration
-from elastocal.identify.robot import LOAD_FRAME, Robot
+from elastocal.formats.calibration import Calibration
+from elastocal.model.robot import LOAD_FRAME, Robot
 
 #: fixed-point tolerance on the joint angles [rad]
 FIXED_POINT_TOL_RAD = 1e-13
@@ -122,7 +122,7 @@ NO_PATH_DEFLECTION = ("thermal_drift", "tracker_frame", "coulomb_friction", "vis
 def unmodelled_effects(cal: Calibration) -> dict[str, list[str]]:
     """Effects of the calibration that deflect the robot but compensation leaves out, with
     the calibration's parameters of each (cal.json names them; docs/cli.md's effect table)."""
-    from elastocal.identify.effects import get_effect
+    from elastocal.model.effects import get_effect
 
     out = {}
     for name in cal.model:

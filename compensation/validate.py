@@ -19,7 +19,7 @@ import numpy as np
 from elastocal.compensation.ik import PlannedPath, yang_path
 from elastocal.compensation.model import CompensationModel
 from elastocal.compensation.trajectory import compensate_path
-from elastocal.identify.robot import LOAD_FRAME, Robot
+from elastocal.model.robot import LOAD_FRAME, Robot
 
 #: Yang Table 8: W = 1500 N. Taken as the workpiece pushing the tool up.
 YANG_WRENCH = (0.0, 0.0, 1500.0, 0.0, 0.0, 0.0)

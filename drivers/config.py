@@ -32,7 +32,7 @@ from elastocal.drivers.registers import (
 )
 from elastocal.drivers.urls import CONTROLLER_SCHEMES, DRIVE_SCHEMES, TRACKER_SCHEMES, DeviceUrl, parse_device_url
 from elastocal.errors import InputError, check_known_keys
-from elastocal.textfiles import read_text_file
+from elastocal.formats.textfiles import read_text_file
 
 try:  # Python 3.11+
     import tomllib
@@ -143,7 +143,7 @@ class CellConfig:
 
     def robot_path(self) -> pathlib.Path:
         """The robot description file this cell uses."""
-        from elastocal.identify.robot import bundled_robot_path
+        from elastocal.model.robot import bundled_robot_path
 
         if self.robot in ("hh150",) or ("/" not in self.robot and not self.robot.endswith(".toml")):
             path = bundled_robot_path(self.robot)
@@ -156,9 +156,9 @@ class CellConfig:
         return path
 
     def load_robot(self):
-        """The :class:`~elastocal.identify.robot.Robot` named by ``[cell] robot``, with the cell's
+        """The :class:`~elastocal.model.robot.Robot` named by ``[cell] robot``, with the cell's
         tracker markers, taught poses and paths checked against it (names and joint limits)."""
-        from elastocal.identify.robot import load_robot
+        from elastocal.model.robot import load_robot
 
         robot = load_robot(self.robot_path())
         _check_against_robot(self, robot)

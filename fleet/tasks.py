@@ -3,9 +3,9 @@
 A :class:`FleetTask` holds paths and options, never data: the process that
 runs it opens its own files. :func:`run_task` computes exactly what the
 single-log command computes — the same library functions
-(:func:`~elastocal.identify.pipeline.identify_data`,
-:func:`~elastocal.identify.pipeline.diagnose_data` and ``diagnosis_json``,
-:func:`~elastocal.identify.check.check_calibration`) on the same tables — and
+(:func:`~elastocal.diagnose.pipeline.identify_data`,
+:func:`~elastocal.diagnose.pipeline.diagnose_data` and ``diagnosis_json``,
+:func:`~elastocal.diagnose.check.check_calibration`) on the same tables — and
 returns a small frozen :class:`LogResult`. It never raises: a bad file is a
 result with its one-line error.
 """
@@ -39,7 +39,7 @@ class FleetTask:
     torque: str = "current"
     form: str = "exact"
     exclude_outliers: bool = False
-    calibration: Any = None          # elastocal.identify.calibration.Calibration
+    calibration: Any = None          # elastocal.formats.calibration.Calibration
     calibration_id: int | None = None
     alpha: float = 1e-3
     friction_tolerance: float = 0.2
@@ -131,8 +131,8 @@ def _load(task: FleetTask) -> _Data:
 
         cell_robot = load_cell_config(task.cell_config).load_robot()
     if task.tables:
-        from elastocal.identify.robot import load_robot
-        from elastocal.identify.tables import read_run_table, read_static_table
+        from elastocal.model.robot import load_robot
+        from elastocal.formats.tables import read_run_table, read_static_table
 
         static_csv, runs_csv = path / "static.csv", path / "runs.csv"
         if cell_robot is not None:
@@ -175,8 +175,8 @@ def _parameters(params: Mapping[str, Any]) -> tuple[tuple[str, float, float | No
 
 def _identify(task: FleetTask, data: _Data) -> dict:
     from elastocal.errors import InputError
-    from elastocal.identify.calibration import calibration_from_fit
-    from elastocal.identify.pipeline import identify_data
+    from elastocal.formats.calibration import calibration_from_fit
+    from elastocal.diagnose.pipeline import identify_data
 
     if data.static is None and data.runs is None:
         raise InputError("the log holds neither a static experiment nor runs", source=task.path)
@@ -188,7 +188,7 @@ def _identify(task: FleetTask, data: _Data) -> dict:
 
 
 def _diagnose(task: FleetTask, data: _Data) -> dict:
-    from elastocal.identify.pipeline import diagnose_data, diagnosis_json
+    from elastocal.diagnose.pipeline import diagnose_data, diagnosis_json
 
     static, runs = diagnose_data(data.robot, data.static, data.runs, task.model, task.torque, task.form,
                                  log=None if task.tables else task.path, exclude_outliers=task.exclude_outliers,
@@ -201,7 +201,7 @@ def _diagnose(task: FleetTask, data: _Data) -> dict:
 def _check(task: FleetTask, data: _Data) -> dict:
     from elastocal.acquisition.history import clean
     from elastocal.errors import InputError
-    from elastocal.identify.check import check_calibration
+    from elastocal.diagnose.check import check_calibration
 
     if task.calibration is None:
         raise InputError("no calibration to check against: the cell's history holds none", source=task.cell_config)
@@ -231,7 +231,7 @@ def run_task(task: FleetTask) -> LogResult:
             "calibration_id": task.calibration_id}
     sha = ""
     try:
-        from elastocal.identify.calibration import file_sha256
+        from elastocal.formats.calibration import file_sha256
 
         data = _load(task)
         sha = file_sha256(data.data_file)
@@ -239,7 +239,7 @@ def run_task(task: FleetTask) -> LogResult:
     except Exception as exc:  # noqa: BLE001 -- every failure stays with its file (docs/fleet.md)
         if not sha and not task.tables:
             try:
-                from elastocal.identify.calibration import file_sha256
+                from elastocal.formats.calibration import file_sha256
 
                 sha = file_sha256(task.path)
             except OSError:

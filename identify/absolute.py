@@ -49,9 +49,9 @@ import scipy.linalg
 from elastocal.errors import InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
-from elastocal.identify.effects import get_effect
+from elastocal.model.effects import get_effect
 from elastocal.identify.registration import Registration, kabsch, register
-from elastocal.identify.robot import ACTUATED_IN_LINK_MODEL, MARKER_PREFIX, SPRINGS_IN_LINK_MODEL, Robot
+from elastocal.model.robot import ACTUATED_IN_LINK_MODEL, MARKER_PREFIX, SPRINGS_IN_LINK_MODEL, Robot
 from elastocal.identify.static import (
     Parameter,
     StaticDataset,
@@ -64,7 +64,7 @@ from elastocal.identify.static import (
     build_dataset,
     identify_static,
 )
-from elastocal.identify.tables import StaticTable
+from elastocal.formats.tables import StaticTable
 
 #: effects only absolute positions show (docs/cli.md, effect table)
 ABSOLUTE_EFFECTS = ("kinematic_errors", "tracker_frame")

@@ -28,10 +28,10 @@ import pinocchio as pin
 from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
-from elastocal.identify.calibration import Calibration
-from elastocal.identify.effects import get_effect
+from elastocal.formats.calibration import Calibration
+from elastocal.model.effects import get_effect
 from elastocal.identify.registration import Registration, kabsch, nominal_positions
-from elastocal.identify.robot import MARKER_PREFIX, Robot
+from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.static import (
     StaticDataset,
     _absolute_bases,
@@ -41,7 +41,7 @@ from elastocal.identify.static import (
     absolute_positions,
     build_dataset,
 )
-from elastocal.identify.tables import StaticTable
+from elastocal.formats.tables import StaticTable
 
 #: effects of a measuring session: not carried to other data
 SESSION_EFFECTS = ("thermal_drift",)

@@ -10,7 +10,7 @@ the mean of the two directions is friction-free::
 ``M`` is the compensator's balancing torque (Y31-32): hydro-pneumatic
 ``M = C b sqrt(a^2+h^2) cos(alpha - q2) / (l (l_c - l))`` (Y11, Y34) or spring
 ``M = K_c (1 - s0/s) a L sin(alpha - q2)`` (K7); formulas and geometry are the
-robot description's :class:`~elastocal.identify.robot.CompensatorSpec`.
+robot description's :class:`~elastocal.model.robot.CompensatorSpec`.
 
 Gravity ``g2`` comes either from the robot model (link masses in robot.toml,
 Pinocchio RNEA) or, when the masses are unknown, is identified at the same
@@ -35,8 +35,8 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.errors import InputError, UnidentifiableError
-from elastocal.identify.effects import get_effect
-from elastocal.identify.robot import LOAD_FRAME, Robot
+from elastocal.model.effects import get_effect
+from elastocal.model.robot import LOAD_FRAME, Robot
 from elastocal.identify.sweepfit import fit_sweeps, sweep_terms
 
 

@@ -32,8 +32,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from elastocal.errors import InputError
-from elastocal.identify.effects import get_effect, run_effects
-from elastocal.identify.effects.base import Effect
+from elastocal.model.effects import get_effect, run_effects
+from elastocal.model.effects.base import Effect
 
 #: the friction effects of the table (run_part "uv/vu"), Coulomb first; a term is the
 #: effect's name without "_friction" (FrictionFit.terms, ``terms=``)

@@ -36,7 +36,7 @@ import numpy as np
 import pinocchio as pin
 
 from elastocal.errors import InputError
-from elastocal.identify.robot import ACTUATED_IN_LINK_MODEL, MARKER_PREFIX, Robot
+from elastocal.model.robot import ACTUATED_IN_LINK_MODEL, MARKER_PREFIX, Robot
 
 #: DH error kinds per joint, in the order of the parameter vector
 DH_KINDS = ("dq", "da", "dd", "dalpha", "dbeta")

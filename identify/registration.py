@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from elastocal.identify.robot import Robot
+from elastocal.model.robot import Robot
 
 if TYPE_CHECKING:  # pragma: no cover
     from elastocal.identify.static import StaticDataset

@@ -22,7 +22,7 @@ becomes ``xi^2 sigma^2 (1 + w)/4`` (``w`` from the interpolation of the
 backward run); the floor is the rms that this noise leaves after the fit,
 ``sqrt(sum var_i (1 - h_ii) / n)`` with the leverages ``h`` of each fit, and the
 excess over it is tested with the whitened chi-square ``sum r_i^2 / var_i`` on
-``n - p`` degrees of freedom — as for static data (identify/where.py).
+``n - p`` degrees of freedom — as for static data (diagnose/where.py).
 
 **The arm's deflection.** The sweeps are placed at the deflected configuration
 ``q + offset + xi i / k``: with the static fit's stiffness when there is one,
@@ -42,7 +42,7 @@ import numpy as np
 import scipy.stats
 
 from elastocal.errors import UnidentifiableError
-from elastocal.identify.effects.base import Effect
+from elastocal.model.effects.base import Effect
 from elastocal.identify.static import Parameter
 
 #: a scaled friction design worse conditioned than this cannot separate a term from Coulomb
@@ -391,7 +391,7 @@ def fit_run_model(data: RunData, effects: Sequence[Effect], *, constant: Effect 
     effects = tuple(effects)
     friction_effects = [e for e in effects if e.run_part == "uv/vu" and e.run_column is not None]
     if constant is None:
-        from elastocal.identify.effects import get_effect, run_effects
+        from elastocal.model.effects import get_effect, run_effects
 
         constant = get_effect(run_effects("uv/vu")[0])
     model = tuple(e.name for e in effects)

@@ -22,11 +22,11 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.identify.effects import get_effect, run_effects
-from elastocal.identify.robot import Robot
+from elastocal.model.effects import get_effect, run_effects
+from elastocal.model.robot import Robot
 from elastocal.identify.runmodel import RunModelFit, StiffnessUsed, fit_run_model, prepare_run_data, with_rigid_bias
 from elastocal.identify.static import Parameter
-from elastocal.identify.tables import RunTable
+from elastocal.formats.tables import RunTable
 
 #: the effects run data show, as each effect module declares (run_part)
 RUN_EFFECTS = run_effects()

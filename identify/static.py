@@ -35,9 +35,9 @@ import scipy.linalg
 
 from elastocal.errors import Arg, EffectRefused, InputError, UnidentifiableError
 from elastocal.identify.blas import one_blas_thread
-from elastocal.identify.effects import get_effect
-from elastocal.identify.effects.base import Effect, StaticBasis, StaticContext
-from elastocal.identify.robot import (
+from elastocal.model.effects import get_effect
+from elastocal.model.effects.base import Effect, StaticBasis, StaticContext
+from elastocal.model.robot import (
     ACTUATED_IN_LINK_MODEL,
     LOAD_FRAME,
     MARKER_PREFIX,
@@ -47,7 +47,7 @@ from elastocal.identify.robot import (
 from elastocal.identify.evidence import check_loads_changed, mark_stiffness
 from elastocal.identify.grouping import combine, first_seen, group_count, group_sum, sums_per_group
 from elastocal.identify.registration import in_base_axes, refine_registration
-from elastocal.identify.tables import StaticTable
+from elastocal.formats.tables import StaticTable
 
 TORQUE_SOURCES = ("current", "force")
 FORMS = ("exact", "first-order")

@@ -8,7 +8,7 @@ robot description already knows is moved to the left::
 
 and each effect whose module declares a ``sweep_term`` (identify/effects:
 the compensator's balancing torque ``M(q2; C, l_c)``, gravity's corrections
-``Y2(theta) pi``) contributes its :class:`~elastocal.identify.effects.base.SweepTerm`.
+``Y2(theta) pi``) contributes its :class:`~elastocal.model.effects.base.SweepTerm`.
 Effects in the model are fitted together (nonlinear least squares, analytic
 Jacobians, bounds from the terms); the others contribute their nominal torque
 (the description's compensator) or nothing. The fit never looks at an effect's
@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from elastocal.errors import UnidentifiableError
-from elastocal.identify.effects.base import Effect, SweepContext, SweepTerm
+from elastocal.model.effects.base import Effect, SweepContext, SweepTerm
 from elastocal.identify.static import Parameter
 
 #: a column-scaled sweep Jacobian worse conditioned than this cannot separate its terms

@@ -24,7 +24,7 @@ from typing import Sequence
 
 import numpy as np
 
-from elastocal.identify.robot import (
+from elastocal.model.robot import (
     ACTUATED_IN_LINK_MODEL,
     LINK_SPRINGS,
     LOAD_FRAME,

@@ -17,8 +17,8 @@ import math
 import numpy as np
 import pinocchio as pin
 
-from elastocal.identify.robot import Robot
-from elastocal.identify.tables import RunTable, run_table_from_arrays
+from elastocal.model.robot import Robot
+from elastocal.formats.tables import RunTable, run_table_from_arrays
 
 PIVOT = "P1"
 CYLINDER = ("P01", "P02")

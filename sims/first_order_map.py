@@ -17,8 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.identify.design_measures import DEFAULT_PRIOR_STIFFNESS
-from elastocal.identify.robot import LOAD_FRAME, Robot
+from elastocal.model.robot import DEFAULT_PRIOR_STIFFNESS, LOAD_FRAME, Robot
 from elastocal.sims.cell import CellTruth, SimCell
 
 #: relative stiffness error under which the first-order model is good enough (Y §4.2)

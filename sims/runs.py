@@ -21,8 +21,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from elastocal.identify.robot import Robot
-from elastocal.identify.tables import RunTable, run_table_from_arrays, write_run_table
+from elastocal.model.robot import Robot
+from elastocal.formats.tables import RunTable, run_table_from_arrays, write_run_table
 from elastocal.sims.cell import CellTruth, SimCell
 
 #: plausible friction of a 150 kg-class robot (per joint): Coulomb [N·m],

@@ -33,7 +33,7 @@ from elastocal.drivers.can_loopback import DEFAULT_GROUP as CAN_LOOPBACK_GROUP, 
 from elastocal.drivers.config import CellConfig, parse_cell_config
 from elastocal.drivers.urls import DeviceUrl
 from elastocal.errors import InputError
-from elastocal.textfiles import read_text_file
+from elastocal.formats.textfiles import read_text_file
 from elastocal.sims.canbus import BusStats
 from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork
 from elastocal.sims.config import sim_config

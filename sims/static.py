@@ -7,8 +7,8 @@ from typing import Sequence
 
 import numpy as np
 
-from elastocal.identify.robot import LOAD_FRAME, Robot
-from elastocal.identify.tables import StaticTable, static_table_from_arrays
+from elastocal.model.robot import LOAD_FRAME, Robot
+from elastocal.formats.tables import StaticTable, static_table_from_arrays
 from elastocal.sims.cell import CellTruth, SimCell
 
 G = 9.81

@@ -16,7 +16,7 @@ import datetime as _dt
 
 import numpy as np
 
-from elastocal.identify.tables import StaticTable
+from elastocal.formats.tables import StaticTable
 
 #: the simulated session starts here (UTC): a fixed instant, so the files depend on the seed only
 START = _dt.datetime(2026, 1, 5, 8, 0, 0, tzinfo=_dt.timezone.utc)

@@ -1,6 +1,6 @@
 """Fixtures shared by the test files, and the test suite's markers.
 
-* ``robot``: the bundled HH-150 :class:`~elastocal.identify.robot.Robot`. The robot model
+* ``robot``: the bundled HH-150 :class:`~elastocal.model.robot.Robot`. The robot model
   is immutable (Pinocchio data are per call), so one instance serves the whole session.
 * ``robot_path``: its robot.toml.
 * ``static_dataset``: a small simulated static experiment (``elastocal sim static``:
@@ -22,7 +22,7 @@ import pathlib
 
 import pytest
 
-from elastocal.identify.robot import bundled_robot, bundled_robot_path
+from elastocal.model.robot import bundled_robot, bundled_robot_path
 
 
 @pytest.fixture(scope="session")

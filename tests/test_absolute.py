@@ -11,7 +11,7 @@ from elastocal.cli import main
 from elastocal.identify import kinematics as kin
 from elastocal.identify.absolute import identify_absolute
 from elastocal.identify.registration import kabsch
-from elastocal.identify.robot import bundled_robot, parse_robot
+from elastocal.model.robot import bundled_robot, parse_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import DEFAULT_TRACKER, KINEMATIC_ERRORS, CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
@@ -166,7 +166,7 @@ def test_cli_sim_kinematic_errors_and_identify_json(tmp_path, capsys):
 
 
 def test_diagnose_names_kinematic_errors_and_adding_them_reaches_the_floor(kinematic_data):
-    from elastocal.identify.diagnose import diagnose_static
+    from elastocal.diagnose.static import diagnose_static
 
     truth, tables = kinematic_data
     for table in tables[:3]:
@@ -187,7 +187,7 @@ def test_diagnose_names_kinematic_errors_and_adding_them_reaches_the_floor(kinem
 
 
 def test_a_tracker_on_another_stand_is_not_a_missing_effect(tmp_path, capsys):
-    from elastocal.identify.diagnose import diagnose_static
+    from elastocal.diagnose.static import diagnose_static
 
     moved = CellTruth().with_hidden("tracker_frame")
     diag = diagnose_static(ROBOT, simulate_static(ROBOT, moved, seed=21))
@@ -206,7 +206,7 @@ def test_a_tracker_on_another_stand_is_not_a_missing_effect(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def calibration_file(tmp_path_factory, kinematic_data):
-    from elastocal.identify.calibration import calibration_from_fit, write_calibration
+    from elastocal.formats.calibration import calibration_from_fit, write_calibration
 
     truth, tables = kinematic_data
     fit = identify_absolute(ROBOT, tables[0], model=FULL)
@@ -217,8 +217,8 @@ def calibration_file(tmp_path_factory, kinematic_data):
 
 def test_validate_on_other_poses_and_another_tracker_stand(calibration_file, tmp_path, capsys):
     from elastocal.identify.accuracy import validate
-    from elastocal.identify.calibration import read_calibration
-    from elastocal.identify.tables import write_static_table
+    from elastocal.formats.calibration import read_calibration
+    from elastocal.formats.tables import write_static_table
 
     cal = read_calibration(calibration_file)
     truth = CellTruth().with_hidden("kinematic_errors")
@@ -274,8 +274,8 @@ def test_robot_command_round_trip_and_urdf(calibration_file, tmp_path, capsys):
     import pinocchio as pin
 
     from elastocal.identify.accuracy import calibrated_robot
-    from elastocal.identify.calibration import read_calibration
-    from elastocal.identify.robot import load_robot
+    from elastocal.formats.calibration import read_calibration
+    from elastocal.model.robot import load_robot
 
     out, urdf = tmp_path / "calibrated.toml", tmp_path / "calibrated.urdf"
     assert main(["robot", "--calibration", str(calibration_file), "--out", str(out), "--urdf", str(urdf)]) == 0
@@ -301,8 +301,8 @@ def test_robot_command_round_trip_and_urdf(calibration_file, tmp_path, capsys):
 
 
 def test_check_compares_absolute_accuracy_when_the_calibration_holds_the_geometry(calibration_file):
-    from elastocal.identify.calibration import read_calibration
-    from elastocal.identify.check import check_calibration
+    from elastocal.formats.calibration import read_calibration
+    from elastocal.diagnose.check import check_calibration
 
     cal = read_calibration(calibration_file)
     truth = CellTruth().with_hidden("kinematic_errors")
@@ -326,7 +326,7 @@ def test_compensated_path_through_the_cell_with_geometric_errors(calibration_fil
     from elastocal.compensation.model import CompensationModel
     from elastocal.compensation.trajectory import compensate_path
     from elastocal.identify.accuracy import calibration_frame
-    from elastocal.identify.calibration import read_calibration
+    from elastocal.formats.calibration import read_calibration
     from elastocal.sims.cell import SimCell
 
     cal = read_calibration(calibration_file)
@@ -356,9 +356,9 @@ def test_compensated_path_through_the_cell_with_geometric_errors(calibration_fil
 
 
 def test_plan_makes_the_kinematic_set_observable_and_beats_random_poses():
-    from elastocal.identify import design as dz
-    from elastocal.identify import design_candidates as dzc
-    from elastocal.identify.design_kinematic import plan_for_geometry
+    from elastocal.design import search as dz
+    from elastocal.design import candidates as dzc
+    from elastocal.design.kinematic import plan_for_geometry
 
     test = dzc.TestPose(q=(0.3, 0.5, -0.3, 0.2, 1.0, 0.1), wrench=(800.0, -300.0, -600.0, 0.0, 0.0, 0.0))
     workspace = dzc.Workspace(f_max_n=1100.0, base_p_tracker=(3.5, 0.0, 1.2))
@@ -378,8 +378,8 @@ def test_plan_makes_the_kinematic_set_observable_and_beats_random_poses():
 
 
 def test_report_shows_absolute_errors_per_pose_and_their_vectors(kinematic_data):
-    from elastocal.identify.diagnose import diagnose_static
-    from elastocal.identify.report import render_report
+    from elastocal.diagnose.static import diagnose_static
+    from elastocal.report.html import render_report
 
     truth, tables = kinematic_data
     diag = diagnose_static(ROBOT, tables[1])

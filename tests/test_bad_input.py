@@ -19,9 +19,9 @@ from elastocal.acquisition.logreader import LogReader
 from elastocal.acquisition.logwriter import write_log_from_tables
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main
-from elastocal.identify.calibration import read_calibration
-from elastocal.identify.robot import bundled_robot
-from elastocal.identify.tables import write_run_table, write_static_table
+from elastocal.formats.calibration import read_calibration
+from elastocal.model.robot import bundled_robot
+from elastocal.formats.tables import write_run_table, write_static_table
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, simulate_static
@@ -440,7 +440,7 @@ def test_sim_serve_write_cell_refuses_to_overwrite_without_force(tmp_path, capsy
 
 # ------------------------------------------- 10. unattended checks, friction drift
 def _check_plan(friction: bool = True) -> str:
-    from elastocal.acquisition.plan import CheckSpec, FrictionSpec, LoadSpec, SettleSpec, plan_toml
+    from elastocal.formats.plan import CheckSpec, FrictionSpec, LoadSpec, SettleSpec, plan_toml
 
     poses = {"P1": (0.2, 0.3, -0.4, 0.3, 1.0, 0.2), "P2": (0.5, 0.55, -0.2, 0.6, 1.2, 0.5)}
     spec = (FrictionSpec("F1", start=(-0.2, 0.3, -0.5, -0.1, 0.6, -0.1), end=(0.0, 0.4, -0.4, 0.1, 0.7, 0.1),
@@ -455,7 +455,7 @@ def _check_plan(friction: bool = True) -> str:
 def test_unattended_procedure_skips_what_needs_a_person(tmp_path):
     from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
     from elastocal.acquisition.logreader import read_log
-    from elastocal.acquisition.plan import parse_plan
+    from elastocal.formats.plan import parse_plan
     from elastocal.acquisition.procedures import run_procedures
     from elastocal.errors import InputError
     from elastocal.sims.cell import SimCell
@@ -506,7 +506,7 @@ def test_a_check_without_terminal_runs_unattended(data, tmp_path, capsys, monkey
 
 def test_history_shows_friction_drift_and_plots_every_check(tmp_path, capsys):
     from elastocal.acquisition.history import History, drift_figure, drift_summary
-    from elastocal.identify.calibration import CalibratedParameter as P, Calibration, Residual
+    from elastocal.formats.calibration import CalibratedParameter as P, Calibration, Residual
 
     params = tuple(P(f"k{j}", 5e5, 5e2, "N*m/rad") for j in range(1, 7)) + (P("fc2", 90.0, 0.5, "N*m"),
                                                                            P("fv2", 600.0, 3.0, "N*m*s/rad"))

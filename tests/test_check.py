@@ -1,4 +1,4 @@
-"""`elastocal check` (identify/check.py): an unchanged simulated cell holds, a
+"""`elastocal check` (diagnose/check.py): an unchanged simulated cell holds, a
 10 % drop of k2 or a friction change asks for recalibration; the statistics
 are calibrated; the check procedure's log (VirtualCellIO) and tables given
 directly both work through the CLI, with exit codes 0 / 3 / 2."""
@@ -11,15 +11,15 @@ import pytest
 
 from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
 from elastocal.acquisition.history import History
-from elastocal.acquisition.plan import CheckSpec, FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
+from elastocal.formats.plan import CheckSpec, FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.cli import main
 from elastocal.errors import InputError
-from elastocal.identify.calibration import calibration_from_fit, write_calibration
-from elastocal.identify.check import check_calibration, check_static
+from elastocal.formats.calibration import calibration_from_fit, write_calibration
+from elastocal.diagnose.check import check_calibration, check_static
 from elastocal.identify.runs import identify_runs
 from elastocal.identify.static import identify_static
-from elastocal.identify.tables import write_run_table, write_static_table
+from elastocal.formats.tables import write_run_table, write_static_table
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, simulate_static
@@ -158,7 +158,7 @@ def test_check_of_a_calibration_file_finds_its_record_in_the_history(robot, cell
     give back the calibration without those fields, so it was never found: exit 2.)"""
     import dataclasses
 
-    from elastocal.identify.calibration import Residual
+    from elastocal.formats.calibration import Residual
 
     full = dataclasses.replace(calibration, robot_description=robot.to_toml(),
                                absolute_residual=Residual(rms=2e-5, max=6e-5, n=108, noise_floor=1.9e-5))

@@ -18,8 +18,8 @@ from elastocal.compensation.model import CompensationModel
 from elastocal.compensation.trajectory import compensate_path, predicted_residual
 from elastocal.compensation.validate import YANG_WRENCH, validate_on_sim, yang_validation
 from elastocal.errors import InputError
-from elastocal.identify.calibration import CalibratedParameter, Calibration, Residual, write_calibration
-from elastocal.identify.robot import LOAD_FRAME, bundled_robot_path
+from elastocal.formats.calibration import CalibratedParameter, Calibration, Residual, write_calibration
+from elastocal.model.robot import LOAD_FRAME, bundled_robot_path
 from elastocal.sims.cell import CellTruth, SimCell
 
 

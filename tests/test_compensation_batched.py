@@ -23,7 +23,7 @@ from elastocal.compensation.chain import TAYLOR_LIMIT_RAD, Angles, BatchedChain
 from elastocal.compensation.model import BLOCK_SAMPLES, WARM_STRIDE, CompensationModel, NotConverged, StaticKernel
 from elastocal.compensation.trajectory import compensate_path, predicted_residual
 from elastocal.identify import kinematics as kin
-from elastocal.identify.robot import LOAD_FRAME, bundled_robot_path, load_robot
+from elastocal.model.robot import LOAD_FRAME, bundled_robot_path, load_robot
 from elastocal.sims.cell import CellTruth
 
 HERE = pathlib.Path(__file__).parent
@@ -319,7 +319,7 @@ def test_reading_a_path_in_one_pass_equals_the_row_by_row_reader(robot, monkeypa
                                "-0", "0", fmt(qi[3]), fmt(qi[4]), fmt(qi[5])]))
     text = "\n".join(lines) + "\n"
     fast = files.parse_path(text, robot)
-    from elastocal.identify.tables import csv_records
+    from elastocal.formats.tables import csv_records
 
     records = list(csv_records(text, "x"))
     header = records[0][1]

@@ -50,7 +50,7 @@ def _every_message_valid(path):
     import jsonschema
     from mcap.reader import make_reader
 
-    from elastocal.acquisition import logformat as lf
+    from elastocal.formats import logformat as lf
 
     foxglove = {name: json.loads((lf.FOXGLOVE_SCHEMA_DIR / f"{name.split('.')[1]}.json").read_text())
                 for name in set(lf.FOXGLOVE_TOPIC_SCHEMAS.values())}

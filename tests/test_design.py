@@ -1,4 +1,4 @@
-"""Design of experiments (identify/design.py, `elastocal plan`): the industry
+"""Design of experiments (design/search.py, `elastocal plan`): the industry
 measure K40 (Klimchik §V.C), the planned experiment against random poses on
 the simulated cell, the workspace constraints, Yang's first-order map."""
 
@@ -8,15 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from elastocal.acquisition.plan import load_plan
+from elastocal.formats.plan import load_plan
 from elastocal.cli import main
 from elastocal.errors import InputError
-from elastocal.identify import design as dz
+from elastocal.design import search as dz
 from elastocal.sims import first_order_map as fom
-from elastocal.identify import design_candidates as dzc
-from elastocal.identify.robot import LOAD_FRAME
+from elastocal.design import candidates as dzc
+from elastocal.model.robot import LOAD_FRAME
 from elastocal.identify.static import identify_static
-from elastocal.identify.tables import static_table_from_arrays
+from elastocal.formats.tables import static_table_from_arrays
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import StaticPlan, simulate_static
 
@@ -250,7 +250,7 @@ def test_plan_command_rejects_bad_input_in_one_line(tmp_path, capsys):
     base = ["plan", "--robot", "hh150-does-not-exist.toml", "--load", "800,0,0", "--out", str(tmp_path / "p.toml")]
     assert main(base + ["--test-pose", "0.3,0.5,-0.3,0.2,1.0,0.1"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
-    from elastocal.identify.robot import bundled_robot_path
+    from elastocal.model.robot import bundled_robot_path
 
     good = ["plan", "--robot", str(bundled_robot_path()), "--out", str(tmp_path / "p.toml")]
     assert main(good + ["--test-pose", "0.3,2.5,-0.3,0.2,1.0,0.1", "--load", "800,0,0"]) == 2

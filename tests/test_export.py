@@ -12,14 +12,14 @@ from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
 from elastocal.acquisition.export import export_log, load_log
 from elastocal.acquisition.logreader import read_log
 from elastocal.acquisition.logwriter import write_log_from_tables
-from elastocal.acquisition.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
+from elastocal.formats.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main
 from elastocal.errors import InputError
-from elastocal.identify.robot import bundled_robot, load_robot
+from elastocal.model.robot import bundled_robot, load_robot
 from elastocal.identify.static import identify_static
-from elastocal.identify.tables import read_run_table, read_static_table
+from elastocal.formats.tables import read_run_table, read_static_table
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.runs import default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, random_poses, simulate_static

@@ -14,13 +14,13 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from elastocal.acquisition import logformat as lf
+from elastocal.formats import logformat as lf
 from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
 from elastocal.acquisition.export import load_log
 from elastocal.acquisition.logreader import read_log
-from elastocal.acquisition.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
+from elastocal.formats.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses

@@ -14,7 +14,7 @@ from elastocal.identify.friction import (
     identify_friction,
     match_path,
 )
-from elastocal.identify.tables import run_table_from_arrays
+from elastocal.formats.tables import run_table_from_arrays
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 

@@ -32,13 +32,13 @@ from hypothesis import strategies as st
 
 from elastocal.acquisition.logreader import LogReader
 from elastocal.acquisition.logwriter import write_log_from_tables
-from elastocal.acquisition.plan import LoadSpec, plan_toml
+from elastocal.formats.plan import LoadSpec, plan_toml
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main
 from elastocal.compensation.files import read_path
-from elastocal.identify.calibration import read_calibration
-from elastocal.identify.robot import bundled_robot
-from elastocal.identify.tables import read_run_table, read_static_table, write_run_table, write_static_table
+from elastocal.formats.calibration import read_calibration
+from elastocal.model.robot import bundled_robot
+from elastocal.formats.tables import read_run_table, read_static_table, write_run_table, write_static_table
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, simulate_static

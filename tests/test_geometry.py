@@ -16,7 +16,7 @@ from elastocal.identify.geometry import (
     geometry_from_run_table,
     identify_compensator_geometry,
 )
-from elastocal.identify.tables import read_run_table, run_table_from_arrays, write_run_table
+from elastocal.formats.tables import read_run_table, run_table_from_arrays, write_run_table
 
 DATA = pathlib.Path(__file__).parent / "data" / "klimchik_kr270_compensator_markers.csv"
 

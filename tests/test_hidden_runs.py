@@ -7,9 +7,9 @@ import json
 import pytest
 
 from elastocal.cli import main
-from elastocal.identify.diagnose_runs import diagnose_runs
-from elastocal.identify.robot import bundled_robot
-from elastocal.identify.tables import read_run_table
+from elastocal.diagnose.runs import diagnose_runs
+from elastocal.model.robot import bundled_robot
+from elastocal.formats.tables import read_run_table
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import hide_in_runs, simulate_runs
 

@@ -11,10 +11,10 @@ import pytest
 from elastocal.acquisition.history import MAX_CHECK_RELATIVE_STD, History, iso_utc, plot_drift
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
-from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
+from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.cli import main
 from elastocal.errors import InputError
-from elastocal.identify.calibration import (
+from elastocal.formats.calibration import (
     CalibratedParameter,
     Calibration,
     DataFile,
@@ -22,7 +22,7 @@ from elastocal.identify.calibration import (
     file_sha256,
     write_calibration,
 )
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.sims.cell import CellTruth, SimCell
 
 DAY_NS = 86400 * 10**9
@@ -175,8 +175,8 @@ def simulated_history(tmp_path_factory):
     import dataclasses
 
     from elastocal.acquisition.history import clean
-    from elastocal.identify.calibration import calibration_from_fit
-    from elastocal.identify.check import check_calibration
+    from elastocal.formats.calibration import calibration_from_fit
+    from elastocal.diagnose.check import check_calibration
     from elastocal.identify.runs import identify_runs
     from elastocal.identify.static import identify_static
     from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs

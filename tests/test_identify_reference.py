@@ -18,9 +18,9 @@ import pathlib
 import numpy as np
 import pytest
 
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import identify_static
-from elastocal.identify.tables import StaticTable
+from elastocal.formats.tables import StaticTable
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
 

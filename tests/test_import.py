@@ -16,11 +16,11 @@ import pytest
 from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
 from elastocal.acquisition.export import static_readings, static_table_from_log
 from elastocal.acquisition.logreader import read_log
-from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
+from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.cli import main
-from elastocal.identify.robot import bundled_robot
-from elastocal.identify.tables import STATIC_COLUMNS, read_static_table
+from elastocal.model.robot import bundled_robot
+from elastocal.formats.tables import STATIC_COLUMNS, read_static_table
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses
 
@@ -196,7 +196,7 @@ def test_u95_weights_the_fit(tmp_path):
     from dataclasses import replace
 
     from elastocal.identify.static import identify_static
-    from elastocal.identify.tables import format_static_table
+    from elastocal.formats.tables import format_static_table
     from elastocal.sims.static import StaticPlan, simulate_static
 
     robot = bundled_robot()

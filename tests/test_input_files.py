@@ -13,12 +13,12 @@ import pathlib
 import numpy as np
 import pytest
 
-from elastocal.acquisition.plan import LoadSpec, load_plan, plan_toml
+from elastocal.formats.plan import LoadSpec, load_plan, plan_toml
 from elastocal.cli import main
 from elastocal.compensation.files import read_path
 from elastocal.drivers.config import load_cell_config
 from elastocal.errors import InputError
-from elastocal.identify.calibration import (
+from elastocal.formats.calibration import (
     CalibratedParameter,
     Calibration,
     DataFile,
@@ -27,8 +27,8 @@ from elastocal.identify.calibration import (
     read_calibration,
     write_calibration,
 )
-from elastocal.identify.robot import bundled_robot, bundled_robot_path, load_robot, parse_robot
-from elastocal.identify.tables import (
+from elastocal.model.robot import bundled_robot, bundled_robot_path, load_robot, parse_robot
+from elastocal.formats.tables import (
     format_run_table,
     format_static_table,
     parse_run_table,

@@ -23,33 +23,25 @@ else:  # pragma: no cover
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
-#: the bottom layer, wherever its folder: the robot model, the file formats, errors and units
-BOTTOM = (
-    "elastocal",                      # the package itself: __version__ only
-    "elastocal.errors",
-    "elastocal.textfiles",
-    "elastocal.units",                # units of the values in the user's files
-    "elastocal.identify.robot",       # robot.toml, the immutable robot model (Pinocchio)
-    "elastocal.identify.urdf",
-    "elastocal.identify.tables",      # static.csv, runs.csv
-    "elastocal.identify.calibration",  # calibration JSON
-    "elastocal.acquisition.logformat",  # the MCAP log schema
-)
-#: bottom-layer packages: the effect table (names, parameters, units, words for users) that the
-#: calibration JSON is checked against; effect modules import only the bottom layer
-BOTTOM_PACKAGES = ("elastocal.identify.effects",)
-#: layer of each subpackage, bottom (0) to top (3), for every module not in BOTTOM
+#: layer of each package, bottom (0) to top (4), by folder; a module belongs to the longest prefix.
+#: The bottom layer: the robot model and the effects (model/), the file formats (formats/), the
+#: package's own root and its typed errors (elastocal.errors).
 LAYER = {
+    "elastocal": 0, "elastocal.errors": 0, "elastocal.model": 0, "elastocal.formats": 0,
     "elastocal.drivers": 1, "elastocal.identify": 1, "elastocal.sims": 1,
-    "elastocal.acquisition": 2, "elastocal.compensation": 2, "elastocal.fleet": 2,
-    "elastocal.cli": 3, "elastocal.commands": 3, "elastocal.__main__": 3,
+    "elastocal.diagnose": 2, "elastocal.design": 2, "elastocal.acquisition": 2, "elastocal.compensation": 2,
+    "elastocal.report": 2,
+    "elastocal.fleet": 3,
+    "elastocal.cli": 4, "elastocal.commands": 4, "elastocal.__main__": 4,
 }
-#: imports forbidden although the layers allow them: (importer, imported) subpackages
+#: imports forbidden although the layers allow them: (importer, imported) packages
 FORBIDDEN = {
     ("elastocal.identify", "elastocal.sims"), ("elastocal.drivers", "elastocal.sims"),
     ("elastocal.identify", "elastocal.drivers"), ("elastocal.drivers", "elastocal.identify"),
     ("elastocal.compensation", "elastocal.sims"), ("elastocal.compensation", "elastocal.acquisition"),
     ("elastocal.acquisition", "elastocal.compensation"),
+    ("elastocal.diagnose", "elastocal.sims"), ("elastocal.design", "elastocal.sims"),
+    ("elastocal.report", "elastocal.sims"), ("elastocal.compensation", "elastocal.report"),
 }
 
 
@@ -68,8 +60,8 @@ def modules(root: pathlib.Path) -> dict[str, pathlib.Path]:
 
 def imports(name: str, path: pathlib.Path, known: dict[str, pathlib.Path]) -> set[tuple[int, str]]:
     """(line, imported elastocal module) of every import statement in the file.
-    ``from elastocal.identify import design`` imports the module ``elastocal.identify.design``;
-    ``from elastocal.identify.design import plan_experiment`` the module ``elastocal.identify.design``."""
+    ``from elastocal.design import search`` imports the module ``elastocal.design.search``;
+    ``from elastocal.design.search import plan_experiment`` the module ``elastocal.design.search``."""
     tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
     package = name if path.stem == "__init__" else name.rpartition(".")[0]
     found = set()
@@ -89,13 +81,11 @@ def imports(name: str, path: pathlib.Path, known: dict[str, pathlib.Path]) -> se
 
 
 def placement(name: str, known: dict[str, pathlib.Path]) -> tuple[int, str] | None:
-    """(layer, subpackage) of a module, or None for a name that is no module (an imported object)."""
+    """(layer, package) of a module, or None for a name that is no module (an imported object)."""
     if name not in known:
         return None
-    if name in BOTTOM or any(name == p or name.startswith(p + ".") for p in BOTTOM_PACKAGES):
-        return 0, "bottom"
     for prefix, layer in sorted(LAYER.items(), key=lambda kv: -len(kv[0])):
-        if name == prefix or name.startswith(prefix + "."):
+        if name == prefix or (prefix != "elastocal" and name.startswith(prefix + ".")):
             return layer, prefix
     raise LookupError(name)
 
@@ -129,7 +119,8 @@ def test_nothing_imports_upward():
 def test_every_module_has_a_layer():
     known = modules(ROOT)
     assert len(known) > 80 and "elastocal.identify.static" in known and "elastocal.commands.plan" in known
-    assert all(b in known for b in BOTTOM), [b for b in BOTTOM if b not in known]
+    bottom = [n for n in known if placement(n, known)[0] == 0]
+    assert "elastocal.model.robot" in bottom and "elastocal.formats.tables" in bottom, bottom
 
 
 @pytest.fixture
@@ -144,10 +135,10 @@ def tree(tmp_path) -> pathlib.Path:
 
 
 @pytest.mark.parametrize("file,line,message", [
-    ("identify/design.py", "from elastocal.sims.cell import SimCell", "never imports"),
+    ("design/search.py", "from elastocal.sims.cell import SimCell", "never imports"),
     ("drivers/config.py", "    from elastocal.identify.static import identify_static", "never imports"),
-    ("identify/robot.py", "from elastocal.identify import static", "upward: layer 0 imports layer 1"),
-    ("compensation/model.py", "from elastocal.commands import plan", "upward: layer 2 imports layer 3"),
+    ("model/robot.py", "from elastocal.identify import static", "upward: layer 0 imports layer 1"),
+    ("compensation/model.py", "from elastocal.commands import plan", "upward: layer 2 imports layer 4"),
     ("sims/world.py", "from elastocal.acquisition.procedures import run_calibration", "upward"),
     ("compensation/model.py", "from ..sims import cell", "never imports"),
 ])

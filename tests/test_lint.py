@@ -48,12 +48,12 @@ def test_the_check_sees_an_unused_import():
 # ------------------------------------------------------------------ no CLI flags in the library
 #: the library's packages (the CLI, elastocal.cli and elastocal.commands, names its own flags)
 LIBRARY = ("drivers", "acquisition", "identify", "compensation", "sims", "fleet", "elastocal/errors.py",
-           "elastocal/units.py", "elastocal/textfiles.py", "elastocal/robots")
+           "model/units.py", "formats/textfiles.py", "elastocal/robots")
 FLAG = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
 #: texts that name a flag and are not messages of the library: (file, flag) -> why
 NOT_MESSAGES = {
     ("acquisition/history.py", "--json"): "an SQL comment of the schema",
-    ("acquisition/logformat.py", "--yes"): "the log schema's description of a recorded field",
+    ("formats/logformat.py", "--yes"): "the log schema's description of a recorded field",
 }
 
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from elastocal.cli import main
-from elastocal.identify.diagnose import diagnose_static
-from elastocal.identify.effects import get_effect
-from elastocal.identify.robot import bundled_robot
+from elastocal.diagnose.static import diagnose_static
+from elastocal.model.effects import get_effect
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static

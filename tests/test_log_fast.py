@@ -18,14 +18,14 @@ from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader, breakup_chunk, get_chunk_data_stream
 from mcap.writer import CompressionType, Writer
 
-from elastocal.acquisition import logformat as lf
+from elastocal.formats import logformat as lf
 from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
 from elastocal.acquisition.export import load_log, tables_from_log
 from elastocal.acquisition.logreader import LogReader, chunk_messages, read_log
-from elastocal.acquisition.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
+from elastocal.formats.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.errors import InputError
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses
 

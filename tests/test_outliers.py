@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from elastocal.cli import main
-from elastocal.identify.diagnose import diagnose_static
+from elastocal.diagnose.static import diagnose_static
 from elastocal.identify.outliers import find_outliers
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import build_dataset
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, add_outliers, simulate_static

@@ -11,7 +11,7 @@ import pytest
 from elastocal.acquisition.cellio import SampleGap, Samples, VirtualCellIO, VirtualTiming
 from elastocal.acquisition.export import load_log
 from elastocal.acquisition.logreader import read_log
-from elastocal.acquisition.plan import (
+from elastocal.formats.plan import (
     CheckSpec,
     FrictionSpec,
     LoadSpec,
@@ -25,7 +25,7 @@ from elastocal.acquisition.procedures import run_procedures
 from elastocal.acquisition.steps import build_steps
 from elastocal.acquisition.ui import Aborted, AutoUI, TerminalUI, progress_line
 from elastocal.errors import DeviceTimeout, InputError
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses

@@ -10,11 +10,11 @@ import pytest
 
 from elastocal.acquisition.export import load_log
 from elastocal.acquisition.logreader import read_log
-from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
+from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_calibration
 from elastocal.acquisition.ui import Aborted, AutoUI
 from elastocal.cli import main
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.serve import example_cell_config
@@ -119,7 +119,7 @@ def test_calibrate_cli_refuses_yes_on_a_real_cell_and_bad_inputs(tmp_path, capsy
 def test_friction_pair_and_sweep_run_as_taught_paths_on_simulated_devices(tmp_path):
     from dataclasses import replace
 
-    from elastocal.acquisition.plan import FrictionSpec, SweepSpec
+    from elastocal.formats.plan import FrictionSpec, SweepSpec
     from elastocal.drivers.config import PathSpec
 
     u, v = (0.1, 0.3, -0.4, 0.0, 0.6, 0.0), (0.25, 0.4, -0.35, 0.05, 0.65, 0.05)

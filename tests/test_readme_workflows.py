@@ -81,7 +81,7 @@ def test_every_offline_readme_workflow_runs_from_simulated_data(tmp_path, monkey
               "sim/imported.csv", "fleet.csv"):
         assert (tmp_path / f).stat().st_size > 0, f
     # the tracker software's points import to the simulated table itself
-    from elastocal.identify.tables import read_static_table
+    from elastocal.formats.tables import read_static_table
 
     simulated, imported = (read_static_table(tmp_path / "sim" / f) for f in ("static.csv", "imported.csv"))
     assert list(imported.pose) == list(simulated.pose) and list(imported.marker) == list(simulated.marker)
@@ -225,7 +225,7 @@ def test_every_shop_floor_readme_workflow_runs_on_the_served_simulated_cell(tmp_
 
 def test_the_glossary_explains_every_effect_name():
     """The README's glossary says in words what each effect a diagnosis can name is (issue 17, part 3)."""
-    from elastocal.identify.effects import ALL_EFFECTS
+    from elastocal.model.effects import ALL_EFFECTS
 
     text = README.read_text(encoding="utf-8")
     glossary = text[text.index("## Glossary"):]

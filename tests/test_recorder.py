@@ -15,13 +15,13 @@ from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
 
-from elastocal.acquisition import logformat as lf
+from elastocal.formats import logformat as lf
 from elastocal.acquisition.export import load_log
 from elastocal.acquisition.logreader import LogReader, read_log
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main
 from elastocal.errors import InputError
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 
 ROBOT = bundled_robot()
 
@@ -148,9 +148,9 @@ def test_a_log_cut_at_any_byte_reads_up_to_the_cut(tmp_path):
 RECORD_SCRIPT = textwrap.dedent("""
     import sys
     import numpy as np
-    from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
+    from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
     from elastocal.acquisition.procedures import run_calibration
-    from elastocal.identify.robot import bundled_robot
+    from elastocal.model.robot import bundled_robot
     from elastocal.sims.serve import example_cell_config
     from elastocal.sims.static import random_poses
 

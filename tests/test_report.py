@@ -8,10 +8,10 @@ import re
 import pytest
 
 from elastocal.cli import main
-from elastocal.identify.diagnose import diagnose_static
-from elastocal.identify.diagnose_runs import diagnose_runs
-from elastocal.identify.report import render_report
-from elastocal.identify.robot import bundled_robot
+from elastocal.diagnose.static import diagnose_static
+from elastocal.diagnose.runs import diagnose_runs
+from elastocal.report.html import render_report
+from elastocal.model.robot import bundled_robot
 from elastocal.sims.cell import HH150_STIFFNESS, CellTruth
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 from elastocal.sims.static import simulate_static
@@ -115,7 +115,7 @@ def test_page_names_the_verdict_and_holds_the_plots_before_and_after(hidden_page
                   "Residual against q2", "Residual against time", "Residual against the load",
                   "Residual by marker", "Residual by load state"):
         assert title in page.h3
-    assert page.svgs == 7 + 2          # and the absolute section's two (identify/report_absolute.py)
+    assert page.svgs == 7 + 2          # and the absolute section's two (report/absolute.py)
     # every plot has the model and the model with the effect side by side
     assert text.count(">model: joint_stiffness</text>") == 7
     assert text.count(">model + link_compliance</text>") == 7

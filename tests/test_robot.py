@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from elastocal.errors import InputError
-from elastocal.identify.robot import bundled_robot, parse_robot
+from elastocal.model.robot import bundled_robot, parse_robot
 
 ROBOT = bundled_robot()
 

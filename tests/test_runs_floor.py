@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from elastocal.cli import main
-from elastocal.identify.diagnose_runs import diagnose_runs
-from elastocal.identify.robot import bundled_robot
+from elastocal.diagnose.runs import diagnose_runs
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.runmodel import REFERENCE_STIFFNESS, current_noise
 from elastocal.identify.runs import identify_runs
 from elastocal.sims.cell import CellTruth
@@ -131,7 +131,7 @@ def test_a_friction_law_outside_the_named_effects_ends_unexplained(complete_fric
             obj = diag.to_json()
             assert obj["verdict"] is None and obj["unexplained"]["unit"] == "N*m"
             assert obj["unexplained"]["follows"]
-            from elastocal.identify.report import render_report
+            from elastocal.report.html import render_report
 
             html = render_report(ROBOT, None, diag)
             assert "above the noise floor, and no candidate effect explains all of it" in html
@@ -274,7 +274,7 @@ def test_robot_toml_nominal_stiffness_key(tmp_path):
     """[[joint]] stiffness (docs/formats.md §1, optional): parsed, checked, written back; run data
     alone then place the sweeps with it."""
     from elastocal.errors import InputError
-    from elastocal.identify.robot import bundled_robot_path, parse_robot
+    from elastocal.model.robot import bundled_robot_path, parse_robot
 
     text = bundled_robot_path().read_text()
     k = CellTruth().stiffness

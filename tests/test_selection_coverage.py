@@ -11,8 +11,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from elastocal.identify.effects import get_effect
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.effects import get_effect
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static

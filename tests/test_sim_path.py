@@ -10,7 +10,7 @@ import pytest
 from elastocal.cli import main
 from elastocal.compensation.files import read_path
 from elastocal.compensation.ik import yang_path
-from elastocal.identify.robot import bundled_robot, load_robot
+from elastocal.model.robot import bundled_robot, load_robot
 
 
 def test_sim_path_writes_yangs_line_under_the_wrench(tmp_path, capsys):
@@ -27,7 +27,7 @@ def test_sim_path_writes_yangs_line_under_the_wrench(tmp_path, capsys):
     # the tool point runs along x at z 0.116 m (Yang Table 8)
     import pinocchio as pin
 
-    from elastocal.identify.robot import LOAD_FRAME
+    from elastocal.model.robot import LOAD_FRAME
 
     model = robot.model
     data = model.createData()
@@ -40,7 +40,7 @@ def test_sim_path_writes_yangs_line_under_the_wrench(tmp_path, capsys):
     np.testing.assert_allclose(tool[:, 0], [1.2, 1.5, 1.8], atol=1e-5)
 
 def test_sim_path_feeds_compensate(tmp_path, capsys):
-    from elastocal.identify.calibration import CalibratedParameter, Calibration, write_calibration
+    from elastocal.formats.calibration import CalibratedParameter, Calibration, write_calibration
 
     assert main(["sim", "path", "--out", str(tmp_path)]) == 0
     params = tuple(CalibratedParameter(f"k{j}", v, v * 1e-3, "N*m/rad")

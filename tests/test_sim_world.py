@@ -7,7 +7,7 @@ import pytest
 
 from elastocal.sims.config import SimConfig
 from elastocal.errors import InputError
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.sims.world import SimWorld
 
 START = (0.0, 0.2, -0.4, 0.0, 0.5, 0.0)

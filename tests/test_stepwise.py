@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from elastocal.cli import main
-from elastocal.identify.diagnose import diagnose_static
-from elastocal.identify.effects import get_effect
-from elastocal.identify.robot import bundled_robot
+from elastocal.diagnose.static import diagnose_static
+from elastocal.model.effects import get_effect
+from elastocal.model.robot import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
-from elastocal.identify.stepwise import FLOOR_RATIO, stepwise, verdict_of
+from elastocal.diagnose.stepwise import FLOOR_RATIO, stepwise, verdict_of
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
 

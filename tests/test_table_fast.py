@@ -1,6 +1,6 @@
 """The static table read in whole columns is the table the per-row reader makes (issue 15, part 1).
 
-identify/tables.py reads a static table column by column when every row passes the
+formats/tables.py reads a static table column by column when every row passes the
 checks, and falls back to the per-row reader (which names the first bad line and column)
 otherwise. Both are compared here on the same text, value for value, and the screening is
 shown to send every bad row to the per-row reader.
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from elastocal.errors import InputError
-from elastocal.identify.robot import bundled_robot
-from elastocal.identify.tables import (
+from elastocal.model.robot import bundled_robot
+from elastocal.formats.tables import (
     STATIC_COLUMNS,
     STATIC_OPTIONAL_COLUMNS,
     StaticTable,
@@ -88,7 +88,7 @@ def test_a_bad_row_is_named_by_the_per_row_reader(column, value, message):
 
 
 def _run_text(drop: tuple[str, ...] = ()) -> str:
-    from elastocal.identify.tables import format_run_table
+    from elastocal.formats.tables import format_run_table
     from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 
     table = simulate_runs(ROBOT, default_run_truth(CellTruth()), seed=2, friction=FrictionPlan(samples=40))
@@ -98,7 +98,7 @@ def _run_text(drop: tuple[str, ...] = ()) -> str:
 
 
 def _both_runs(text: str, robot=ROBOT):
-    from elastocal.identify.tables import RUN_COLUMNS, _fast_run_table, _parse_run_rows
+    from elastocal.formats.tables import RUN_COLUMNS, _fast_run_table, _parse_run_rows
 
     rows = _Rows(text, "<r>", required=("run", "direction", "load", "t", "q1", "q2", "q3", "q4", "q5", "q6"),
                  known=RUN_COLUMNS)
@@ -122,11 +122,11 @@ def test_run_table_whole_columns_equal_the_per_row_reader(drop, robot):
     ("q1", "7.5", "outside the joint limits"), ("run", "", "empty value"),
 ])
 def test_a_bad_run_row_is_named_by_the_per_row_reader(column, value, message):
-    from elastocal.identify.tables import parse_run_table
+    from elastocal.formats.tables import parse_run_table
 
     row = 7
     text = _spoil(_run_text(), row, column, value)
-    from elastocal.identify.tables import RUN_COLUMNS, _fast_run_table
+    from elastocal.formats.tables import RUN_COLUMNS, _fast_run_table
 
     rows = _Rows(text, "<r>", required=("run", "direction", "load", "t"), known=RUN_COLUMNS)
     assert _fast_run_table(rows, ROBOT) is None

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from elastocal.errors import InputError
-from elastocal.identify.robot import bundled_robot
-from elastocal.identify.tables import (
+from elastocal.model.robot import bundled_robot
+from elastocal.formats.tables import (
     format_run_table,
     format_static_table,
     parse_run_table,

@@ -11,7 +11,7 @@ import pytest
 from elastocal.acquisition.logwriter import write_log_from_tables
 from elastocal.cli import main
 from elastocal.identify.absolute import TRACKER_PRIOR_STD_M
-from elastocal.identify.robot import bundled_robot
+from elastocal.model.robot import bundled_robot
 from elastocal.sims.cell import DEFAULT_TRACKER, CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
 
@@ -33,7 +33,7 @@ def cell_data(tmp_path_factory):
     truth = CellTruth().with_hidden("kinematic_errors")
     table = simulate_static(ROBOT, truth, seed=21)
     (d / "robot.toml").write_text(ROBOT.to_toml())
-    from elastocal.identify.tables import write_static_table
+    from elastocal.formats.tables import write_static_table
 
     write_static_table(d / "static.csv", table)
     # a tape measure's placement: 4-6 cm off the true one
@@ -119,7 +119,7 @@ def test_diagnose_and_validate_take_the_prior(cell_data, capsys, tmp_path):
     assert main(["identify", str(d / "log.mcap"), "--model", FULL, "--out", str(cal)]) == 0
     other = simulate_static(ROBOT, CellTruth().with_hidden("kinematic_errors"), seed=22,
                             plan=StaticPlan(n_poses=8))
-    from elastocal.identify.tables import write_static_table
+    from elastocal.formats.tables import write_static_table
 
     write_static_table(tmp_path / "other.csv", other)
     argv = ["validate", "--robot", str(d / "robot.toml"), "--calibration", str(cal), "--static",

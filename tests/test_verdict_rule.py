@@ -5,10 +5,10 @@ from dataclasses import replace
 
 import pytest
 
-from elastocal.identify.diagnose import diagnose_static
-from elastocal.identify.diagnose_runs import diagnose_runs
-from elastocal.identify.verdict import VERDICT_DELTA_BIC, VERDICT_P
-from elastocal.identify.robot import bundled_robot
+from elastocal.diagnose.static import diagnose_static
+from elastocal.diagnose.runs import diagnose_runs
+from elastocal.diagnose.verdict import VERDICT_DELTA_BIC, VERDICT_P
+from elastocal.model.robot import bundled_robot
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, simulate_static

@@ -49,7 +49,7 @@ def colour_pixels(png: bytes, rgb, tol=40) -> int:
 def wait_for_scene(page, timeout_s=60.0):
     """The viser client draws into a canvas once the scene arrives: wait until the canvas
     shows the robot (pixels of a pose colour), then a little more for the rest."""
-    from elastocal.identify.view import ratio_colours
+    from elastocal.report.view import ratio_colours
 
     colours = [tuple(int(v) for v in c) for c in ratio_colours(np.array([1.0, 2.0, 5.0]))]
     end = time.monotonic() + timeout_s
@@ -64,7 +64,7 @@ def wait_for_scene(page, timeout_s=60.0):
 
 def test_view_in_headless_chromium_shows_the_robot_the_errors_and_the_toggle(dataset, tmp_path):
     from elastocal.commands.view import ERROR_RGB, ViewPage, build_view
-    from elastocal.identify.view import ratio_colours
+    from elastocal.report.view import ratio_colours
 
     view = build_view(view_args("--robot", str(dataset / "robot.toml"), "--static", str(dataset / "static.csv")))
     assert [m.title for m in view.models] == ["model: joint_stiffness", "model + link_compliance"]
@@ -121,7 +121,7 @@ def test_nominal_and_calibrated_geometry_toggle(tmp_path):
     """A calibration with kinematic_errors: the page draws the robot with the nominal or the
     calibrated geometry (difference magnified), and the calibration's prediction is a model."""
     from elastocal.commands.view import ViewPage, build_view
-    from elastocal.identify.view import geometry_skeletons
+    from elastocal.report.view import geometry_skeletons
 
     d = tmp_path / "abs"
     assert main(["sim", "static", "--hidden", "kinematic_errors", "--seed", "2", "--poses", "8", "--out", str(d)]) == 0

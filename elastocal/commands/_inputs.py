@@ -7,8 +7,8 @@ import pathlib
 from dataclasses import dataclass
 
 from elastocal.errors import InputError
-from elastocal.identify.robot import Robot, load_robot
-from elastocal.identify.tables import RunTable, StaticTable, read_run_table, read_static_table
+from elastocal.model.robot import Robot, load_robot
+from elastocal.formats.tables import RunTable, StaticTable, read_run_table, read_static_table
 
 
 @dataclass(frozen=True)

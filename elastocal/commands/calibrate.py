@@ -30,7 +30,7 @@ def resolve_plan(plan_arg: str | None, config, resume: str | None):
     """The plan to run: ``--plan``, else the one recorded in the ``--resume``
     log, else the cell's (``[cell] plan``)."""
     from elastocal.acquisition.logreader import read_log
-    from elastocal.acquisition.plan import load_plan, parse_plan
+    from elastocal.formats.plan import load_plan, parse_plan
 
     if plan_arg:
         return load_plan(plan_arg)
@@ -46,7 +46,7 @@ def resolve_plan(plan_arg: str | None, config, resume: str | None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from elastocal.acquisition.plan import PROCEDURES
+    from elastocal.formats.plan import PROCEDURES
     from elastocal.acquisition.procedures import run_calibration
     from elastocal.acquisition.ui import AutoUI, TerminalUI
     from elastocal.drivers.config import load_cell_config

@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _calibration(args: argparse.Namespace, db: pathlib.Path | None):
     """(calibration, its id in the history or None, the plan text stored with it)."""
     from elastocal.acquisition.history import History
-    from elastocal.identify.calibration import read_calibration
+    from elastocal.formats.calibration import read_calibration
 
     if args.calibration:
         cal = read_calibration(args.calibration)
@@ -91,7 +91,7 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
                    now_ns: int):
     """Run the plan's [check] on the cell; returns the log and the labels of the steps skipped."""
     from elastocal.acquisition.history import iso_utc
-    from elastocal.acquisition.plan import load_plan, parse_plan
+    from elastocal.formats.plan import load_plan, parse_plan
     from elastocal.acquisition.procedures import run_calibration
     from elastocal.acquisition.ui import AutoUI, TerminalUI
 
@@ -133,9 +133,9 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.acquisition.history import History
     from elastocal.commands.history import clean
     from elastocal.drivers.config import load_cell_config
-    from elastocal.identify.calibration import file_sha256
-    from elastocal.identify.check import check_calibration
-    from elastocal.identify.tables import read_run_table, read_static_table
+    from elastocal.formats.calibration import file_sha256
+    from elastocal.diagnose.check import check_calibration
+    from elastocal.formats.tables import read_run_table, read_static_table
 
     now_ns = time.time_ns()
     if args.out:  # the folder and the name; an existing log is refused by the procedure (as calibrate's)

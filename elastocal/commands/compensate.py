@@ -73,9 +73,9 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.compensation.model import CompensationModel, NotConverged, unmodelled_effects
     from elastocal.commands._outputs import note
     from elastocal.compensation.trajectory import compensate_path, predicted_residual
-    from elastocal.identify.calibration import read_calibration
+    from elastocal.formats.calibration import read_calibration
     from elastocal.commands._outputs import Outputs
-    from elastocal.identify.robot import load_robot
+    from elastocal.model.robot import load_robot
 
     outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot"), (args.calibration, "--calibration"),
                                                 (args.path, "--path")])

@@ -60,7 +60,7 @@ def _um(x: float | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.acquisition.export import load_log
-    from elastocal.acquisition.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
+    from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
     from elastocal.acquisition.procedures import run_calibration
     from elastocal.compensation.files import write_compensated_csv, write_krl, write_rapid
     from elastocal.compensation.ik import yang_path
@@ -68,10 +68,10 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.compensation.trajectory import compensate_path
     from elastocal.compensation.validate import YANG_WRENCH, validate_on_sim
     from elastocal.errors import InputError
-    from elastocal.identify.calibration import calibration_from_fit, write_calibration
+    from elastocal.formats.calibration import calibration_from_fit, write_calibration
     from elastocal.identify.absolute import identify_absolute
-    from elastocal.identify.diagnose import diagnose_static
-    from elastocal.identify.report import render_report
+    from elastocal.diagnose.static import diagnose_static
+    from elastocal.report.html import render_report
     from elastocal.identify.static import identify_static
     from elastocal.sims.cell import HIDDEN_EFFECTS, CellTruth, SimCell
     from elastocal.sims.serve import example_cell_config

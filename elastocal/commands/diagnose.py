@@ -14,8 +14,8 @@ from elastocal.commands._inputs import (
     prior_line,
     tracker_prior,
 )
-from elastocal.identify.effects import parse_model
-from elastocal.identify.pipeline import diagnose_data, diagnosis_json
+from elastocal.model.effects import parse_model
+from elastocal.diagnose.pipeline import diagnose_data, diagnosis_json
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -129,7 +129,7 @@ def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str
 
 
 def format_absolute(absolute) -> list[str]:
-    """The absolute comparison beside the deflection one (identify/absolute_diagnose.py)."""
+    """The absolute comparison beside the deflection one (diagnose/absolute.py)."""
     if absolute is None:
         return []
     from elastocal.commands._format import absolute_line

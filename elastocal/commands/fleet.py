@@ -162,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.fleet.plant import record_results
     from elastocal.fleet.pool import INSTALL_HINT, resolve_pool, run_tasks
     from elastocal.fleet.table import table_format, write_table
-    from elastocal.identify.effects import parse_model
+    from elastocal.model.effects import parse_model
 
     if not args.out:
         raise InputError(f"fleet {args.action} needs --out results.csv or results.parquet", source="--out")

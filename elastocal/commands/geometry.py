@@ -37,7 +37,7 @@ def geometry_json(geo) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.identify.geometry import geometry_from_run_table
-    from elastocal.identify.tables import read_run_table
+    from elastocal.formats.tables import read_run_table
 
     if not 1 <= args.joint <= 6:
         raise InputError("must be a joint number 1..6", source="--joint")

@@ -57,7 +57,7 @@ def history_path(cell_path: str | None, db: str | None) -> pathlib.Path | None:
 
 def _add(args: argparse.Namespace, db: pathlib.Path) -> int:
     from elastocal.acquisition.history import History
-    from elastocal.identify.calibration import file_sha256, read_calibration
+    from elastocal.formats.calibration import file_sha256, read_calibration
 
     if not args.calibration:
         raise InputError("history add needs --calibration cal.json", source="--calibration")
@@ -89,7 +89,7 @@ def _add(args: argparse.Namespace, db: pathlib.Path) -> int:
         if logs:
             log_sha, log_path = logs[0].sha256, logs[0].path
     if args.plan:
-        from elastocal.acquisition.plan import load_plan
+        from elastocal.formats.plan import load_plan
 
         plan_text = load_plan(args.plan).text
     with History(db) as h:

@@ -17,9 +17,9 @@ from elastocal.commands._inputs import (
 from elastocal.commands._outputs import Outputs
 from elastocal.commands._format import format_fit
 from elastocal.errors import InputError
-from elastocal.identify.calibration import calibration_from_fit, write_calibration
-from elastocal.identify.effects import parse_model
-from elastocal.identify.pipeline import identify_data
+from elastocal.formats.calibration import calibration_from_fit, write_calibration
+from elastocal.model.effects import parse_model
+from elastocal.diagnose.pipeline import identify_data
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *,
                     exclude_outliers: bool = False, tracker_prior=None) -> tuple[dict, object | None]:
     """The identify --json object for the inputs, and the static fit if any
-    (:func:`elastocal.identify.pipeline.identify_data`)."""
+    (:func:`elastocal.diagnose.pipeline.identify_data`)."""
     return identify_data(inputs.robot, inputs.static, inputs.runs, model, torque, form,
                          exclude_outliers=exclude_outliers, tracker_prior=tracker_prior)
 

@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         read_joint_csv
     from elastocal.commands._outputs import Outputs, note
     from elastocal.errors import InputError
-    from elastocal.identify.tables import format_static_table
+    from elastocal.formats.tables import format_static_table
 
     for flag, value in (("--window", args.window), ("--tolerance", args.tolerance)):
         if not value > 0 or value != value or value == float("inf"):
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         points += read_points(path, layout=args.layout, unit=args.unit, columns=columns)
     robot = None
     if args.robot is not None:
-        from elastocal.identify.robot import load_robot
+        from elastocal.model.robot import load_robot
 
         robot = load_robot(args.robot)
     if args.log is not None:

@@ -1,8 +1,8 @@
 """`elastocal plan`: choose the calibration poses and loads (docs/plan.md).
 
 Minimises Klimchik's industry measure at the user's test pose and process load
-(identify/design.py), writes plan.toml in the procedures' format
-(acquisition/plan.py, docs/plan-format.md) with a short [check], prints the
+(design/search.py), writes plan.toml in the procedures' format
+(formats/plan.py, docs/plan-format.md) with a short [check], prints the
 predicted positioning accuracy, and draws Yang's map of where the first-order
 model is good enough.
 """
@@ -100,12 +100,12 @@ def _finite(x: float) -> float | None:
 
 
 def _prior(args: argparse.Namespace) -> tuple[tuple[float, ...], str]:
-    from elastocal.identify.design import DEFAULT_PRIOR_STIFFNESS
+    from elastocal.design.search import DEFAULT_PRIOR_STIFFNESS
 
     if args.calibration and args.stiffness:
         raise InputError("give --calibration or --stiffness, not both", source="--stiffness")
     if args.calibration:
-        from elastocal.identify.calibration import read_calibration
+        from elastocal.formats.calibration import read_calibration
 
         cal = read_calibration(args.calibration)
         k = tuple(cal.stiffness())
@@ -121,7 +121,7 @@ def _prior(args: argparse.Namespace) -> tuple[tuple[float, ...], str]:
 
 
 def _friction(args: argparse.Namespace, robot=None):
-    from elastocal.acquisition.plan import FrictionSpec
+    from elastocal.formats.plan import FrictionSpec
 
     if not args.friction_path:
         return ()
@@ -146,9 +146,9 @@ def _friction(args: argparse.Namespace, robot=None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from elastocal.acquisition.planning import plan_calibration
-    from elastocal.identify import design as dz
-    from elastocal.identify.robot import load_robot
+    from elastocal.design.planning import plan_calibration
+    from elastocal.design import search as dz
+    from elastocal.model.robot import load_robot
     from elastocal.sims import first_order_map as fom
 
     from elastocal.commands._outputs import Outputs

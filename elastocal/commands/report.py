@@ -9,7 +9,7 @@ from elastocal.commands._inputs import add_input_arguments, input_paths, load_in
 from elastocal.commands._outputs import Outputs
 from elastocal.commands.diagnose import diagnose_inputs, identify_command
 from elastocal.errors import InputError
-from elastocal.identify.effects import get_effect, parse_model
+from elastocal.model.effects import get_effect, parse_model
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"{args.add} is already in the model", source="--add")
     inputs = load_inputs(args)
     static, runs = diagnose_inputs(inputs, model, args.torque, args.form)
-    from elastocal.identify.report import render_report
+    from elastocal.report.html import render_report
 
     add = args.add
     if add is not None and static is not None and add not in {c.effect for c in static.candidates}:

@@ -28,8 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from elastocal.commands._outputs import Outputs
     from elastocal.identify.accuracy import calibrated_robot
-    from elastocal.identify.calibration import read_calibration
-    from elastocal.identify.robot import load_robot, parse_robot
+    from elastocal.formats.calibration import read_calibration
+    from elastocal.model.robot import load_robot, parse_robot
 
     outputs = Outputs(force=args.force, inputs=[(args.calibration, "--calibration"), (args.robot, "--robot")])
     outputs.add(args.out, "--out")

@@ -150,7 +150,7 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _robot(args):
-    from elastocal.identify.robot import bundled_robot, load_robot
+    from elastocal.model.robot import bundled_robot, load_robot
 
     return load_robot(args.robot) if args.robot else bundled_robot()
 
@@ -163,7 +163,7 @@ def _path(args: argparse.Namespace) -> int:
     from elastocal.commands._outputs import Outputs, check_folder
     from elastocal.compensation.files import write_path
     from elastocal.compensation.ik import PlannedPath, yang_path
-    from elastocal.identify.robot import bundled_robot
+    from elastocal.model.robot import bundled_robot
 
     wrench = np.array(numbers(args.wrench, (3, 6), "--wrench") + (0.0,) * 3)[:6]
     if not (np.isfinite(args.step) and 0.0005 <= args.step <= 0.1):
@@ -231,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
 
     written = {"robot": str(out / "robot.toml")}
     if static:
-        from elastocal.identify.tables import write_static_table
+        from elastocal.formats.tables import write_static_table
         import numpy as np
 
         from elastocal.sims.static import StaticPlan, add_outliers, simulate_static
@@ -246,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(str(exc), source="--outliers") from None
         params = truth.parameters(robot)
     else:
-        from elastocal.identify.tables import read_run_table
+        from elastocal.formats.tables import read_run_table
         from elastocal.sims.runs import described_robot, hide_in_runs, simulate_runs, write_runs_csv
 
         truth = hide_in_runs(CellTruth(), args.hidden)

@@ -32,9 +32,9 @@ def _row(name: str, stats) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.identify.accuracy import validate
-    from elastocal.identify.calibration import read_calibration
-    from elastocal.identify.robot import load_robot
-    from elastocal.identify.tables import read_static_table
+    from elastocal.formats.calibration import read_calibration
+    from elastocal.model.robot import load_robot
+    from elastocal.formats.tables import read_static_table
 
     robot = load_robot(args.robot)
     calibration = read_calibration(args.calibration)

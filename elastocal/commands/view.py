@@ -44,10 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def build_view(args: argparse.Namespace):
-    """The :class:`~elastocal.identify.view.CellView` of the inputs (no viser needed)."""
+    """The :class:`~elastocal.report.view.CellView` of the inputs (no viser needed)."""
     from elastocal.commands.diagnose import diagnose_inputs
-    from elastocal.identify.effects import parse_model
-    from elastocal.identify.view import cell_view
+    from elastocal.model.effects import parse_model
+    from elastocal.report.view import cell_view
 
     inputs = load_inputs(args)
     if inputs.static is None:
@@ -57,8 +57,8 @@ def build_view(args: argparse.Namespace):
     static, _ = diagnose_inputs(inputs, model, args.torque, args.form)
     calibrated = robot_calibrated = None
     if args.calibration:
-        from elastocal.identify.calibration import read_calibration
-        from elastocal.identify.check import check_static
+        from elastocal.formats.calibration import read_calibration
+        from elastocal.diagnose.check import check_static
 
         cal = read_calibration(args.calibration)
         result = check_static(inputs.robot, cal, inputs.static, form=args.form)
@@ -158,7 +158,7 @@ class ViewPage:
 
     # ---------------------------------------------------------------- scene
     def _draw(self) -> None:
-        from elastocal.identify.view import arrows, geometry_skeletons, pose_summary, ratio_colours
+        from elastocal.report.view import arrows, geometry_skeletons, pose_summary, ratio_colours
 
         with self._lock:
             view, scene = self.view, self.server.scene

@@ -1,0 +1,1 @@
+"""elastocal.design: experiment design (poses and loads for precision, the plan pipeline)."""

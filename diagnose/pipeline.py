@@ -1,0 +1,116 @@
+"""What ``elastocal identify`` and ``elastocal diagnose`` compute from loaded data.
+
+A robot and its tables in, the command's ``--json`` object (or the diagnoses)
+out. The commands and :mod:`elastocal.fleet` call these same functions, so a
+log analysed alone and in a fleet gives the same numbers.
+"""
+
+from __future__ import annotations
+
+from elastocal.errors import InputError
+from elastocal.model.effects import ALL_EFFECTS, get_effect
+
+
+def absolute_or_static(robot, table, model: tuple[str, ...], torque: str, form: str, *, tracker_prior=None):
+    """The absolute fit (identify/absolute.py) when the table holds absolute
+    positions or the model has absolute effects, else the deflection fit."""
+    from elastocal.identify.absolute import ABSOLUTE_EFFECTS, has_absolute_positions, identify_absolute
+    from elastocal.identify.static import build_dataset, identify_static
+
+    ds = build_dataset(table)
+    if has_absolute_positions(robot, ds) or any(m in ABSOLUTE_EFFECTS for m in model):
+        return identify_absolute(robot, ds, model=model, torque=torque, form=form, tracker_prior=tracker_prior)
+    return identify_static(robot, ds, model=model, torque=torque, form=form)
+
+
+def identify_data(robot, static, runs, model: tuple[str, ...], torque: str, form: str, *,
+                  exclude_outliers: bool = False, tracker_prior=None) -> tuple[dict, object | None]:
+    """The ``identify --json`` object for the tables, and the static fit if any.
+    ``outliers`` lists the static readings far off their repeats (identify/outliers.py);
+    with ``exclude_outliers`` the fit leaves them out."""
+    from elastocal.identify.outliers import without_outliers
+
+    if static is None:
+        from elastocal.identify import runs as run_ident  # run data: compensator, friction
+
+        result = run_ident.identify_runs(robot, runs, model=model)
+        return result.to_json(), None
+    from elastocal.identify.runs import RUN_EFFECTS
+
+    run_model = tuple(m for m in model if m in RUN_EFFECTS)
+    static_model = tuple(m for m in model if m not in RUN_EFFECTS or runs is None)
+    table, excluded = without_outliers(static) if exclude_outliers else (static, ())
+    fit = absolute_or_static(robot, table, static_model, torque, form, tracker_prior=tracker_prior)
+    obj = fit.to_json()
+    obj["model"] = list(model)
+    obj["outliers"] = [o.to_json() for o in (*excluded, *fit.dataset.outliers)]
+    if runs is not None:
+        from elastocal.identify import runs as run_ident
+
+        if run_model:    # the sweeps placed with the static fit's stiffness
+            k = [p.value for p in fit.parameters if p.name in {f"k{j}" for j in range(1, 7)}]
+            result = run_ident.identify_runs(robot, runs, model=("joint_stiffness", *run_model),
+                                             stiffness=k if len(k) == 6 else None)
+            rj = result.to_json()
+            obj["parameters"].update(rj["parameters"])
+            obj["torque_residual"] = rj["residual"]
+            obj["torque_noise_floor"] = rj["noise_floor"]
+    return obj, fit
+
+
+def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: str, form: str, *,
+                  log: str | None = None, exclude_outliers: bool = False, tracker_prior=None):
+    """(static Diagnosis or None, run Diagnosis or None) for the tables; ``log``
+    names the log they came from, for the error when there is nothing to diagnose;
+    ``tracker_prior``: where the tracker stands in base coordinates [m], a prior on
+    the registration of the absolute comparison."""
+    from elastocal.diagnose.static import diagnose_static
+
+    static_diag = None
+    runs_diag = None
+    if static is not None:
+        static_model = model
+        if runs is not None:  # run-data effects of the model are the runs' business
+            static_model = tuple(m for m in model if "static" in get_effect(m).seen_in)
+        pool = tuple(e for e in ALL_EFFECTS if e not in model)
+        static_diag = diagnose_static(robot, static, model=static_model, torque=torque, form=form, effects=pool,
+                                      exclude_outliers=exclude_outliers, tracker_prior=tracker_prior)
+    if runs is not None:
+        from elastocal.diagnose.runs import diagnose_runs
+
+        stiffness = None
+        if static_diag is not None:
+            stiffness = [p.value for p in static_diag.fit.parameters if p.name.startswith("k")]
+            stiffness = stiffness if len(stiffness) == 6 else None
+        runs_diag = diagnose_runs(robot, runs, model=model, stiffness=stiffness)
+    if static_diag is None and runs_diag is None:
+        if log is not None:
+            raise InputError("nothing to diagnose: the log holds neither a static experiment nor runs", source=log)
+        raise InputError("nothing to diagnose: give a static table and/or runs", argument="static")
+    return static_diag, runs_diag
+
+
+def diagnosis_json(static, runs) -> dict:
+    """The ``diagnose --json`` object (docs/cli.md): the static diagnosis when there is
+    one, the run diagnosis alone otherwise. With both, the run diagnosis is under
+    ``runs`` too, and ``candidates`` and ``verdict`` cover both data: every
+    candidate says which data tested it (``data``: static or runs), significant
+    ones first by delta_bic, and the verdict is the first when it is its own
+    data's verdict — so null still means "no missing effect found" in either."""
+    if static is None:
+        obj = runs.to_json()
+        for c in obj["candidates"]:
+            c["data"] = "runs"
+        return obj
+    obj = static.to_json()
+    for c in obj["candidates"]:
+        c["data"] = "static"
+    if runs is None:
+        return obj
+    obj["runs"] = runs.to_json()
+    tagged = [*obj["candidates"], *({**c, "data": "runs"} for c in obj["runs"]["candidates"])]
+    tagged.sort(key=lambda c: (not c["significant"], c["delta_bic"]))
+    obj["candidates"] = tagged
+    verdicts = {"static": static.verdict, "runs": runs.verdict}
+    obj["verdict"] = tagged[0]["effect"] if tagged and verdicts[tagged[0]["data"]] == tagged[0]["effect"] else None
+    return obj

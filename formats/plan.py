@@ -1,0 +1,478 @@
+"""The calibration plan (``plan.toml``, docs/plan-format.md), resolved once into
+frozen, validated dataclasses.
+
+A plan names poses, load states, markers, repeats and speeds for the
+procedures: ``static`` (before/after load), ``friction`` (UV/VU runs),
+``sweep`` (joint-2 sweep for the compensator) and ``check`` (a short
+recalibration check). Every error names the file and the key.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import pathlib
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+from elastocal.errors import InputError
+from elastocal.model.robot import Robot
+from elastocal.formats.textfiles import read_text_file
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
+
+PROCEDURES = ("static", "friction", "sweep", "check")
+UNLOADED = "0"
+
+
+@dataclass(frozen=True)
+class SettleSpec:
+    """When the cell counts as at rest: every joint slower than ``speed_rad_s``
+    and the standard deviation of every coordinate of the watched marker below
+    ``spread_m`` over the last ``window_s``; give up (DeviceTimeout) after
+    ``timeout_s``."""
+
+    speed_rad_s: float = 2e-3
+    spread_m: float = 20e-6
+    window_s: float = 0.3
+    timeout_s: float = 60.0
+
+
+@dataclass(frozen=True)
+class LoadSpec:
+    """A load state: a weight hung on the load point (``mass_kg``) or a measured
+    force and moment (``force_n``, ``moment_nm``, base axes, on the load point)."""
+
+    id: str
+    mass_kg: float | None = None
+    force_n: tuple[float, float, float] | None = None
+    moment_nm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    description: str = ""
+
+    def wrench(self, gravity: Sequence[float]) -> tuple[float, ...]:
+        """Nominal wrench (fx, fy, fz, mx, my, mz) on the load point, base axes."""
+        if self.mass_kg is not None:
+            force = tuple(self.mass_kg * float(g) for g in gravity)
+        else:
+            force = self.force_n
+        return tuple(float(v) for v in (*force, *self.moment_nm))
+
+    def instruction(self) -> str:
+        """What the operator does to put the cell in this load state."""
+        if self.description:
+            what = self.description
+        elif self.mass_kg is not None:
+            what = f"{self.mass_kg:g} kg"
+        else:
+            fx, fy, fz = self.force_n
+            what = f"force ({fx:g}, {fy:g}, {fz:g}) N"
+        return f"hang load {self.id}, {what}, on the load point"
+
+
+@dataclass(frozen=True)
+class PoseSpec:
+    id: str
+    q: tuple[float, ...]
+    loads: tuple[str, ...]   # loaded states measured at this pose, in order
+
+
+@dataclass(frozen=True)
+class StaticSpec:
+    poses: tuple[PoseSpec, ...]
+    markers: tuple[str, ...]
+    repeats: int = 3
+    reading_s: float = 0.2
+    speed_rad_s: float = 0.3
+
+
+@dataclass(frozen=True)
+class FrictionSpec:
+    """One UV/VU path: from ``start`` to ``end`` (UV) and back (VU), at each
+    speed (the fastest joint's speed) under each load, ``repeats`` times."""
+
+    id: str
+    start: tuple[float, ...]
+    end: tuple[float, ...]
+    speeds_rad_s: tuple[float, ...]
+    loads: tuple[str, ...] = (UNLOADED,)
+    repeats: int = 1
+    marker: str | None = None
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """Joint 2 from ``q2_from`` to ``q2_to`` (+) and back (-), the other joints at ``q``."""
+
+    q: tuple[float, ...]
+    q2_from: float
+    q2_to: float
+    speed_rad_s: float
+    repeats: int = 1
+    load: str = UNLOADED
+    marker: str | None = None
+
+
+@dataclass(frozen=True)
+class CheckSpec:
+    """A short recalibration check: a few static poses under one load, one UV/VU pair."""
+
+    poses: tuple[str, ...]
+    load: str
+    friction: str | None = None
+
+
+@dataclass(frozen=True)
+class Plan:
+    name: str
+    source: str
+    text: str
+    settle: SettleSpec
+    loads: tuple[LoadSpec, ...]
+    static: StaticSpec | None = None
+    friction: tuple[FrictionSpec, ...] = ()
+    sweep: SweepSpec | None = None
+    check: CheckSpec | None = None
+    procedures: tuple[str, ...] = field(default=())
+
+    @property
+    def sha256(self) -> str:
+        return hashlib.sha256(self.text.encode()).hexdigest()
+
+    def load(self, load_id: str) -> LoadSpec | None:
+        """The load state ``load_id`` (None for the unloaded state ``"0"``)."""
+        if load_id == UNLOADED:
+            return None
+        for spec in self.loads:
+            if spec.id == load_id:
+                return spec
+        raise KeyError(load_id)
+
+    def pose(self, pose_id: str) -> PoseSpec:
+        for p in self.static.poses if self.static else ():
+            if p.id == pose_id:
+                return p
+        raise KeyError(pose_id)
+
+    def validate_for(self, robot: Robot) -> None:
+        """Check the plan against a robot: joint limits and marker names."""
+        def check_q(q: Sequence[float], where: str) -> None:
+            for j, (v, lo, hi) in enumerate(zip(q, robot.lower, robot.upper), start=1):
+                if not lo <= v <= hi:
+                    raise InputError(f"q{j} = {v} rad is outside the joint limits [{lo:.4g}, {hi:.4g}] of "
+                                     f"{robot.name}", source=self.source, column=where)
+
+        def check_marker(m: str | None, where: str) -> None:
+            if m is not None and m not in robot.marker_names:
+                raise InputError(f"unknown marker {m!r}; the robot has {', '.join(robot.marker_names)}",
+                                 source=self.source, column=where)
+
+        if self.static:
+            for p in self.static.poses:
+                check_q(p.q, f"static.pose[{p.id}].q")
+            for m in self.static.markers:
+                check_marker(m, "static.markers")
+        for f in self.friction:
+            check_q(f.start, f"friction[{f.id}].from")
+            check_q(f.end, f"friction[{f.id}].to")
+            check_marker(f.marker, f"friction[{f.id}].marker")
+        if self.sweep:
+            s = self.sweep
+            for q2, key in ((s.q2_from, "q2_from"), (s.q2_to, "q2_to")):
+                q = list(s.q)
+                q[1] = q2
+                check_q(q, f"sweep.{key}")
+            check_marker(s.marker, "sweep.marker")
+
+
+# ------------------------------------------------------------------ parsing
+class _Table:
+    """A TOML table with typed getters whose errors name file and key."""
+
+    def __init__(self, data: Any, source: str, where: str) -> None:
+        if not isinstance(data, Mapping):
+            raise InputError("expected a table", source=source, column=where)
+        self.data = data
+        self.source = source
+        self.where = where
+
+    def key(self, name: str) -> str:
+        return f"{self.where}.{name}" if self.where else name
+
+    def fail(self, name: str, message: str) -> InputError:
+        return InputError(message, source=self.source, column=self.key(name))
+
+    def check_keys(self, allowed: Sequence[str]) -> None:
+        for k in self.data:
+            if k not in allowed:
+                raise self.fail(k, f"unknown key; expected one of {', '.join(allowed)}")
+
+    def number(self, name: str, default: float | None = None, *, positive: bool = False) -> float:
+        if name not in self.data:
+            if default is None:
+                raise self.fail(name, "missing required key")
+            return default
+        v = self.data[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise self.fail(name, f"expected a finite number, got {v!r}")
+        if positive and v <= 0:
+            raise self.fail(name, f"must be > 0, got {v!r}")
+        return float(v)
+
+    def integer(self, name: str, default: int, *, minimum: int = 1) -> int:
+        v = self.data.get(name, default)
+        if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+            raise self.fail(name, f"expected an integer >= {minimum}, got {v!r}")
+        return v
+
+    def text(self, name: str, default: str | None = None) -> str:
+        if name not in self.data:
+            if default is None:
+                raise self.fail(name, "missing required key")
+            return default
+        v = self.data[name]
+        if not isinstance(v, str) or not v.strip():
+            raise self.fail(name, f"expected a non-empty string, got {v!r}")
+        return v.strip()
+
+    def optional_text(self, name: str) -> str | None:
+        return self.text(name) if name in self.data else None
+
+    def vector(self, name: str, n: int, *, required: bool = True) -> tuple[float, ...] | None:
+        if name not in self.data:
+            if required:
+                raise self.fail(name, "missing required key")
+            return None
+        v = self.data[name]
+        if (not isinstance(v, list) or len(v) != n
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+            raise self.fail(name, f"expected a list of {n} finite numbers, got {v!r}")
+        return tuple(float(x) for x in v)
+
+    def joint_vector(self, name: str) -> tuple[float, ...]:
+        q = self.vector(name, 6)
+        for j, v in enumerate(q, start=1):
+            if abs(v) > 2 * math.pi:
+                raise self.fail(name, f"q{j} = {v} is larger than 2*pi; degrees? angles are radians")
+        return q
+
+    def strings(self, name: str, default: tuple[str, ...] | None = None) -> tuple[str, ...]:
+        if name not in self.data:
+            if default is None:
+                raise self.fail(name, "missing required key")
+            return default
+        v = self.data[name]
+        if not isinstance(v, list) or not all(isinstance(x, str) and x.strip() for x in v):
+            raise self.fail(name, f"expected a list of names, got {v!r}")
+        out = tuple(x.strip() for x in v)
+        if len(set(out)) != len(out):
+            raise self.fail(name, "names repeat")
+        return out
+
+    def tables(self, name: str) -> list["_Table"]:
+        v = self.data.get(name, [])
+        if not isinstance(v, list):
+            raise self.fail(name, "expected an array of tables ([[...]])")
+        return [_Table(t, self.source, f"{self.key(name)}[{i}]") for i, t in enumerate(v, start=1)]
+
+    def table(self, name: str) -> "_Table | None":
+        if name not in self.data:
+            return None
+        return _Table(self.data[name], self.source, self.key(name))
+
+
+def parse_plan(text: str, *, source: str = "<plan.toml>") -> Plan:
+    """Parse plan.toml text; errors name the file and the key."""
+    try:
+        doc = tomllib.loads(text.removeprefix("\ufeff"))
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"not valid TOML: {exc}", source=source) from None
+    top = _Table(doc, source, "")
+    top.check_keys(("name", "procedures", "settle", "load", "static", "friction", "sweep", "check"))
+    name = top.text("name", "calibration")
+
+    settle = SettleSpec()
+    st = top.table("settle")
+    if st is not None:
+        st.check_keys(("speed_rad_s", "spread_m", "window_s", "timeout_s"))
+        settle = SettleSpec(speed_rad_s=st.number("speed_rad_s", settle.speed_rad_s, positive=True),
+                            spread_m=st.number("spread_m", settle.spread_m, positive=True),
+                            window_s=st.number("window_s", settle.window_s, positive=True),
+                            timeout_s=st.number("timeout_s", settle.timeout_s, positive=True))
+
+    loads = []
+    for t in top.tables("load"):
+        t.check_keys(("id", "mass_kg", "force_n", "moment_nm", "description"))
+        lid = t.text("id")
+        if lid == UNLOADED:
+            raise t.fail("id", f"{UNLOADED!r} is the unloaded state; give loaded states other ids")
+        has_mass, has_force = "mass_kg" in t.data, "force_n" in t.data
+        if has_mass == has_force:
+            raise t.fail("mass_kg", "give either mass_kg (a hung weight) or force_n (a measured force)")
+        loads.append(LoadSpec(id=lid, mass_kg=t.number("mass_kg", positive=True) if has_mass else None,
+                              force_n=t.vector("force_n", 3) if has_force else None,
+                              moment_nm=t.vector("moment_nm", 3, required=False) or (0.0, 0.0, 0.0),
+                              description=str(t.data.get("description", "")).strip()))
+    load_ids = [spec.id for spec in loads]
+    if len(set(load_ids)) != len(load_ids):
+        raise InputError("load ids repeat", source=source, column="load")
+
+    def check_load(tbl: _Table, key: str, lid: str, *, allow_unloaded: bool) -> None:
+        if lid == UNLOADED and allow_unloaded:
+            return
+        if lid not in load_ids:
+            raise tbl.fail(key, f"unknown load {lid!r}; the plan has {', '.join(load_ids) or 'no [[load]]'}")
+
+    static = None
+    s = top.table("static")
+    if s is not None:
+        s.check_keys(("markers", "repeats", "reading_s", "speed_rad_s", "pose"))
+        poses = []
+        for p in s.tables("pose"):
+            p.check_keys(("id", "q", "loads"))
+            pl = p.strings("loads", tuple(load_ids))
+            for lid in pl:
+                check_load(p, "loads", lid, allow_unloaded=False)
+            if not pl:
+                raise p.fail("loads", "a pose needs at least one loaded state")
+            poses.append(PoseSpec(id=p.text("id"), q=p.joint_vector("q"), loads=pl))
+        if not poses:
+            raise s.fail("pose", "the static procedure needs at least one [[static.pose]]")
+        ids = [p.id for p in poses]
+        if len(set(ids)) != len(ids):
+            raise s.fail("pose", "pose ids repeat")
+        static = StaticSpec(poses=tuple(poses), markers=s.strings("markers"),
+                            repeats=s.integer("repeats", 3),
+                            reading_s=s.number("reading_s", 0.2, positive=True),
+                            speed_rad_s=s.number("speed_rad_s", 0.3, positive=True))
+
+    friction = []
+    for f in top.tables("friction"):
+        f.check_keys(("id", "from", "to", "speeds_rad_s", "loads", "repeats", "marker"))
+        fl = f.strings("loads", (UNLOADED,))
+        for lid in fl:
+            check_load(f, "loads", lid, allow_unloaded=True)
+        speeds = f.data.get("speeds_rad_s")
+        if (not isinstance(speeds, list) or not speeds
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in speeds)):
+            raise f.fail("speeds_rad_s", f"expected a list of positive speeds, got {speeds!r}")
+        start, end = f.joint_vector("from"), f.joint_vector("to")
+        if start == end:
+            raise f.fail("to", "the path has no length: from and to are equal")
+        friction.append(FrictionSpec(id=f.text("id"), start=start, end=end,
+                                     speeds_rad_s=tuple(float(v) for v in speeds), loads=fl,
+                                     repeats=f.integer("repeats", 1), marker=f.optional_text("marker")))
+    fids = [f.id for f in friction]
+    if len(set(fids)) != len(fids):
+        raise InputError("friction ids repeat", source=source, column="friction")
+
+    sweep = None
+    w = top.table("sweep")
+    if w is not None:
+        w.check_keys(("q", "q2_from", "q2_to", "speed_rad_s", "repeats", "load", "marker"))
+        lid = w.text("load", UNLOADED)
+        check_load(w, "load", lid, allow_unloaded=True)
+        sweep = SweepSpec(q=w.joint_vector("q"), q2_from=w.number("q2_from"), q2_to=w.number("q2_to"),
+                          speed_rad_s=w.number("speed_rad_s", positive=True), repeats=w.integer("repeats", 1),
+                          load=lid, marker=w.optional_text("marker"))
+        if sweep.q2_from == sweep.q2_to:
+            raise w.fail("q2_to", "the sweep has no length: q2_from and q2_to are equal")
+
+    check = None
+    c = top.table("check")
+    if c is not None:
+        c.check_keys(("poses", "load", "friction"))
+        if static is None:
+            raise c.fail("poses", "the check measures static poses; the plan has no [static]")
+        cposes = c.strings("poses")
+        for pid in cposes:
+            if pid not in [p.id for p in static.poses]:
+                raise c.fail("poses", f"unknown pose {pid!r}")
+        lid = c.text("load")
+        check_load(c, "load", lid, allow_unloaded=False)
+        fid = c.optional_text("friction")
+        if fid is not None and fid not in fids:
+            raise c.fail("friction", f"unknown friction path {fid!r}")
+        check = CheckSpec(poses=cposes, load=lid, friction=fid)
+
+    present = tuple(p for p, spec in (("static", static), ("friction", friction), ("sweep", sweep)) if spec)
+    procedures = top.strings("procedures", present)
+    for p in procedures:
+        if p not in PROCEDURES:
+            raise top.fail("procedures", f"unknown procedure {p!r}; one of {', '.join(PROCEDURES)}")
+        spec = {"static": static, "friction": friction, "sweep": sweep, "check": check}[p]
+        if not spec:
+            raise top.fail("procedures", f"procedure {p!r} has no section in the plan")
+    if not procedures:
+        raise InputError("the plan has no procedure: give [static], [[friction]], [sweep] or [check]",
+                         source=source)
+    return Plan(name=name, source=source, text=text, settle=settle, loads=tuple(loads), static=static,
+                friction=tuple(friction), sweep=sweep, check=check, procedures=procedures)
+
+
+def load_plan(path: str | pathlib.Path) -> Plan:
+    """Read a plan.toml file."""
+    path = pathlib.Path(path)
+    text = read_text_file(path)
+    return parse_plan(text, source=str(path))
+
+
+# ------------------------------------------------------------------ writing
+def _toml_list(values: Sequence) -> str:
+    return "[" + ", ".join(repr(float(v)) if not isinstance(v, str) else f'"{v}"' for v in values) + "]"
+
+
+def plan_toml(*, poses: Sequence[Sequence[float]] | Mapping[str, Sequence[float]], loads: Sequence[LoadSpec],
+              markers: Sequence[str], name: str = "calibration", repeats: int = 3, reading_s: float = 0.2,
+              speed_rad_s: float = 0.3, settle: SettleSpec | None = None,
+              friction: Sequence[FrictionSpec] = (), sweep: SweepSpec | None = None,
+              check: CheckSpec | None = None, procedures: Sequence[str] | None = None,
+              pose_loads: Mapping[str, Sequence[str]] | None = None) -> str:
+    """plan.toml text for poses (a list, ids P1.., or a mapping id -> q), loads and
+    markers, plus optional friction paths, sweep and check; :func:`parse_plan`
+    reads it back. ``pose_loads`` gives some poses their own loaded states
+    (pose id -> load ids; the others get every load). For the demo, the ``plan``
+    command and tests."""
+    lines = [f'name = "{name}"']
+    if procedures is not None:
+        lines.append(f"procedures = {_toml_list(procedures)}")
+    s = settle or SettleSpec()
+    lines += ["", "[settle]", f"speed_rad_s = {s.speed_rad_s!r}", f"spread_m = {s.spread_m!r}",
+              f"window_s = {s.window_s!r}", f"timeout_s = {s.timeout_s!r}"]
+    for spec in loads:
+        lines += ["", "[[load]]", f'id = "{spec.id}"']
+        if spec.mass_kg is not None:
+            lines.append(f"mass_kg = {spec.mass_kg!r}")
+        else:
+            lines.append(f"force_n = {_toml_list(spec.force_n)}")
+            if any(spec.moment_nm):
+                lines.append(f"moment_nm = {_toml_list(spec.moment_nm)}")
+        if spec.description:
+            lines.append(f'description = "{spec.description}"')
+    items = list(poses.items()) if isinstance(poses, Mapping) else [(f"P{k}", q) for k, q in enumerate(poses, 1)]
+    if items:
+        lines += ["", "[static]", f"markers = {_toml_list(markers)}", f"repeats = {repeats}",
+                  f"reading_s = {reading_s!r}", f"speed_rad_s = {speed_rad_s!r}"]
+        for pid, q in items:
+            lines += ["", "[[static.pose]]", f'id = "{pid}"', f"q = {_toml_list(q)}"]
+            if pose_loads is not None and pid in pose_loads:
+                lines.append(f"loads = {_toml_list(pose_loads[pid])}")
+    for f in friction:
+        lines += ["", "[[friction]]", f'id = "{f.id}"', f"from = {_toml_list(f.start)}", f"to = {_toml_list(f.end)}",
+                  f"speeds_rad_s = {_toml_list(f.speeds_rad_s)}", f"loads = {_toml_list(f.loads)}",
+                  f"repeats = {f.repeats}"]
+        if f.marker:
+            lines.append(f'marker = "{f.marker}"')
+    if sweep is not None:
+        lines += ["", "[sweep]", f"q = {_toml_list(sweep.q)}", f"q2_from = {sweep.q2_from!r}",
+                  f"q2_to = {sweep.q2_to!r}", f"speed_rad_s = {sweep.speed_rad_s!r}", f"repeats = {sweep.repeats}",
+                  f'load = "{sweep.load}"']
+        if sweep.marker:
+            lines.append(f'marker = "{sweep.marker}"')
+    if check is not None:
+        lines += ["", "[check]", f"poses = {_toml_list(check.poses)}", f'load = "{check.load}"']
+        if check.friction:
+            lines.append(f'friction = "{check.friction}"')
+    return "\n".join(lines) + "\n"

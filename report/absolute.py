@@ -1,0 +1,89 @@
+"""The absolute part of the HTML report (issue 12, part 4): absolute errors per
+pose before and after the absolute steps, and the error vectors on a top view
+of the cell, from :class:`elastocal.diagnose.absolute.AbsoluteDiagnosis`."""
+
+from __future__ import annotations
+
+import html
+
+import numpy as np
+
+from elastocal.identify.absolute import AbsoluteFit
+from elastocal.report.html import AFTER_COLOUR, BEFORE_COLOUR, FLOOR_COLOUR, _figure, figure_svg
+
+UM = 1e6
+
+
+def _base_frame(fit: AbsoluteFit) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted positions and residual vectors of the unloaded states, base axes (S0, M, 3)."""
+    ds = fit.dataset
+    refs = np.flatnonzero(ds.state_ref == np.arange(ds.n_states))
+    reg = fit.registration
+    pos = (fit.predicted[refs] - reg.translation) @ reg.rotation
+    err = fit.residuals[refs] @ reg.rotation
+    return pos, err
+
+
+def _pose_plot(fits: list[tuple[str, AbsoluteFit, str]], ident: str) -> str:
+    fig = _figure(7.0, 3.2)
+    ax = fig.subplots()
+    width = 0.8 / len(fits)
+    labels = [p["pose"] for p in fits[0][1].per_pose()]
+    x = np.arange(len(labels))
+    for k, (title, fit, colour) in enumerate(fits):
+        rms = np.array([p["rms"] for p in fit.per_pose()]) * UM
+        ax.bar(x + (k - (len(fits) - 1) / 2) * width, rms, width, color=colour, alpha=0.85, label=title)
+    floor = fits[-1][1].noise_floor
+    if floor:
+        ax.axhline(floor * np.sqrt(3) * UM, color=FLOOR_COLOUR, ls="--", label="noise floor (per marker)")
+    ax.set_yscale("log")
+    ax.set_xticks(x, labels, fontsize=7)
+    ax.set_xlabel("pose (unloaded reference)")
+    ax.set_ylabel("absolute error rms [µm]")
+    ax.legend(fontsize=7)
+    return figure_svg(fig, ident)
+
+
+def _vector_plot(fits: list[tuple[str, AbsoluteFit, str]], ident: str) -> str:
+    fig = _figure(4.2 * len(fits), 4.0)
+    axes = fig.subplots(1, len(fits), squeeze=False)[0]
+    for ax, (title, fit, colour) in zip(axes, fits):
+        pos, err = _base_frame(fit)
+        p, e = pos.reshape(-1, 3), err.reshape(-1, 3)
+        biggest = float(np.max(np.linalg.norm(e[:, :2], axis=1))) or 1.0
+        scale = 0.25 / biggest            # the largest arrow 0.25 m on the plot
+        ax.plot(p[:, 0], p[:, 1], ".", ms=3, color="#555555")
+        ax.quiver(p[:, 0], p[:, 1], e[:, 0] * scale, e[:, 1] * scale, angles="xy", scale_units="xy", scale=1,
+                  color=colour, width=0.004)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (base) [m]")
+        ax.set_ylabel("y (base) [m]")
+        ax.set_title(f"{title}: arrows x{scale:.3g} (largest {biggest * UM:.0f} µm)", fontsize=8)
+    return figure_svg(fig, ident)
+
+
+def absolute_html(absolute) -> str:
+    """The report's section on the absolute positions."""
+    base = absolute.base
+    fits = [(f"model: {', '.join(m for m in base.model if m != 'tracker_frame')}", base, BEFORE_COLOUR)]
+    if absolute.steps:
+        final = absolute.final
+        fits.append((f"+ {', '.join(s.effect for s in absolute.steps)}", final, AFTER_COLOUR))
+    out = ["<h2>Absolute positions</h2>",
+           f'<p class="note">After the best rigid registration of the tracker (it stands at '
+           f"{', '.join(f'{v:.3f}' for v in base.registration.base_p_tracker)} m in base coordinates): "
+           f"{base.rms * UM:.1f} µm rms, max {base.max * UM:.0f} µm, noise floor "
+           f"{(base.noise_floor or float('nan')) * UM:.1f} µm"
+           + (f"; with {html.escape(', '.join(s.effect for s in absolute.steps))}: {absolute.final.rms * UM:.1f} µm "
+              f"rms, max {absolute.final.max * UM:.1f} µm" if absolute.steps else "") + ".</p>"]
+    out.append('<div class="plot"><h3>Absolute error per pose</h3>' + _pose_plot(fits, "fig-abs-pose") + "</div>")
+    out.append('<div class="plot"><h3>Error vectors (top view, unloaded poses)</h3>'
+               + _vector_plot(fits, "fig-abs-vec") + "</div>")
+    rows = ["<table><tr><th>pose</th>" + "".join(f"<th>{html.escape(t)} rms [µm]</th><th>max [µm]</th>"
+                                                 for t, _, _ in fits) + "</tr>"]
+    per = [f.per_pose() for _, f, _ in fits]
+    for i, p in enumerate(per[0]):
+        rows.append(f"<tr><td>{html.escape(p['pose'])}</td>" + "".join(
+            f"<td>{pp[i]['rms'] * UM:.1f}</td><td>{pp[i]['max'] * UM:.1f}</td>" for pp in per) + "</tr>")
+    out.append("".join(rows) + "</table>")
+    return "\n".join(out)
