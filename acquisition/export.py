@@ -22,7 +22,8 @@ import numpy as np
 from elastocal.formats import logformat as lf
 from elastocal.acquisition.logreader import SEGMENT_NS, LogContents, read_log
 from elastocal.errors import Arg, InputError
-from elastocal.model.robot import Robot, parse_robot
+from elastocal.model.robot import Robot
+from elastocal.formats.robot_toml import parse_robot
 from elastocal.formats.tables import (
     RunTable,
     StaticTable,

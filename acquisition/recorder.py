@@ -36,7 +36,7 @@ from elastocal import __version__
 from elastocal.formats import logformat as lf
 from elastocal.acquisition.foxglove import CellPublisher
 from elastocal.errors import Arg, InputError
-from elastocal.model.robot import parse_robot
+from elastocal.formats.robot_toml import parse_robot
 
 Clock = Callable[[], int]
 

@@ -23,7 +23,7 @@ import time
 
 
 from elastocal.identify.absolute import identify_absolute
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
 

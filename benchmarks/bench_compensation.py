@@ -34,7 +34,7 @@ from elastocal.compensation.model import CompensationModel
 from elastocal.compensation.trajectory import compensate_path, predicted_residual
 from elastocal.compensation.validate import YANG_WRENCH
 from elastocal.identify import kinematics as kin
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth
 
 #: issue 15's goals [points/s] and the forward-kinematics time they were set against [s]

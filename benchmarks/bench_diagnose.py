@@ -27,7 +27,7 @@ import time
 
 from elastocal.diagnose.static import diagnose_static
 from elastocal.report.html import render_report
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static

@@ -34,7 +34,7 @@ import time
 
 def make_logs(folder: pathlib.Path, n: int, poses: int) -> list[pathlib.Path]:
     from elastocal.acquisition.logwriter import write_log_from_tables
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.sims.cell import CellTruth
     from elastocal.sims.static import StaticPlan, simulate_static
 

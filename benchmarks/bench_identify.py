@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.formats.tables import read_static_table, write_static_table
 from elastocal.sims.cell import CellTruth

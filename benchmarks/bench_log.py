@@ -37,7 +37,7 @@ from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
 from elastocal.acquisition.export import load_log
 from elastocal.formats.plan import FrictionSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth, SimCell
 
 Q_U = (-0.5, 0.2, -0.6, -0.3, 0.4, -0.2)

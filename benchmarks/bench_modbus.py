@@ -21,7 +21,7 @@ from elastocal.drivers import open_drive
 from elastocal.drivers.config import parse_cell_config
 from elastocal.drivers.urls import parse_device_url
 from elastocal.sims.config import SimConfig
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.modbus_server import ModbusServerThread, PtyPair, SimModbusDrive
 from elastocal.sims.world import SimWorld
 

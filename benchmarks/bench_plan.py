@@ -17,7 +17,7 @@ import numpy as np
 
 from elastocal.design import search as dz
 from elastocal.design import candidates as dzc
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 
 
 def main() -> None:

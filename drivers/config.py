@@ -143,7 +143,7 @@ class CellConfig:
 
     def robot_path(self) -> pathlib.Path:
         """The robot description file this cell uses."""
-        from elastocal.model.robot import bundled_robot_path
+        from elastocal.formats.robot_toml import bundled_robot_path
 
         if self.robot in ("hh150",) or ("/" not in self.robot and not self.robot.endswith(".toml")):
             path = bundled_robot_path(self.robot)
@@ -158,7 +158,7 @@ class CellConfig:
     def load_robot(self):
         """The :class:`~elastocal.model.robot.Robot` named by ``[cell] robot``, with the cell's
         tracker markers, taught poses and paths checked against it (names and joint limits)."""
-        from elastocal.model.robot import load_robot
+        from elastocal.formats.robot_toml import load_robot
 
         robot = load_robot(self.robot_path())
         _check_against_robot(self, robot)

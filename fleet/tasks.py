@@ -131,7 +131,7 @@ def _load(task: FleetTask) -> _Data:
 
         cell_robot = load_cell_config(task.cell_config).load_robot()
     if task.tables:
-        from elastocal.model.robot import load_robot
+        from elastocal.formats.robot_toml import load_robot
         from elastocal.formats.tables import read_run_table, read_static_table
 
         static_csv, runs_csv = path / "static.csv", path / "runs.csv"

@@ -219,7 +219,7 @@ MAX_VALUE = 1e30
 def parameter_unit(name: str) -> str | None:
     """The SI unit of a calibration parameter (docs/formats.md §4, docs/cli.md's effect table), None if unknown."""
     from elastocal.model.effects import ALL_EFFECTS, get_effect
-    from elastocal.model.robot import HYDRO_UNITS, SPRING_UNITS
+    from elastocal.model.compensator import HYDRO_UNITS, SPRING_UNITS
 
     if name in tuple(f"k{j}" for j in range(1, 7)):
         return "N*m/rad"

@@ -51,7 +51,7 @@ from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
 from elastocal.model.effects import get_effect
 from elastocal.identify.registration import Registration, kabsch, register
-from elastocal.model.robot import ACTUATED_IN_LINK_MODEL, MARKER_PREFIX, SPRINGS_IN_LINK_MODEL, Robot
+from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.static import (
     Parameter,
     StaticDataset,
@@ -227,7 +227,8 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
             continue
         p, j10 = _kinematics(robot, robot.theta_links(theta, dlink[s]), st.frames)
         pos[s] = p
-        j_el = j10[:, :, ACTUATED_IN_LINK_MODEL] @ b_theta[s] + j10[:, :, SPRINGS_IN_LINK_MODEL] @ b_links[s]
+        j_el = (j10[:, :, robot.actuated_in_link_model] @ b_theta[s]
+                + j10[:, :, robot.springs_in_link_model] @ b_links[s])
         jac[s, :, :, :n_el] = j_el
         if n_k:
             _, jk = kin.position_jacobian(robot, theta, markers, st.kin_names, st.kin_columns,
@@ -270,7 +271,7 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
             pi = int(ds.state_pose[s])
             if pi not in jac_pose:
                 _, j10 = _kinematics(robot, robot.theta_links(robot.theta(ds.q[pi])), frames)
-                jac_pose[pi] = np.einsum("ij,mjk->mik", rot, j10[:, :, ACTUATED_IN_LINK_MODEL]).reshape(3 * nm, 6)
+                jac_pose[pi] = np.einsum("ij,mjk->mik", rot, j10[:, :, robot.actuated_in_link_model]).reshape(3 * nm, 6)
             g = jac_pose[pi] * (compliance * robot.torque_constants)
             cov += (g * (sig_i ** 2 / ds.state_n_currents[s])) @ g.T
         covs[s] = cov

@@ -36,7 +36,7 @@ import numpy as np
 import pinocchio as pin
 
 from elastocal.errors import InputError
-from elastocal.model.robot import ACTUATED_IN_LINK_MODEL, MARKER_PREFIX, Robot
+from elastocal.model.robot import MARKER_PREFIX, Robot
 
 #: DH error kinds per joint, in the order of the parameter vector
 DH_KINDS = ("dq", "da", "dd", "dalpha", "dbeta")
@@ -172,7 +172,7 @@ def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
         first = list(range(1, nj + 1))          # the Pinocchio joint that carries joint i's DH placement
     else:       # the springs sit at joint i's origin, after its DH placement: parents stay the joints
         model, config = robot.link_model, robot.theta_links(theta, link_angles)
-        ids = [0, *(int(k) + 1 for k in ACTUATED_IN_LINK_MODEL)]
+        ids = [0, *(int(k) + 1 for k in robot.actuated_in_link_model)]
         first = [ids[i - 1] + 1 for i in range(1, nj + 1)]
     from elastocal.identify.static import _work_data     # one Data per model and thread, reused
 

@@ -38,10 +38,8 @@ from elastocal.identify.blas import one_blas_thread
 from elastocal.model.effects import get_effect
 from elastocal.model.effects.base import Effect, StaticBasis, StaticContext
 from elastocal.model.robot import (
-    ACTUATED_IN_LINK_MODEL,
     LOAD_FRAME,
     MARKER_PREFIX,
-    SPRINGS_IN_LINK_MODEL,
     Robot,
 )
 from elastocal.identify.evidence import check_loads_changed, mark_stiffness
@@ -375,7 +373,7 @@ class _Problem:
         """Marker positions (P, M, 3) and position Jacobians (P, M, 3, nv) of every pose
         at its commanded configuration: computed once per problem, read by the
         first-order form, the noise covariance and its rank."""
-        theta = _link_configurations(self.ds.q + self.robot.offsets)
+        theta = _link_configurations(self.robot, self.ds.q + self.robot.offsets)
         return _kinematics_batch(self.robot, theta, self.frames)
 
     @cached_property
@@ -384,7 +382,7 @@ class _Problem:
         configuration (LOCAL_WORLD_ALIGNED, as ``Robot.jacobians``)."""
         model = self.robot.link_model
         data, (fid,) = _work(model, (LOAD_FRAME,))
-        theta = _link_configurations(self.ds.q + self.robot.offsets)
+        theta = _link_configurations(self.robot, self.ds.q + self.robot.offsets)
         out = np.empty((len(theta), 6, model.nv))
         for pi, th in enumerate(theta):
             pin.computeJointJacobians(model, data, th)
@@ -412,12 +410,12 @@ class _Problem:
         return rank, counts
 
 
-def _link_configurations(theta: np.ndarray, link_angles: np.ndarray | None = None) -> np.ndarray:
-    """``Robot.theta_links`` of many states at once: (S, 10) from (S, 6) and (S, 4)."""
-    out = np.zeros((len(theta), len(ACTUATED_IN_LINK_MODEL) + len(SPRINGS_IN_LINK_MODEL)))
-    out[:, ACTUATED_IN_LINK_MODEL] = theta
+def _link_configurations(robot: Robot, theta: np.ndarray, link_angles: np.ndarray | None = None) -> np.ndarray:
+    """``Robot.theta_links`` of many states at once: (S, N + springs) from (S, N) and (S, springs)."""
+    out = np.zeros((len(theta), len(robot.link_joint_order)))
+    out[:, robot.actuated_in_link_model] = theta
     if link_angles is not None:
-        out[:, SPRINGS_IN_LINK_MODEL] = link_angles
+        out[:, robot.springs_in_link_model] = link_angles
     return out
 
 
@@ -455,8 +453,8 @@ def _context(pr: _Problem, tau: np.ndarray, estimate: np.ndarray | None = None) 
     # every state at once: the wrench change the torque change carries (J_act^T dW = dtau), and
     # what it puts on the link springs (J_spr^T dW)
     jac = pr.load_jacobians[ds.state_pose]
-    j_act_t = np.swapaxes(jac[:, :, ACTUATED_IN_LINK_MODEL], 1, 2)
-    j_spr_t = np.swapaxes(jac[:, :, SPRINGS_IN_LINK_MODEL], 1, 2)
+    j_act_t = np.swapaxes(jac[:, :, robot.actuated_in_link_model], 1, 2)
+    j_spr_t = np.swapaxes(jac[:, :, robot.springs_in_link_model], 1, 2)
     if pr.torque == "current":
         try:
             delta_wrench = np.linalg.solve(j_act_t, delta_tau[:, :, None])[:, :, 0]
@@ -557,7 +555,7 @@ def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.nd
     ds = pr.ds
     b_theta, b_links, b_add = bases
     if exact:
-        theta10 = _link_configurations(pr.nominal_theta + b_theta @ beta, b_links @ beta)
+        theta10 = _link_configurations(pr.robot, pr.nominal_theta + b_theta @ beta, b_links @ beta)
         pos, jac = _kinematics_batch(pr.robot, theta10, pr.frames)
     else:
         pos0, jac0 = pr.nominal_kinematics
@@ -565,10 +563,10 @@ def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.nd
     d_idx = np.arange(ds.n_deflections)
     m = ds.defl_marker
     sl, sr = ds.defl_state, ds.defl_ref
-    j_act_l = jac[sl, m][:, :, ACTUATED_IN_LINK_MODEL]
-    j_act_r = jac[sr, m][:, :, ACTUATED_IN_LINK_MODEL]
-    j_spr_l = jac[sl, m][:, :, SPRINGS_IN_LINK_MODEL]
-    j_spr_r = jac[sr, m][:, :, SPRINGS_IN_LINK_MODEL]
+    j_act_l = jac[sl, m][:, :, pr.robot.actuated_in_link_model]
+    j_act_r = jac[sr, m][:, :, pr.robot.actuated_in_link_model]
+    j_spr_l = jac[sl, m][:, :, pr.robot.springs_in_link_model]
+    j_spr_r = jac[sr, m][:, :, pr.robot.springs_in_link_model]
     if exact:
         a = (j_act_l @ b_theta[sl] - j_act_r @ b_theta[sr] + j_spr_l @ b_links[sl] - j_spr_r @ b_links[sr]
              + b_add[d_idx])
@@ -593,7 +591,7 @@ def absolute_positions(robot: Robot, ds: StaticDataset, frames: Sequence[str], b
     (:func:`_absolute_bases`): the joint angles carry the absolute torques, the link springs
     and the located compliance the moments of gravity and of the load."""
     b_theta, b_links, b_add = bases
-    theta10 = _link_configurations(ds.q[ds.state_pose] + robot.offsets + b_theta @ beta, b_links @ beta)
+    theta10 = _link_configurations(robot, ds.q[ds.state_pose] + robot.offsets + b_theta @ beta, b_links @ beta)
     return _kinematics_batch(robot, theta10, tuple(frames))[0] + b_add @ beta
 
 
@@ -621,7 +619,7 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
         # d dtheta / d tau for each state: the joint-stiffness part of the basis,
         # plus what torque-dependent effects (backlash) add
         c = np.tile(beta[:6], (ds.n_states, 1)) if sensitivity is None else sensitivity
-        jac0 = pr.nominal_kinematics[1][:, :, :, ACTUATED_IN_LINK_MODEL]     # (P, M, 3, 6)
+        jac0 = pr.nominal_kinematics[1][:, :, :, robot.actuated_in_link_model]     # (P, M, 3, 6)
         rank, n_states_of = pr.state_rank
         var_i = (robot.torque_constants * sig_i) ** 2 / ds.state_n_currents[:, None]   # (S, 6)
         order = np.argsort(ds.state_pose, kind="stable")

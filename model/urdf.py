@@ -2,15 +2,18 @@
 and the modified-DH robots written out as URDF.
 
 A URDF robot's ``robot.toml`` gives ``urdf = "path.urdf"`` (or the text inline
-as ``urdf_xml``) and one ``[[joint]]`` table per actuated joint naming a URDF
-joint (docs/formats.md §1). :func:`urdf_chain` builds the URDF with
-:func:`pinocchio.buildModelFromXML`, locks every joint the tables do not name at
-zero (:func:`pinocchio.buildReducedModel`), checks that the six named joints are
-revolute and form a chain base to tip, and returns for each its placement in
-the previous joint's frame, its axis, its limits and the mass and centre of
-mass of the body it moves (links merged through fixed joints included, as
-Pinocchio merges them). The flange is the frame of the sixth joint unless
-``[tool] flange`` names a URDF link or frame further out.
+as ``urdf_xml``), the chain's ``base_link`` and ``tip_link`` (optional: the URDF's
+root link, and the link the last named joint moves), and one ``[[joint]]`` table
+per movable joint of that chain naming its URDF joint (docs/formats.md §1).
+:func:`urdf_chain` builds the URDF with :func:`pinocchio.buildModelFromXML`,
+locks every joint that is not on the chain at zero (:func:`pinocchio.buildReducedModel`;
+other branches of the tree are ignored), checks that the named joints are exactly
+the movable joints between ``base_link`` and ``tip_link``, base to tip, each
+revolute (or continuous) or prismatic, and returns for each its placement in the
+previous joint's frame (the first in ``base_link``'s frame), its kind, its axis,
+its limits and the mass and centre of mass of the body it moves (links merged
+through fixed joints included, as Pinocchio merges them), and ``tip_link``'s
+placement in the last joint's frame (the flange: markers are given in it).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import numpy as np
 import pinocchio as pin
 
 from elastocal.errors import InputError
+from elastocal.model.kinds import JointKind
 
 
 @dataclass(frozen=True)
@@ -32,80 +36,141 @@ class UrdfSource:
 
     xml: str
     path: str = ""          # where it was read from ("" when inline), for messages
-    flange: str = ""        # URDF link or frame that is the flange ("" = the sixth joint's frame)
+    tip_link: str = ""      # URDF link or frame that is the flange ("" = the last joint's frame)
+    base_link: str = ""     # URDF link the chain starts from ("" = the URDF's root)
+    #: the robot.toml key that named the tip, for messages (``tip_link``, or the older ``tool.flange``)
+    tip_column: str = "tip_link"
+
+    @property
+    def flange(self) -> str:
+        """The older name of ``tip_link`` (robot.toml's ``[tool] flange``)."""
+        return self.tip_link
 
 
 @dataclass(frozen=True)
 class UrdfChain:
-    """The six actuated joints of a URDF, base to tip (arrays per joint)."""
+    """The actuated joints of a URDF chain, base to tip (arrays per joint, N joints)."""
 
-    placements: tuple[pin.SE3, ...]        # joint i's frame in joint i-1's frame at theta = 0
-    axes: np.ndarray                       # (6, 3) unit rotation axes, in each joint's own frame
-    lower: np.ndarray                      # (6,) URDF limits of theta [rad]; nan for continuous joints
+    placements: tuple[pin.SE3, ...]        # joint i's frame in joint i-1's frame at q = 0 (joint 1: in base_link's)
+    kinds: tuple[JointKind, ...]
+    axes: np.ndarray                       # (N, 3) unit axes (rotation or translation), in each joint's own frame
+    lower: np.ndarray                      # (N,) URDF limits of the joint variable [rad or m]; nan for continuous
     upper: np.ndarray
-    masses: np.ndarray                     # (6,) [kg]
-    coms: np.ndarray                       # (6, 3) centres of mass in each joint's frame [m]
-    flange_placement: pin.SE3              # the flange in the sixth joint's frame
+    masses: np.ndarray                     # (N,) [kg]
+    coms: np.ndarray                       # (N, 3) centres of mass in each joint's frame [m]
+    flange_placement: pin.SE3              # tip_link in the last joint's frame
+
+
+def _build(urdf: UrdfSource, *, source: str) -> pin.Model:
+    where = urdf.path or "urdf_xml"
+    try:
+        return pin.buildModelFromXML(urdf.xml)
+    except (RuntimeError, ValueError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"not a valid URDF ({where}): {first}", source=source, column="urdf") from None
+
+
+def _link_joint(model: pin.Model, link: str, *, where: str, source: str, column: str) -> tuple[int, pin.SE3]:
+    """(parent joint id, placement in that joint's frame) of a URDF link or frame."""
+    if not model.existFrame(link):
+        links = [f.name for f in model.frames if f.type == pin.FrameType.BODY]
+        raise InputError(f"URDF {where} has no link or frame {link!r}; its links are {', '.join(links)}",
+                         source=source, column=column)
+    frame = model.frames[model.getFrameId(link)]
+    return int(frame.parentJoint), pin.SE3(frame.placement)
+
+
+def _ancestors(model: pin.Model, joint: int) -> list[int]:
+    """Joint ids from the root to ``joint`` (inclusive, the universe 0 excluded)."""
+    out = []
+    while joint != 0:
+        out.append(joint)
+        joint = int(model.parents[joint])
+    return out[::-1]
 
 
 def urdf_chain(urdf: UrdfSource, joint_names: Sequence[str], *, source: str) -> UrdfChain:
     """Read the chain of ``joint_names`` from ``urdf`` (errors name ``source``)."""
     where = urdf.path or "urdf_xml"
-    try:
-        full = pin.buildModelFromXML(urdf.xml)
-    except (RuntimeError, ValueError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise InputError(f"not a valid URDF ({where}): {first}", source=source, column="urdf") from None
+    full = _build(urdf, source=source)
     names = list(full.names)[1:]
     missing = [n for n in joint_names if n not in names]
     if missing:
-        raise InputError(f"URDF {where} has no joint {missing[0]!r}; its movable joints are "
+        raise InputError(f"URDF {where} has no movable joint {missing[0]!r}; its movable joints are "
                          f"{', '.join(names) or 'none'}", source=source, column="joint.name")
     if len(set(joint_names)) != len(joint_names):
         raise InputError("two [[joint]] tables name the same URDF joint", source=source, column="joint.name")
-    locked = [full.getJointId(n) for n in names if n not in joint_names]
-    model = pin.buildReducedModel(full, locked, pin.neutral(full)) if locked else full
+    tip_joint = full.getJointId(joint_names[-1])
+    if urdf.tip_link:
+        tip_joint, _ = _link_joint(full, urdf.tip_link, where=where, source=source, column=urdf.tip_column)
+    base_joint = 0
+    if urdf.base_link:
+        base_joint, _ = _link_joint(full, urdf.base_link, where=where, source=source, column="base_link")
+    tip_path = _ancestors(full, tip_joint)
+    if base_joint and base_joint not in tip_path:
+        raise InputError(f"tip_link {urdf.tip_link or joint_names[-1]!r} is not beyond base_link "
+                         f"{urdf.base_link!r} in URDF {where}", source=source, column="base_link")
+    chain = tip_path[tip_path.index(base_joint) + 1:] if base_joint else tip_path
+    chain_names = [full.names[j] for j in chain]
+    if list(joint_names) != chain_names:
+        extra = [n for n in joint_names if n not in chain_names]
+        if extra:
+            raise InputError(f"URDF joint {extra[0]!r} is not on the chain from {urdf.base_link or 'the root'} to "
+                             f"{urdf.tip_link or joint_names[-1]}; that chain's movable joints are "
+                             f"{', '.join(chain_names)}", source=source, column="joint.name")
+        absent = [n for n in chain_names if n not in joint_names]
+        if absent:
+            raise InputError(f"the chain's movable joint {absent[0]!r} has no [[joint]] table; name every movable "
+                             f"joint from base to tip: {', '.join(chain_names)}", source=source, column="joint.name")
+        raise InputError(f"the [[joint]] tables must name the chain of URDF {where} from base to tip, in order: "
+                         f"{', '.join(chain_names)}", source=source, column="joint.name")
+    locked = [j for j in range(1, full.njoints) if j not in chain]
+    q_neutral = pin.neutral(full)
+    model = pin.buildReducedModel(full, locked, q_neutral) if locked else full
     ids = [model.getJointId(n) for n in joint_names]
-    if ids != list(range(1, len(joint_names) + 1)) or any(model.parents[i] != i - 1 for i in ids):
-        raise InputError(f"the [[joint]] tables must name a serial chain of URDF {where} from base to tip, "
-                         f"in order; the URDF orders them {', '.join(model.names[1:])}",
-                         source=source, column="joint.name")
     data = model.createData()
     q0 = pin.neutral(model)
+    pin.forwardKinematics(model, data, q0)
+    pin.updateFramePlacements(model, data)
     pin.computeJointJacobians(model, data, q0)
-    axes, lower, upper = [], [], []
+    kinds, axes, lower, upper = [], [], [], []
     for i, name in zip(ids, joint_names):
         jm = model.joints[i]
-        if jm.nv != 1:
-            raise InputError(f"URDF joint {name!r} ({jm.shortname()}) is not a revolute joint",
+        column = pin.getJointJacobian(model, data, i, pin.LOCAL)[:, jm.idx_v] if jm.nv == 1 else None
+        if column is not None and np.linalg.norm(column[3:]) < 1e-12 and abs(np.linalg.norm(column[:3]) - 1) < 1e-9:
+            kinds.append(JointKind.PRISMATIC)
+            axes.append(column[:3] / np.linalg.norm(column[:3]))
+        elif column is not None and np.linalg.norm(column[:3]) < 1e-12 and abs(np.linalg.norm(column[3:]) - 1) < 1e-9:
+            kinds.append(JointKind.REVOLUTE)
+            axes.append(column[3:] / np.linalg.norm(column[3:]))
+        else:
+            raise InputError(f"URDF joint {name!r} ({jm.shortname()}) is neither revolute nor prismatic",
                              source=source, column="joint.name")
-        column = pin.getJointJacobian(model, data, i, pin.LOCAL)[:, jm.idx_v]
-        if np.linalg.norm(column[:3]) > 1e-12 or abs(np.linalg.norm(column[3:]) - 1.0) > 1e-9:
-            raise InputError(f"URDF joint {name!r} ({jm.shortname()}) is not a revolute joint",
-                             source=source, column="joint.name")
-        axes.append(column[3:] / np.linalg.norm(column[3:]))
-        if jm.nq == 1:          # revolute: URDF limits
+        if jm.nq == 1:          # revolute or prismatic: URDF limits
             lower.append(float(model.lowerPositionLimit[jm.idx_q]))
             upper.append(float(model.upperPositionLimit[jm.idx_q]))
         else:                   # continuous (cos, sin): no limits in the URDF
             lower.append(math.nan)
             upper.append(math.nan)
+    base_placement = pin.SE3.Identity()
+    if urdf.base_link:
+        # every joint between the root and base_link is locked at zero: base_link stands still
+        base_placement = data.oMf[model.getFrameId(urdf.base_link)]
+    placements = [pin.SE3(model.jointPlacements[i]) for i in ids]
+    placements[0] = base_placement.actInv(placements[0])
     flange = pin.SE3.Identity()
-    if urdf.flange:
-        if not model.existFrame(urdf.flange):
-            raise InputError(f"URDF {where} has no link or frame {urdf.flange!r}", source=source,
-                             column="tool.flange")
-        frame = model.frames[model.getFrameId(urdf.flange)]
+    if urdf.tip_link:
+        frame = model.frames[model.getFrameId(urdf.tip_link)]
         if frame.parentJoint != ids[-1]:
-            raise InputError(f"flange {urdf.flange!r} does not move with the last joint {joint_names[-1]!r}",
-                             source=source, column="tool.flange")
-        flange = frame.placement
+            raise InputError(f"tip_link {urdf.tip_link!r} does not move with the last joint {joint_names[-1]!r}",
+                             source=source, column=urdf.tip_column)
+        flange = pin.SE3(frame.placement)
     return UrdfChain(
-        placements=tuple(pin.SE3(model.jointPlacements[i]) for i in ids),
+        placements=tuple(placements), kinds=tuple(kinds),
         axes=np.array(axes), lower=np.array(lower), upper=np.array(upper),
         masses=np.array([model.inertias[i].mass for i in ids]),
         coms=np.array([model.inertias[i].lever for i in ids]),
-        flange_placement=pin.SE3(flange))
+        flange_placement=flange)
 
 
 def _fmt(values) -> str:
@@ -114,14 +179,15 @@ def _fmt(values) -> str:
 
 def dh_urdf(name: str, placements: Sequence[pin.SE3], joint_names: Sequence[str], lower: Sequence[float],
             upper: Sequence[float], masses: Sequence[float], coms: Sequence[Sequence[float]],
-            sphere_radius_m: float) -> str:
-    """A URDF of a chain of z-axis revolute joints (a modified-DH robot): links
-    ``base_link``, ``link1`` … ``link6`` (``link6`` is the flange), each link's
+            sphere_radius_m: float, kinds: Sequence[JointKind] | None = None) -> str:
+    """A URDF of a chain of z-axis joints (a modified-DH robot): links
+    ``base_link``, ``link1`` … ``linkN`` (``linkN`` is the flange), each link's
     inertia that of a solid sphere of ``sphere_radius_m`` at its centre of mass.
-    Limits are given in theta (the URDF joint variable)."""
+    Limits are given in the URDF joint variable (q + offset)."""
+    kinds = list(kinds) if kinds is not None else [JointKind.REVOLUTE] * len(placements)
     lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(name)}>", '  <link name="base_link"/>']
-    for i, (placement, jname, lo, hi, mass, com) in enumerate(
-            zip(placements, joint_names, lower, upper, masses, coms), start=1):
+    for i, (placement, jname, lo, hi, mass, com, kind) in enumerate(
+            zip(placements, joint_names, lower, upper, masses, coms, kinds), start=1):
         rpy = pin.rpy.matrixToRpy(placement.rotation)
         lines.append(f'  <link name="link{i}">')
         if mass > 0.0:
@@ -132,7 +198,7 @@ def dh_urdf(name: str, placements: Sequence[pin.SE3], joint_names: Sequence[str]
                       'ixy="0" ixz="0" iyz="0"/>', "    </inertial>"]
         lines.append("  </link>")
         parent = "base_link" if i == 1 else f"link{i - 1}"
-        lines += [f"  <joint name={quoteattr(jname)} type=\"revolute\">",
+        lines += [f"  <joint name={quoteattr(jname)} type=\"{kind.value}\">",
                   f'    <parent link="{parent}"/>', f'    <child link="link{i}"/>',
                   f'    <origin xyz="{_fmt(placement.translation)}" rpy="{_fmt(rpy)}"/>',
                   '    <axis xyz="0 0 1"/>',

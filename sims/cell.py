@@ -24,13 +24,7 @@ from typing import Sequence
 
 import numpy as np
 
-from elastocal.model.robot import (
-    ACTUATED_IN_LINK_MODEL,
-    LINK_SPRINGS,
-    LOAD_FRAME,
-    SPRINGS_IN_LINK_MODEL,
-    Robot,
-)
+from elastocal.model.robot import LOAD_FRAME, Robot
 from elastocal.identify.kinematics import corrected_robot
 
 #: HH-150 joint stiffness, Yang Table 6 (current-based) [N·m/rad]
@@ -180,7 +174,7 @@ class CellTruth:
             for name, value in zip(robot.compensator.parameter_names, self.compensator):
                 out[name] = {"value": float(value), "unit": units[name]}
         if np.any(self.link_compliance):
-            for name, v in zip(LINK_SPRINGS, self.link_compliance):
+            for name, v in zip(robot.link_spring_names, self.link_compliance):
                 out[name] = {"value": float(v), "unit": "rad/(N*m)"}
         if np.any(self.base_tilt):
             for name, v in zip(("cl0x", "cl0y"), self.base_tilt):
@@ -263,8 +257,8 @@ class SimCell:
     # --------------------------------------------------------------- statics
     def _full_load(self, theta10: np.ndarray, wrench: np.ndarray) -> np.ndarray:
         r = self.physical
-        q2 = theta10[ACTUATED_IN_LINK_MODEL[1]] - r.joints[1].offset
-        return r.load_torque(theta10, wrench, self.truth.compensator, links=True, q2=q2)
+        q2 = theta10[r.actuated_in_link_model[1]] - r.joints[1].offset
+        return r.load_torque(theta10, wrench, self.truth.compensator, links=True, q_compensator=q2)
 
     def equilibrium(self, q: Sequence[float], wrench: Sequence[float] | None = None, *,
                     reference: Equilibrium | None = None, tol_rad: float = 1e-13,
@@ -287,19 +281,19 @@ class SimCell:
             th10 = r.theta_links(theta0)
             for _ in range(max_iter):
                 load = self._full_load(th10, w)
-                gear = load[ACTUATED_IN_LINK_MODEL] - fixed_absorbed
+                gear = load[self.robot.actuated_in_link_model] - fixed_absorbed
                 dtheta = spring_angle(gear, t.stiffness, t.hardening_torque)
                 if np.any(t.backlash):
                     dtheta = dtheta + 0.5 * t.backlash * np.tanh(gear / t.backlash_torque_nm)
                 new = th10.copy()
-                new[ACTUATED_IN_LINK_MODEL] = theta0 + dtheta
-                new[SPRINGS_IN_LINK_MODEL] = t.link_compliance * load[SPRINGS_IN_LINK_MODEL]
+                new[self.robot.actuated_in_link_model] = theta0 + dtheta
+                new[self.robot.springs_in_link_model] = t.link_compliance * load[self.robot.springs_in_link_model]
                 step = np.max(np.abs(new - th10))
                 th10 = new
                 if step < tol_rad:
                     break
             load = self._full_load(th10, w)
-            return th10, load[ACTUATED_IN_LINK_MODEL] - fixed_absorbed
+            return th10, load[self.robot.actuated_in_link_model] - fixed_absorbed
 
         th10, gear = solve(absorbed)
         if reference is not None and np.any(t.static_friction):
@@ -309,8 +303,8 @@ class SimCell:
         tilt = np.zeros(3)
         if np.any(t.base_tilt):
             tilt[:2] = t.base_tilt * self.base_moment(th10, w)[:2]
-        return Equilibrium(q=q, theta=th10[ACTUATED_IN_LINK_MODEL].copy(),
-                           link_angles=th10[SPRINGS_IN_LINK_MODEL].copy(), gear_torque=gear,
+        return Equilibrium(q=q, theta=th10[self.robot.actuated_in_link_model].copy(),
+                           link_angles=th10[self.robot.springs_in_link_model].copy(), gear_torque=gear,
                            wrench=w, friction_torque=absorbed, base_rotation=tilt)
 
     def base_moment(self, theta10: np.ndarray, wrench: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ import pathlib
 
 import pytest
 
-from elastocal.model.robot import bundled_robot, bundled_robot_path
+from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path
 
 
 @pytest.fixture(scope="session")

@@ -11,7 +11,7 @@ from elastocal.cli import main
 from elastocal.identify import kinematics as kin
 from elastocal.identify.absolute import identify_absolute
 from elastocal.identify.registration import kabsch
-from elastocal.model.robot import bundled_robot, parse_robot
+from elastocal.formats.robot_toml import bundled_robot, parse_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import DEFAULT_TRACKER, KINEMATIC_ERRORS, CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
@@ -275,7 +275,7 @@ def test_robot_command_round_trip_and_urdf(calibration_file, tmp_path, capsys):
 
     from elastocal.identify.accuracy import calibrated_robot
     from elastocal.formats.calibration import read_calibration
-    from elastocal.model.robot import load_robot
+    from elastocal.formats.robot_toml import load_robot
 
     out, urdf = tmp_path / "calibrated.toml", tmp_path / "calibrated.urdf"
     assert main(["robot", "--calibration", str(calibration_file), "--out", str(out), "--urdf", str(urdf)]) == 0

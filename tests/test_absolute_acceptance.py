@@ -21,7 +21,7 @@ from elastocal.identify.absolute import identify_absolute
 from elastocal.diagnose.absolute import diagnose_absolute
 from elastocal.identify.accuracy import validate
 from elastocal.formats.calibration import calibration_from_fit
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import simulate_static

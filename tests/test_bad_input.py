@@ -20,7 +20,7 @@ from elastocal.acquisition.logwriter import write_log_from_tables
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main
 from elastocal.formats.calibration import read_calibration
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.formats.tables import write_run_table, write_static_table
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs

@@ -95,7 +95,7 @@ def test_one_name_per_idea_and_the_old_names_still_parse():
 
 
 def test_plan_without_a_wrench_is_one_line(capsys, tmp_path):
-    from elastocal.model.robot import bundled_robot_path
+    from elastocal.formats.robot_toml import bundled_robot_path
 
     assert main(["plan", "--robot", str(bundled_robot_path()), "--test-pose", "0,0.3,0.2,0,0.5,0",
                  "--out", str(tmp_path / "p.toml")]) == 2

@@ -92,7 +92,7 @@ def test_report_refuses_an_existing_out(s, capsys):
 def path_csv(s) -> pathlib.Path:
     from elastocal.compensation.files import write_path
     from elastocal.compensation.ik import yang_path
-    from elastocal.model.robot import load_robot
+    from elastocal.formats.robot_toml import load_robot
 
     write_path(s / "path.csv", yang_path(load_robot(s / "robot.toml"), step_m=0.1))
     return s / "path.csv"
@@ -160,7 +160,7 @@ def test_sim_refuses_an_earlier_dataset_and_bad_folders(s, tmp_path, capsys):
 # ---------------------------------------------------------------- export
 def test_export_refuses_then_replaces_another_logs_tables(s, tmp_path, capsys):
     from elastocal.acquisition.logwriter import write_log_from_tables
-    from elastocal.model.robot import load_robot
+    from elastocal.formats.robot_toml import load_robot
     from elastocal.formats.tables import run_table_from_arrays
 
     out = tmp_path / "ex"

@@ -19,7 +19,8 @@ from elastocal.compensation.trajectory import compensate_path, predicted_residua
 from elastocal.compensation.validate import YANG_WRENCH, validate_on_sim, yang_validation
 from elastocal.errors import InputError
 from elastocal.formats.calibration import CalibratedParameter, Calibration, Residual, write_calibration
-from elastocal.model.robot import LOAD_FRAME, bundled_robot_path
+from elastocal.model.robot import LOAD_FRAME
+from elastocal.formats.robot_toml import bundled_robot_path
 from elastocal.sims.cell import CellTruth, SimCell
 
 

@@ -23,7 +23,8 @@ from elastocal.compensation.chain import TAYLOR_LIMIT_RAD, Angles, BatchedChain
 from elastocal.compensation.model import BLOCK_SAMPLES, WARM_STRIDE, CompensationModel, NotConverged, StaticKernel
 from elastocal.compensation.trajectory import compensate_path, predicted_residual
 from elastocal.identify import kinematics as kin
-from elastocal.model.robot import LOAD_FRAME, bundled_robot_path, load_robot
+from elastocal.model.robot import LOAD_FRAME
+from elastocal.formats.robot_toml import bundled_robot_path, load_robot
 from elastocal.sims.cell import CellTruth
 
 HERE = pathlib.Path(__file__).parent

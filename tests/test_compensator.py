@@ -9,7 +9,7 @@ import pytest
 
 from elastocal.errors import InputError
 from elastocal.identify.compensator import compensator_from_run_table, identify_compensator, sweep_means
-from elastocal.model.robot import parse_robot
+from elastocal.formats.robot_toml import parse_robot
 from elastocal.formats.tables import read_run_table
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import SweepPlan, default_run_truth, simulate_run_dataset, simulate_runs

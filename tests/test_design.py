@@ -250,7 +250,7 @@ def test_plan_command_rejects_bad_input_in_one_line(tmp_path, capsys):
     base = ["plan", "--robot", "hh150-does-not-exist.toml", "--load", "800,0,0", "--out", str(tmp_path / "p.toml")]
     assert main(base + ["--test-pose", "0.3,0.5,-0.3,0.2,1.0,0.1"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
-    from elastocal.model.robot import bundled_robot_path
+    from elastocal.formats.robot_toml import bundled_robot_path
 
     good = ["plan", "--robot", str(bundled_robot_path()), "--out", str(tmp_path / "p.toml")]
     assert main(good + ["--test-pose", "0.3,2.5,-0.3,0.2,1.0,0.1", "--load", "800,0,0"]) == 2

@@ -13,7 +13,7 @@ from elastocal.diagnose.static import diagnose_static
 from elastocal.diagnose.runs import diagnose_runs
 from elastocal.diagnose.verdict import VERDICT_DELTA_BIC, VERDICT_P
 from elastocal.diagnose.where import where_it_fails
-from elastocal.model.robot import bundled_robot, parse_robot
+from elastocal.formats.robot_toml import bundled_robot, parse_robot
 from elastocal.identify.static import build_dataset
 from elastocal.sims.cell import HH150_STIFFNESS, HIDDEN_EFFECTS, CellTruth
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs

@@ -16,7 +16,7 @@ from elastocal.drivers.urls import parse_device_url
 from elastocal.sims.config import SimConfig
 from elastocal.drivers.emscon_packets import PacketSocket, decode
 from elastocal.errors import DeviceFault, InputError, ProtocolError
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.emscon_server import SimEmscon
 from elastocal.sims.world import SimWorld
 

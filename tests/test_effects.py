@@ -11,7 +11,7 @@ from elastocal.errors import EffectRefused, InputError
 from elastocal.model.effects import ALL_EFFECTS, EFFECT_MODULES, get_effect, parse_model
 from elastocal.model.effects import backlash
 from elastocal.model.effects.base import StaticContext
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static

@@ -12,7 +12,7 @@ from elastocal.acquisition.export import load_log
 from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_calibration
 from elastocal.drivers.urls import parse_device_url
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.serve import example_cell_config

@@ -17,7 +17,7 @@ from elastocal.acquisition.procedures import run_procedures
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main
 from elastocal.errors import InputError
-from elastocal.model.robot import bundled_robot, load_robot
+from elastocal.formats.robot_toml import bundled_robot, load_robot
 from elastocal.identify.static import identify_static
 from elastocal.formats.tables import read_run_table, read_static_table
 from elastocal.sims.cell import CellTruth, SimCell

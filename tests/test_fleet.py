@@ -40,7 +40,7 @@ def _write_cell(folder: pathlib.Path, name: str) -> pathlib.Path:
 @pytest.fixture(scope="session")
 def plant(tmp_path_factory):
     from elastocal.acquisition.logwriter import write_log_from_tables
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.formats.tables import write_static_table
     from elastocal.sims.cell import CellTruth
     from elastocal.sims.static import StaticPlan, simulate_static

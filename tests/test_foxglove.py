@@ -20,7 +20,7 @@ from elastocal.acquisition.export import load_log
 from elastocal.acquisition.logreader import read_log
 from elastocal.formats.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses

@@ -146,7 +146,7 @@ def outputs(tmp_path_factory) -> dict:
 
     from elastocal.compensation.files import write_path
     from elastocal.compensation.ik import yang_path
-    from elastocal.model.robot import load_robot
+    from elastocal.formats.robot_toml import load_robot
 
     d = str(tmp_path_factory.mktemp("golden"))
     result = {}

@@ -8,7 +8,7 @@ import pytest
 
 from elastocal.cli import main
 from elastocal.diagnose.runs import diagnose_runs
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.formats.tables import read_run_table
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import hide_in_runs, simulate_runs

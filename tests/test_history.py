@@ -22,7 +22,7 @@ from elastocal.formats.calibration import (
     file_sha256,
     write_calibration,
 )
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth, SimCell
 
 DAY_NS = 86400 * 10**9

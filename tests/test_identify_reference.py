@@ -18,7 +18,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.formats.tables import StaticTable
 from elastocal.sims.cell import CellTruth

@@ -19,7 +19,7 @@ from elastocal.acquisition.logreader import read_log
 from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.cli import main
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.formats.tables import STATIC_COLUMNS, read_static_table
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses

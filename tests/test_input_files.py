@@ -27,7 +27,7 @@ from elastocal.formats.calibration import (
     read_calibration,
     write_calibration,
 )
-from elastocal.model.robot import bundled_robot, bundled_robot_path, load_robot, parse_robot
+from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path, load_robot, parse_robot
 from elastocal.formats.tables import (
     format_run_table,
     format_static_table,

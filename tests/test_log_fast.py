@@ -25,7 +25,7 @@ from elastocal.acquisition.logreader import LogReader, chunk_messages, read_log
 from elastocal.formats.plan import FrictionSpec, LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.errors import InputError
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses
 

@@ -10,7 +10,7 @@ import pytest
 from elastocal.cli import main
 from elastocal.diagnose.static import diagnose_static
 from elastocal.identify.outliers import find_outliers
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, add_outliers, simulate_static

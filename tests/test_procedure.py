@@ -25,7 +25,7 @@ from elastocal.acquisition.procedures import run_procedures
 from elastocal.acquisition.steps import build_steps
 from elastocal.acquisition.ui import Aborted, AutoUI, TerminalUI, progress_line
 from elastocal.errors import DeviceTimeout, InputError
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses

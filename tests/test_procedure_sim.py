@@ -14,7 +14,7 @@ from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_calibration
 from elastocal.acquisition.ui import Aborted, AutoUI
 from elastocal.cli import main
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.serve import example_cell_config

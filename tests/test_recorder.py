@@ -21,7 +21,7 @@ from elastocal.acquisition.logreader import LogReader, read_log
 from elastocal.acquisition.recorder import Recorder
 from elastocal.cli import main
 from elastocal.errors import InputError
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 
 ROBOT = bundled_robot()
 
@@ -150,7 +150,7 @@ RECORD_SCRIPT = textwrap.dedent("""
     import numpy as np
     from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
     from elastocal.acquisition.procedures import run_calibration
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.sims.serve import example_cell_config
     from elastocal.sims.static import random_poses
 

@@ -11,7 +11,7 @@ from elastocal.cli import main
 from elastocal.diagnose.static import diagnose_static
 from elastocal.diagnose.runs import diagnose_runs
 from elastocal.report.html import render_report
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import HH150_STIFFNESS, CellTruth
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 from elastocal.sims.static import simulate_static

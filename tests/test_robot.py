@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from elastocal.errors import InputError
-from elastocal.model.robot import bundled_robot, parse_robot
+from elastocal.formats.robot_toml import bundled_robot, parse_robot
 
 ROBOT = bundled_robot()
 

@@ -15,7 +15,7 @@ import pytest
 
 from elastocal.cli import main
 from elastocal.diagnose.runs import diagnose_runs
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.runmodel import REFERENCE_STIFFNESS, current_noise
 from elastocal.identify.runs import identify_runs
 from elastocal.sims.cell import CellTruth
@@ -274,7 +274,7 @@ def test_robot_toml_nominal_stiffness_key(tmp_path):
     """[[joint]] stiffness (docs/formats.md §1, optional): parsed, checked, written back; run data
     alone then place the sweeps with it."""
     from elastocal.errors import InputError
-    from elastocal.model.robot import bundled_robot_path, parse_robot
+    from elastocal.formats.robot_toml import bundled_robot_path, parse_robot
 
     text = bundled_robot_path().read_text()
     k = CellTruth().stiffness

@@ -357,7 +357,7 @@ def _virtual_static(n_poses: int = 4):
     import numpy as np
 
     from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.sims.cell import CellTruth, SimCell
     from elastocal.sims.static import random_poses
 
@@ -472,7 +472,7 @@ def _not_hung(table, seed):
     table, the unloaded cell in the measurements."""
     import numpy as np
 
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.sims.cell import CellTruth
     from elastocal.sims.static import StaticPlan, simulate_static
 
@@ -489,7 +489,7 @@ def test_loads_that_changed_nothing_are_refused_and_real_loads_never(tmp_path, c
 
     from elastocal.cli import main
     from elastocal.identify.evidence import LOADS_ALPHA, load_evidence
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.identify.static import build_dataset, identify_static
     from elastocal.formats.tables import write_static_table
     from elastocal.sims.cell import CellTruth
@@ -570,7 +570,7 @@ def test_a_stiffness_the_data_do_not_determine_is_marked_never_a_finding(tmp_pat
     # a compensation with it says so
     from elastocal.compensation.files import write_path
     from elastocal.compensation.ik import yang_path
-    from elastocal.model.robot import load_robot
+    from elastocal.formats.robot_toml import load_robot
 
     write_path(tmp_path / "path.csv", yang_path(load_robot(tmp_path / "robot.toml"), step_m=0.1))
     assert main(["compensate", "--robot", str(tmp_path / "robot.toml"), "--calibration", str(tmp_path / "cal.json"),
@@ -591,7 +591,7 @@ def test_served_cell_rehearsal_calibrates_the_true_stiffness(tmp_path, capsys):
     import numpy as np
 
     from elastocal.cli import main
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.sims.cell import CellTruth
     from elastocal.sims.static import random_poses
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from elastocal.model.effects import get_effect
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static

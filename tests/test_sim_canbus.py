@@ -158,7 +158,7 @@ def test_sync_stats_account_for_every_cycle():
     from elastocal.drivers.config import DriveConfig
     from elastocal.drivers.urls import parse_device_url
     from elastocal.sims.config import SimConfig
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork
     from elastocal.sims.world import SimWorld
 

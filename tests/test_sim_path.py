@@ -10,7 +10,7 @@ import pytest
 from elastocal.cli import main
 from elastocal.compensation.files import read_path
 from elastocal.compensation.ik import yang_path
-from elastocal.model.robot import bundled_robot, load_robot
+from elastocal.formats.robot_toml import bundled_robot, load_robot
 
 
 def test_sim_path_writes_yangs_line_under_the_wrench(tmp_path, capsys):

@@ -7,7 +7,7 @@ import pytest
 
 from elastocal.sims.config import SimConfig
 from elastocal.errors import InputError
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.world import SimWorld
 
 START = (0.0, 0.2, -0.4, 0.0, 0.5, 0.0)
@@ -100,7 +100,7 @@ def test_static_friction_absorbs_part_of_a_load_change(robot):
     # the change of the joints' load torque is that of the rigid statics at the loaded pose
     th10 = robot.theta_links(expected.theta, expected.link_angles)
     q2 = expected.theta[1] - robot.joints[1].offset
-    load = robot.load_torque(th10, np.array(w), cell.truth.compensator, links=True, q2=q2)
+    load = robot.load_torque(th10, np.array(w), cell.truth.compensator, links=True, q_compensator=q2)
     np.testing.assert_allclose(expected.gear_torque + expected.friction_torque, load[[0, 1, 4, 7, 8, 9]],
                                rtol=1e-9, atol=1e-6)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from elastocal.errors import InputError
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, load_wrenches, random_poses, simulate_static

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from elastocal.errors import InputError
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.formats.tables import (
     format_run_table,
     format_static_table,

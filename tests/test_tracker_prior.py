@@ -11,7 +11,7 @@ import pytest
 from elastocal.acquisition.logwriter import write_log_from_tables
 from elastocal.cli import main
 from elastocal.identify.absolute import TRACKER_PRIOR_STD_M
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import DEFAULT_TRACKER, CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
 

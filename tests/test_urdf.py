@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from elastocal.errors import InputError
-from elastocal.model.robot import bundled_robot, bundled_robot_path, load_robot, parse_robot
+from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path, load_robot, parse_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import simulate_static

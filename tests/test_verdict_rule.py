@@ -8,7 +8,7 @@ import pytest
 from elastocal.diagnose.static import diagnose_static
 from elastocal.diagnose.runs import diagnose_runs
 from elastocal.diagnose.verdict import VERDICT_DELTA_BIC, VERDICT_P
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, simulate_static

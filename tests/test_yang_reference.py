@@ -8,7 +8,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 
 DATA = pathlib.Path(__file__).parent / "data" / "yang_hh150_static.csv"
 ROBOT = bundled_robot()

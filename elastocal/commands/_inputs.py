@@ -7,7 +7,8 @@ import pathlib
 from dataclasses import dataclass
 
 from elastocal.errors import InputError
-from elastocal.model.robot import Robot, load_robot
+from elastocal.model.robot import Robot
+from elastocal.formats.robot_toml import load_robot
 from elastocal.formats.tables import RunTable, StaticTable, read_run_table, read_static_table
 
 

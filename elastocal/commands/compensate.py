@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.compensation.trajectory import compensate_path, predicted_residual
     from elastocal.formats.calibration import read_calibration
     from elastocal.commands._outputs import Outputs
-    from elastocal.model.robot import load_robot
+    from elastocal.formats.robot_toml import load_robot
 
     outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot"), (args.calibration, "--calibration"),
                                                 (args.path, "--path")])

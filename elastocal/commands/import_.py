@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         points += read_points(path, layout=args.layout, unit=args.unit, columns=columns)
     robot = None
     if args.robot is not None:
-        from elastocal.model.robot import load_robot
+        from elastocal.formats.robot_toml import load_robot
 
         robot = load_robot(args.robot)
     if args.log is not None:

@@ -148,7 +148,7 @@ def _friction(args: argparse.Namespace, robot=None):
 def run(args: argparse.Namespace) -> int:
     from elastocal.design.planning import plan_calibration
     from elastocal.design import search as dz
-    from elastocal.model.robot import load_robot
+    from elastocal.formats.robot_toml import load_robot
     from elastocal.sims import first_order_map as fom
 
     from elastocal.commands._outputs import Outputs

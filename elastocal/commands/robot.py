@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.commands._outputs import Outputs
     from elastocal.identify.accuracy import calibrated_robot
     from elastocal.formats.calibration import read_calibration
-    from elastocal.model.robot import load_robot, parse_robot
+    from elastocal.formats.robot_toml import load_robot, parse_robot
 
     outputs = Outputs(force=args.force, inputs=[(args.calibration, "--calibration"), (args.robot, "--robot")])
     outputs.add(args.out, "--out")

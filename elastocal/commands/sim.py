@@ -150,7 +150,7 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _robot(args):
-    from elastocal.model.robot import bundled_robot, load_robot
+    from elastocal.formats.robot_toml import bundled_robot, load_robot
 
     return load_robot(args.robot) if args.robot else bundled_robot()
 
@@ -163,7 +163,7 @@ def _path(args: argparse.Namespace) -> int:
     from elastocal.commands._outputs import Outputs, check_folder
     from elastocal.compensation.files import write_path
     from elastocal.compensation.ik import PlannedPath, yang_path
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
 
     wrench = np.array(numbers(args.wrench, (3, 6), "--wrench") + (0.0,) * 3)[:6]
     if not (np.isfinite(args.step) and 0.0005 <= args.step <= 0.1):

@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
 
     from elastocal.acquisition.logwriter import write_log_from_tables
     from elastocal.commands._outputs import Outputs, check_folder
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.sims.cell import CellTruth
     from elastocal.sims.static import StaticPlan, simulate_static
 

@@ -33,7 +33,7 @@ def _row(name: str, stats) -> str:
 def run(args: argparse.Namespace) -> int:
     from elastocal.identify.accuracy import validate
     from elastocal.formats.calibration import read_calibration
-    from elastocal.model.robot import load_robot
+    from elastocal.formats.robot_toml import load_robot
     from elastocal.formats.tables import read_static_table
 
     robot = load_robot(args.robot)

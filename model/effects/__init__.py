@@ -38,10 +38,12 @@ EFFECT_MODULES = {
 ALL_EFFECTS = tuple(EFFECT_MODULES)
 
 
-def get_effect(name: str) -> Effect:
+def get_effect(name: str, robot=None) -> Effect:
+    """The effect ``name``; with ``robot``, its parameters sized for that robot's joints
+    (``k1..kN``; without one, the six-axis table of docs/cli.md)."""
     if name not in EFFECT_MODULES:
         raise InputError(f"unknown effect {name!r}; known: {', '.join(ALL_EFFECTS)}", argument="model")
-    return importlib.import_module(EFFECT_MODULES[name]).EFFECT
+    return importlib.import_module(EFFECT_MODULES[name]).EFFECT.for_robot(robot)
 
 
 def run_effects(part: str | None = None) -> tuple[str, ...]:

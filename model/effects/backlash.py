@@ -20,6 +20,8 @@ from elastocal.model.effects.base import (
     StaticContext,
     diagonal_basis,
     strongest,
+    joint_names,
+    joint_units,
     wrong_sign,
 )
 
@@ -42,7 +44,7 @@ def take_up(tau: np.ndarray) -> np.ndarray:
 
 
 def visible_joints(ctx: StaticContext) -> np.ndarray:
-    """(6,) bool: joints whose play some load state of these data shows."""
+    """(N,) bool: joints whose play some load state of these data shows."""
     frac = take_up(ctx.tau)
     ref = take_up(ctx.tau - ctx.delta_tau)
     loaded = ~ctx.state_is_reference
@@ -102,19 +104,25 @@ def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) 
     return None
 
 
-EFFECT = Effect(
-    name="backlash",
-    parameters=tuple(f"b{j}" for j in range(1, 7)),
-    units=("rad",) * 6,
-    seen_in=("static", "runs"),
-    explanation="a gear has play that shows as a jump when the torque on the joint reverses",
-    evidence="a step in deflection when a load reverses the torque of a joint",
-    static_basis=_basis,
-    static_refusal=_refusal,
-    torque_sensitivity=_sensitivity,
-    describe=_describe,
-    plausibility=_plausibility,
-    static_model="each joint angle gains (b_j/2) tanh(tau_j / 20 N·m) besides the spring's c_j tau_j",
-    run_model="at a direction reversal the motor turns through the play before the link follows; "
-              "it shows in tracked positions, not in currents",
-)
+def make(robot=None) -> Effect:
+    """The effect for ``robot``'s joints (a six-axis revolute arm without one)."""
+    return Effect(
+        name="backlash",
+        parameters=joint_names("b", robot),
+        units=joint_units("rad", "m", robot),
+        seen_in=("static", "runs"),
+        explanation="a gear has play that shows as a jump when the torque on the joint reverses",
+        evidence="a step in deflection when a load reverses the torque of a joint",
+        static_basis=_basis,
+        static_refusal=_refusal,
+        torque_sensitivity=_sensitivity,
+        describe=_describe,
+        plausibility=_plausibility,
+        sized=make,
+        static_model="each joint angle gains (b_j/2) tanh(tau_j / 20 N·m) besides the spring's c_j tau_j",
+        run_model="at a direction reversal the motor turns through the play before the link follows; "
+                  "it shows in tracked positions, not in currents",
+    )
+
+
+EFFECT = make()

@@ -3,8 +3,8 @@
 Every static effect enters the model linearly through three bases evaluated on
 a :class:`StaticContext` (one row per load state ``s`` and per deflection ``d``):
 
-* ``theta``  (S, 6, p): change of the six joint angles of state s per parameter;
-* ``links``  (S, 4, p): rotation of the four link springs (link_compliance);
+* ``theta``  (S, N, p): change of the N joint variables of state s per parameter;
+* ``links``  (S, L, p): rotation of the link model's L passive springs (link_compliance);
 * ``add``    (D, 3, p): a term added to deflection d directly (tracker drift).
 
 The absolute model (identify/absolute.py) needs each state's own positions, not
@@ -16,6 +16,13 @@ change from the reference (the link springs carry the change of the load's
 moment, the drift the time between two readings) declares ``absolute_basis``
 with what the absolute readings carry (the moment of gravity and of the whole
 load, the time since the first reading).
+
+Parameters that exist once per joint (``k1..kN``, ``fc1..fcN``) are sized for the
+robot: an effect module builds its :class:`Effect` with a ``make(robot)`` factory
+(:func:`joint_names`, :func:`joint_units`: a prismatic joint's units are N and m
+where a revolute joint's are N·m and rad), declares it as ``sized``, and its
+module-level ``EFFECT`` is the one of a six-axis revolute arm (the table of
+docs/cli.md); ``get_effect(name, robot)`` gives the robot's own.
 
 An effect the given data cannot show returns the reason from ``static_refusal``;
 the fit then refuses it with that reason instead of reporting a number the data
@@ -51,9 +58,9 @@ import numpy as np
 class StaticContext:
     """Arrays an effect may use to build its static basis."""
 
-    tau: np.ndarray             # (S, 6) absolute gear torque of each state [N·m]
-    delta_tau: np.ndarray       # (S, 6) torque change from the pose's reference (0 for references)
-    delta_link_moment: np.ndarray  # (S, 4) change of the moments at the link springs [N·m]
+    tau: np.ndarray             # (S, N) absolute gear torque of each state [N·m; N for a prismatic joint]
+    delta_tau: np.ndarray       # (S, N) torque change from the pose's reference (0 for references)
+    delta_link_moment: np.ndarray  # (S, L) change of the moments at the link springs [N·m]
     state_is_reference: np.ndarray  # (S,) bool
     deflection_dt: np.ndarray   # (D,) time between the loaded and the reference readings [s]; NaN if unknown
     n_deflections: int
@@ -66,7 +73,7 @@ class StaticContext:
     #: (S, 6) change of the external wrench on the load point from the pose's
     #: reference, base axes (from the wrench columns, or J_f^{-T} dGamma with currents)
     delta_wrench: np.ndarray | None = None
-    #: (S, 6) std of each state's gear torque from current noise [N·m] (None without repeats)
+    #: (S, N) std of each state's gear torque from current noise [N·m] (None without repeats)
     torque_noise: np.ndarray | None = None
     #: (S, 6) the external wrench on the load point of each state, base axes (with currents:
     #: the change from the reference recovered from them, the reference carrying none)
@@ -89,7 +96,7 @@ class SweepContext:
 
     robot: object               # the Robot (model/robot.py)
     q2: np.ndarray              # (n,) compensator coordinate of each mean [rad]
-    theta: np.ndarray           # (n, 6) link-side configuration of each mean (deflected when known)
+    theta: np.ndarray           # (n, N) link-side configuration of each mean (deflected when known)
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,8 +132,8 @@ class StaticBasis:
 
 @dataclass(frozen=True)
 class AbsoluteBasis:
-    """The static bases per state (module docstring): ``theta`` (S, 6, p), ``links``
-    (S, 4, p), ``add`` (S, M, 3, p) added to the base position of each state's markers."""
+    """The static bases per state (module docstring): ``theta`` (S, N, p), ``links``
+    (S, L, p), ``add`` (S, M, 3, p) added to the base position of each state's markers."""
 
     theta: np.ndarray | None = None
     links: np.ndarray | None = None
@@ -158,7 +165,7 @@ class Effect:
     #: the static basis depends on the current estimate (StaticContext.estimate):
     #: the fit rebuilds it at every iteration
     iterative: bool = False
-    #: (context, this effect's parameter values) -> (S, 6) what the effect adds to
+    #: (context, this effect's parameter values) -> (S, N) what the effect adds to
     #: d dtheta / d tau of each state (current noise propagates through it)
     torque_sensitivity: Optional[Callable[[StaticContext, np.ndarray], np.ndarray]] = None
     #: (parameter names, values, stds) of a fit -> the evidence in these data, in words
@@ -193,6 +200,15 @@ class Effect:
     #: "sweep" effects: the joint-2 sweep means -> this effect's SweepTerm, or the
     #: reason these sweeps (or the robot description) cannot hold it
     sweep_term: Optional[Callable[[SweepContext], "SweepTerm | str"]] = None
+    #: robot -> this effect sized for that robot's joints (module docstring); None: the
+    #: parameters do not depend on the robot
+    sized: Optional[Callable[[object], "Effect"]] = None
+
+    def for_robot(self, robot) -> "Effect":
+        """The effect with the parameters of ``robot``'s joints (itself when they do not depend on it)."""
+        if robot is None or self.sized is None or self.selected_from is not None:
+            return self
+        return self.sized(robot)
 
     @property
     def run_prefix(self) -> str:
@@ -253,14 +269,32 @@ class Effect:
                 add = np.zeros((n_states, n_markers, 3, p))
                 add[ds.defl_state, ds.defl_marker] = s.add
             b = AbsoluteBasis(theta=s.theta, links=s.links, add=add)
-        return AbsoluteBasis(theta=np.zeros((n_states, 6, p)) if b.theta is None else b.theta,
-                             links=np.zeros((n_states, 4, p)) if b.links is None else b.links,
+        n_joints, n_springs = ctx.tau.shape[1], ctx.delta_link_moment.shape[1]
+        return AbsoluteBasis(theta=np.zeros((n_states, n_joints, p)) if b.theta is None else b.theta,
+                             links=np.zeros((n_states, n_springs, p)) if b.links is None else b.links,
                              add=np.zeros((n_states, n_markers, 3, p)) if b.add is None else b.add)
 
     def reported(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.report is None:
             return values, np.ones_like(values)
         return self.report(values)
+
+
+#: the joints of the effects' default table (docs/cli.md): a six-axis revolute arm
+DEFAULT_N_JOINTS = 6
+
+
+def joint_names(prefix: str, robot=None) -> tuple[str, ...]:
+    """``prefix1 .. prefixN`` for the robot's N joints (six without a robot)."""
+    n = DEFAULT_N_JOINTS if robot is None else robot.n_joints
+    return tuple(f"{prefix}{j}" for j in range(1, n + 1))
+
+
+def joint_units(revolute: str, prismatic: str, robot=None) -> tuple[str, ...]:
+    """Per joint, the unit of a revolute joint's parameter or of a prismatic joint's."""
+    if robot is None:
+        return (revolute,) * DEFAULT_N_JOINTS
+    return tuple(prismatic if k.value == "prismatic" else revolute for k in robot.joint_kinds)
 
 
 def diagonal_basis(values: np.ndarray) -> np.ndarray:

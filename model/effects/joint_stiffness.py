@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from elastocal.model.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis
+from elastocal.model.effects.base import joint_names, joint_units
 
 
 def _basis(ctx: StaticContext) -> StaticBasis:
@@ -19,17 +20,23 @@ def _report(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return 1.0 / c, -1.0 / c**2
 
 
-EFFECT = Effect(
-    name="joint_stiffness",
-    parameters=tuple(f"c{j}" for j in range(1, 7)),
-    units=("rad/(N*m)",) * 6,
-    seen_in=("static", "runs"),
-    explanation="each joint twists like a torsion spring under the torque it carries",
-    evidence="deflection proportional to the joint torques",
-    static_basis=_basis,
-    report=_report,
-    report_units=("N*m/rad",) * 6,
-    static_model="each joint angle gains c_j tau_j, tau from the currents (xi i) or from J_f^T W",
-    run_model="the joint torques of a slow motion are the load torques the springs carry; "
-              "k enters the run model only through the deflected configuration",
-)
+def make(robot=None) -> Effect:
+    """The effect for ``robot``'s joints (a six-axis revolute arm without one)."""
+    return Effect(
+        name="joint_stiffness",
+        parameters=joint_names("c", robot),
+        units=joint_units("rad/(N*m)", "m/N", robot),
+        seen_in=("static", "runs"),
+        explanation="each joint twists like a torsion spring under the torque it carries",
+        evidence="deflection proportional to the joint torques",
+        static_basis=_basis,
+        report=_report,
+        report_units=joint_units("N*m/rad", "N/m", robot),
+        static_model="each joint angle gains c_j tau_j, tau from the currents (xi i) or from J_f^T W",
+        sized=make,
+        run_model="the joint torques of a slow motion are the load torques the springs carry; "
+                  "k enters the run model only through the deflected configuration",
+    )
+
+
+EFFECT = make()

@@ -43,18 +43,34 @@ from elastocal.model.effects.base import (
     strongest,
     wrong_sign,
 )
-from elastocal.model.robot import LINK_SPRINGS, LOAD_FRAME, MARKER_PREFIX, SPRINGS_IN_LINK_MODEL
+from elastocal.model.robot import LOAD_FRAME, MARKER_PREFIX
 
-#: locations: 0 the base, 1..5 the distal ends of links 1..5 (the flange coincides with the
-#: joint-6 frame of a DH robot, so a spring there would be joint 5 and 6 springs over again)
-LOCATIONS = tuple(range(6))
-PARAMETERS = tuple(f"cl{l}{a}" for l in LOCATIONS for a in "xy")
-#: the components that are passive joints of the link model (exact)
-_IN_LINK_MODEL = {name: k for k, name in enumerate(LINK_SPRINGS)}
+#: the springs a six-axis arm's link model holds (links 2 and 3), for the table without a robot
+_CLASSIC_SPRINGS = ("cl2x", "cl2y", "cl3x", "cl3y")
+
+
+def locations(robot) -> tuple[int, ...]:
+    """0 the base, 1..N-1 the distal ends of links 1..N-1 (the flange coincides with the
+    last joint's frame of a DH robot, so a spring there would be the last joint springs over again)."""
+    return tuple(range(6 if robot is None else robot.n_joints))
+
+
+def parameters(robot) -> tuple[str, ...]:
+    return tuple(f"cl{l}{a}" for l in locations(robot) for a in "xy")
+
+
+def _in_link_model(robot) -> dict[str, int]:
+    """The components that are passive joints of the link model (exact), with their index there."""
+    names = _CLASSIC_SPRINGS if robot is None else robot.link_spring_names
+    return {name: k for k, name in enumerate(names)}
+
+
+#: the six-axis arm's table (docs/cli.md)
+PARAMETERS = parameters(None)
 
 
 def _normal_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    from elastocal.model.robot import _normal_axes as normal
+    from elastocal.model.robot import normal_axes as normal
 
     return normal(axis)
 
@@ -75,9 +91,9 @@ def _frames_at(robot, theta_bytes: bytes):
     theta = np.asarray(theta, dtype=float)
     pin.computeJointJacobians(model, data, theta)
     pin.updateFramePlacements(model, data)
-    origins = np.zeros((len(LOCATIONS), 3))
-    axes = np.zeros((len(LOCATIONS), 2, 3))
-    for l in LOCATIONS:
+    origins = np.zeros((robot.n_joints, 3))
+    axes = np.zeros((robot.n_joints, 2, 3))
+    for l in locations(robot):
         axis_world = data.J[3:, l]               # the axis of joint l+1 in base axes
         frame = pin.SE3.Identity() if l == 0 else data.oMi[l] * model.jointPlacements[l + 1]
         axis_local = frame.rotation.T @ axis_world
@@ -94,16 +110,17 @@ def _frames_at(robot, theta_bytes: bytes):
 
 def _basis(ctx: StaticContext) -> StaticBasis:
     robot, ds = ctx.robot, ctx.dataset
-    p = len(PARAMETERS)
-    links = np.zeros((len(ctx.tau), 4, p))
+    names, exact = parameters(robot), _in_link_model(robot)
+    p = len(names)
+    links = np.zeros((len(ctx.tau), ctx.delta_link_moment.shape[1], p))
     add = np.zeros((ctx.n_deflections, 3, p))
-    for name, k in _IN_LINK_MODEL.items():
-        links[:, k, PARAMETERS.index(name)] = ctx.delta_link_moment[:, k]
+    for name, k in exact.items():
+        links[:, k, names.index(name)] = ctx.delta_link_moment[:, k]
     if robot is None or ds is None or ctx.delta_wrench is None:
         return StaticBasis(links=links, add=add)
-    located = [k for k, name in enumerate(PARAMETERS) if name not in _IN_LINK_MODEL]
-    loc_of = np.array([int(PARAMETERS[k][2]) for k in located])
-    axis_of = np.array(["xy".index(PARAMETERS[k][3]) for k in located])
+    located = [k for k, name in enumerate(names) if name not in exact]
+    loc_of = np.array([int(names[k][2:-1]) for k in located])
+    axis_of = np.array(["xy".index(names[k][-1]) for k in located])
     defl_pose = ds.state_pose[ds.defl_state]
     for pi in range(len(ds.pose_ids)):
         defl = np.flatnonzero(defl_pose == pi)
@@ -125,14 +142,14 @@ def _basis(ctx: StaticContext) -> StaticBasis:
 def gravity_moments(robot, theta: np.ndarray, origins: np.ndarray) -> np.ndarray:
     """(L, 3) moment of the weight of everything beyond each location about its
     origin, base axes [N·m] (the subtree of joint ``l + 1``; zero without masses)."""
-    out = np.zeros((len(LOCATIONS), 3))
+    out = np.zeros((robot.n_joints, 3))
     if not robot.has_masses:
         return out
     model = robot.model
     data = model.createData()
     pin.centerOfMass(model, data, np.asarray(theta, dtype=float), True)     # subtree CoMs in their joint's frame
     g = np.array(robot.gravity)
-    for l in LOCATIONS:
+    for l in locations(robot):
         com = data.oMi[l + 1].act(data.com[l + 1])
         out[l] = np.cross(com - origins[l], data.mass[l + 1] * g)
     return out
@@ -142,23 +159,26 @@ def _absolute_basis(ctx: StaticContext) -> AbsoluteBasis:
     """Per state: the link springs' angles and the located rotations' marker motions
     under the whole moment at each location (module docstring), at the commanded pose."""
     robot, ds = ctx.robot, ctx.dataset
-    p = len(PARAMETERS)
+    names, exact = parameters(robot), _in_link_model(robot)
+    p = len(names)
     n_states, n_markers = len(ctx.tau), len(ds.markers)
-    links = np.zeros((n_states, 4, p))
+    links = np.zeros((n_states, len(robot.springs_in_link_model), p))
     add = np.zeros((n_states, n_markers, 3, p))
-    located = [k for k, name in enumerate(PARAMETERS) if name not in _IN_LINK_MODEL]
-    loc_of = np.array([int(PARAMETERS[k][2]) for k in located])
-    axis_of = np.array(["xy".index(PARAMETERS[k][3]) for k in located])
-    spring_cols = [PARAMETERS.index(name) for name in LINK_SPRINGS]
+    located = [k for k, name in enumerate(names) if name not in exact]
+    loc_of = np.array([int(names[k][2:-1]) for k in located])
+    axis_of = np.array(["xy".index(names[k][-1]) for k in located])
+    spring_cols = [names.index(name) for name in robot.link_spring_names]
+    n_springs = len(spring_cols)
     for pi in range(len(ds.pose_ids)):
         states = np.flatnonzero(ds.state_pose == pi)
         theta = robot.theta(ds.q[pi])
         th10 = robot.theta_links(theta)
-        j_spr = robot.jacobians(th10, [LOAD_FRAME], links=True)[0][:, SPRINGS_IN_LINK_MODEL]
-        g_spr = robot.gravity_torque(th10, links=True)[SPRINGS_IN_LINK_MODEL] if robot.has_masses else np.zeros(4)
+        j_spr = robot.jacobians(th10, [LOAD_FRAME], links=True)[0][:, robot.springs_in_link_model]
+        g_spr = (robot.gravity_torque(th10, links=True)[robot.springs_in_link_model] if robot.has_masses
+                 else np.zeros(n_springs))
         w = ctx.wrench[states]                                          # (n, 6)
         # the load torque of each spring, J^T W - g (docs/formats.md's sign)
-        links[np.ix_(states, np.arange(4), spring_cols)] = (w @ j_spr - g_spr)[:, :, None] * np.eye(4)[None]
+        links[np.ix_(states, np.arange(n_springs), spring_cols)] = (w @ j_spr - g_spr)[:, :, None] * np.eye(n_springs)[None]
         origins, axes, points = location_frames(robot, theta)
         o, u = origins[loc_of], axes[loc_of, axis_of]                    # (K, 3)
         lever = points[LOAD_FRAME][None, :] - o
@@ -180,7 +200,7 @@ def place(location: int) -> str:
 def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> str:
     by_place: dict[int, list[tuple[str, float]]] = {}
     for n, v in zip(names, values):
-        by_place.setdefault(int(n[2]), []).append((n[3], v))
+        by_place.setdefault(int(n[2:-1]), []).append((n[-1], v))
     k = strongest(names, values, stds)
     parts = []
     for loc, comps in sorted(by_place.items()):
@@ -196,23 +216,29 @@ def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) 
     return wrong_sign(names, values, stds, "a compliance")
 
 
-EFFECT = Effect(
-    name="link_compliance",
-    parameters=PARAMETERS,
-    units=("rad/(N*m)",) * len(PARAMETERS),
-    seen_in=("static",),
-    explanation="the structure gives way at the base or in the links, which no joint spring can mimic",
-    evidence="lateral deflection follows the moment the load puts on the base or on a link",
-    static_basis=_basis,
-    absolute_basis=_absolute_basis,
-    describe=_describe,
-    plausibility=_plausibility,
-    selectable=True,
-    # the classic springs first: at a spherical wrist the distal ends of links 3, 4 and 5 are one
-    # point, where link 4's and 5's bending equal joint springs plus link 3's (I - a4 a4' =
-    # a5 a5' + w4 w4'); they count only for what the joint springs and cl2x..cl3y leave
-    priority=tuple(0 if name in _IN_LINK_MODEL else 1 for name in PARAMETERS),
-    static_model="rotations about the two axes normal to the joint axis at the base and at the distal end of "
-                 "each link, cl times the moment of the load change there; the data choose the components",
-    run_model="not in the torque model: link springs change positions, not joint torques",
-)
+def make(robot=None) -> Effect:
+    """The effect for ``robot``'s links (a six-axis arm's without one)."""
+    return Effect(
+        name="link_compliance",
+        parameters=parameters(robot),
+        units=("rad/(N*m)",) * len(parameters(robot)),
+        seen_in=("static",),
+        explanation="the structure gives way at the base or in the links, which no joint spring can mimic",
+        evidence="lateral deflection follows the moment the load puts on the base or on a link",
+        static_basis=_basis,
+        absolute_basis=_absolute_basis,
+        describe=_describe,
+        plausibility=_plausibility,
+        selectable=True,
+        # the classic springs first: at a spherical wrist the distal ends of links 3, 4 and 5 are one
+        # point, where link 4's and 5's bending equal joint springs plus link 3's (I - a4 a4' =
+        # a5 a5' + w4 w4'); they count only for what the joint springs and cl2x..cl3y leave
+        priority=tuple(0 if name in _in_link_model(robot) else 1 for name in parameters(robot)),
+        sized=make,
+        static_model="rotations about the two axes normal to the joint axis at the base and at the distal end of "
+                     "each link, cl times the moment of the load change there; the data choose the components",
+        run_model="not in the torque model: link springs change positions, not joint torques",
+    )
+
+
+EFFECT = make()

@@ -14,24 +14,31 @@ from __future__ import annotations
 import numpy as np
 
 from elastocal.model.effects.base import Effect, StaticContext, wrong_sign
+from elastocal.model.effects.base import joint_names, joint_units
 
 
 def _refusal(ctx: StaticContext) -> str:
     return "friction acts during motion; static data hold no motion (use runs at two loads)"
 
 
-EFFECT = Effect(
-    name="load_dependent_friction",
-    parameters=tuple(f"fl{j}" for j in range(1, 7)),
-    units=("1",) * 6,
-    seen_in=("runs",),
-    explanation="friction grows with the load the gear carries",
-    evidence="the UV/VU current difference grows with the load",
-    static_refusal=_refusal,
-    static_model="none: static readings are taken at rest",
-    run_model="xi i = tau_load - fl_j abs(tau_load_j) sign(dq_j)",
-    run_part="uv/vu",
-    plausibility=lambda names, values, stds: wrong_sign(names, values, stds, "load-dependent friction"),
-    run_column=lambda speed, load: np.abs(load),
-    run_needs="runs under two or more loads",
-)
+def make(robot=None) -> Effect:
+    """The effect for ``robot``'s joints (a six-axis revolute arm without one)."""
+    return Effect(
+        name="load_dependent_friction",
+        parameters=joint_names("fl", robot),
+        units=joint_units("1", "1", robot),
+        seen_in=("runs",),
+        explanation="friction grows with the load the gear carries",
+        evidence="the UV/VU current difference grows with the load",
+        static_refusal=_refusal,
+        static_model="none: static readings are taken at rest",
+        run_model="xi i = tau_load - fl_j abs(tau_load_j) sign(dq_j)",
+        run_part="uv/vu",
+        plausibility=lambda names, values, stds: wrong_sign(names, values, stds, "load-dependent friction"),
+        run_column=lambda speed, load: np.abs(load),
+        sized=make,
+        run_needs="runs under two or more loads",
+    )
+
+
+EFFECT = make()

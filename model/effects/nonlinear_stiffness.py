@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from elastocal.model.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis, strongest
+from elastocal.model.effects.base import joint_names, joint_units
 
 #: a joint shows a torque-dependent stiffness when its torque change and the spread of
 #: the torque it carries over the loads exceed this many torque-noise std
@@ -34,8 +35,9 @@ DEFAULT_TORQUE_NOISE_NM = 1.0
 
 
 def _estimates(ctx: StaticContext) -> tuple[np.ndarray, np.ndarray]:
-    c = np.array([ctx.estimated(f"c{j}") or 0.0 for j in range(1, 7)])
-    phi = np.array([ctx.estimated(f"nl{j}") or 0.0 for j in range(1, 7)])
+    n = ctx.tau.shape[1]
+    c = np.array([ctx.estimated(f"c{j}") or 0.0 for j in range(1, n + 1)])
+    phi = np.array([ctx.estimated(f"nl{j}") or 0.0 for j in range(1, n + 1)])
     return c, phi
 
 
@@ -89,13 +91,14 @@ def _refusal(ctx: StaticContext) -> str | None:
 
 def _report_with_model(names, beta, cov, own: slice):
     """T_j = c_j / phi_j and its std from the covariance of (c_j, phi_j)."""
-    c = beta[:6]
+    n = own.stop - own.start
+    c = beta[:n]
     phi = beta[own]
     safe = np.where(phi != 0, phi, np.nan)
     t = c / safe
-    std = np.empty(6)
+    std = np.empty(n)
     idx = np.arange(own.start, own.stop)
-    for j in range(6):
+    for j in range(n):
         g = np.array([1.0 / safe[j], -c[j] / safe[j] ** 2])   # dT/dc, dT/dphi
         sub = cov[np.ix_([j, idx[j]], [j, idx[j]])]
         std[j] = float(np.sqrt(max(g @ sub @ g, 0.0)))
@@ -109,23 +112,29 @@ def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> s
             f"(its stiffness {'doubles' if values[k] > 0 else 'halves'} at about {abs(values[k]):.3g} N*m)")
 
 
-EFFECT = Effect(
-    name="nonlinear_stiffness",
-    parameters=tuple(f"nl{j}" for j in range(1, 7)),
-    units=("rad/(N*m)^2",) * 6,
-    report_names=tuple(f"T{j}" for j in range(1, 7)),
-    report_units=("N*m",) * 6,
-    seen_in=("static",),
-    explanation="a gear's stiffness changes with the torque it carries (hardening or softening, as gear makers' "
-                "torque-stiffness curves show), so deflection is not proportional to the load",
-    evidence="deflection grows less (or more) than in proportion to the joint torque",
-    static_basis=_basis,
-    static_refusal=_refusal,
-    iterative=True,
-    torque_sensitivity=_sensitivity,
-    describe=_describe,
-    report_with_model=_report_with_model,
-    static_model="each joint angle is c_j sign(tau) ln(1 + |tau|/T_j) T_j instead of c_j tau: stiffness "
-                 "k_j (1 + |tau|/T_j)",
-    run_model="not in the torque model: the spring law changes positions, not joint torques",
-)
+def make(robot=None) -> Effect:
+    """The effect for ``robot``'s joints (a six-axis revolute arm without one)."""
+    return Effect(
+        name="nonlinear_stiffness",
+        parameters=joint_names("nl", robot),
+        units=joint_units("rad/(N*m)^2", "m/N^2", robot),
+        report_names=joint_names("T", robot),
+        report_units=joint_units("N*m", "N", robot),
+        seen_in=("static",),
+        explanation="a gear's stiffness changes with the torque it carries (hardening or softening, as gear makers' "
+                    "torque-stiffness curves show), so deflection is not proportional to the load",
+        evidence="deflection grows less (or more) than in proportion to the joint torque",
+        static_basis=_basis,
+        static_refusal=_refusal,
+        iterative=True,
+        torque_sensitivity=_sensitivity,
+        describe=_describe,
+        report_with_model=_report_with_model,
+        sized=make,
+        static_model="each joint angle is c_j sign(tau) ln(1 + |tau|/T_j) T_j instead of c_j tau: stiffness "
+                     "k_j (1 + |tau|/T_j)",
+        run_model="not in the torque model: the spring law changes positions, not joint torques",
+    )
+
+
+EFFECT = make()

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from elastocal.model.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis, strongest
+from elastocal.model.effects.base import joint_names, joint_units
 
 #: a torque change below this is taken as no change [N·m]
 ZERO_TORQUE_NM = 1e-6
@@ -55,19 +56,25 @@ def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> s
             f"(joint {names[k][2:]} holds back {values[k] * 1e6:.0f} µrad)")
 
 
-EFFECT = Effect(
-    name="static_friction",
-    parameters=tuple(f"us{j}" for j in range(1, 7)),
-    units=("rad",) * 6,
-    seen_in=("static",),
-    explanation="friction in the resting gears holds part of each load, so the arm sags less than the "
-                "force on it says",
-    evidence="force-based deflection short of the load by a constant amount per joint; stiffness too high",
-    static_basis=_basis,
-    static_refusal=_refusal,
-    iterative=True,
-    describe=_describe,
-    static_model="each loaded state's joint angle gains -c_j clip(dtau_j, +-fs_j), fs_j = us_j / c_j "
-                 "(force-based torques only)",
-    run_model="during motion friction is coulomb_friction, viscous_friction and load_dependent_friction",
-)
+def make(robot=None) -> Effect:
+    """The effect for ``robot``'s joints (a six-axis revolute arm without one)."""
+    return Effect(
+        name="static_friction",
+        parameters=joint_names("us", robot),
+        units=joint_units("rad", "m", robot),
+        seen_in=("static",),
+        explanation="friction in the resting gears holds part of each load, so the arm sags less than the "
+                    "force on it says",
+        evidence="force-based deflection short of the load by a constant amount per joint; stiffness too high",
+        static_basis=_basis,
+        static_refusal=_refusal,
+        iterative=True,
+        describe=_describe,
+        sized=make,
+        static_model="each loaded state's joint angle gains -c_j clip(dtau_j, +-fs_j), fs_j = us_j / c_j "
+                     "(force-based torques only)",
+        run_model="during motion friction is coulomb_friction, viscous_friction and load_dependent_friction",
+    )
+
+
+EFFECT = make()

@@ -12,24 +12,31 @@ no motion, so they cannot show it.
 from __future__ import annotations
 
 from elastocal.model.effects.base import Effect, StaticContext, wrong_sign
+from elastocal.model.effects.base import joint_names, joint_units
 
 
 def _refusal(ctx: StaticContext) -> str:
     return "friction acts during motion; static data hold no motion (use runs at two speeds)"
 
 
-EFFECT = Effect(
-    name="viscous_friction",
-    parameters=tuple(f"fv{j}" for j in range(1, 7)),
-    units=("N*m*s/rad",) * 6,
-    seen_in=("runs",),
-    explanation="friction grows with speed",
-    evidence="the UV/VU current difference grows with speed",
-    static_refusal=_refusal,
-    static_model="none: static readings are taken at rest",
-    run_model="xi i = tau_load - fv_j dq_j",
-    run_part="uv/vu",
-    plausibility=lambda names, values, stds: wrong_sign(names, values, stds, "viscous friction"),
-    run_column=lambda speed, load: speed,
-    run_needs="runs at two or more speeds",
-)
+def make(robot=None) -> Effect:
+    """The effect for ``robot``'s joints (a six-axis revolute arm without one)."""
+    return Effect(
+        name="viscous_friction",
+        parameters=joint_names("fv", robot),
+        units=joint_units("N*m*s/rad", "N*s/m", robot),
+        seen_in=("runs",),
+        explanation="friction grows with speed",
+        evidence="the UV/VU current difference grows with speed",
+        static_refusal=_refusal,
+        static_model="none: static readings are taken at rest",
+        run_model="xi i = tau_load - fv_j dq_j",
+        run_part="uv/vu",
+        plausibility=lambda names, values, stds: wrong_sign(names, values, stds, "viscous friction"),
+        run_column=lambda speed, load: speed,
+        sized=make,
+        run_needs="runs at two or more speeds",
+    )
+
+
+EFFECT = make()

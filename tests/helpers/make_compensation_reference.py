@@ -19,7 +19,7 @@ from elastocal.compensation.ik import yang_path
 from elastocal.compensation.model import CompensationModel
 from elastocal.compensation.trajectory import compensate_path, predicted_residual
 from elastocal.identify import kinematics as kin
-from elastocal.model.robot import bundled_robot, bundled_robot_path, load_robot
+from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path, load_robot
 from elastocal.sims.cell import CellTruth
 
 
