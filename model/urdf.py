@@ -96,7 +96,7 @@ def urdf_chain(urdf: UrdfSource, joint_names: Sequence[str], *, source: str) -> 
     names = list(full.names)[1:]
     missing = [n for n in joint_names if n not in names]
     if missing:
-        raise InputError(f"URDF {where} has no movable joint {missing[0]!r}; its movable joints are "
+        raise InputError(f"URDF {where} has no joint {missing[0]!r}; its movable joints are "
                          f"{', '.join(names) or 'none'}", source=source, column="joint.name")
     if len(set(joint_names)) != len(joint_names):
         raise InputError("two [[joint]] tables name the same URDF joint", source=source, column="joint.name")
@@ -107,6 +107,9 @@ def urdf_chain(urdf: UrdfSource, joint_names: Sequence[str], *, source: str) -> 
     if urdf.base_link:
         base_joint, _ = _link_joint(full, urdf.base_link, where=where, source=source, column="base_link")
     tip_path = _ancestors(full, tip_joint)
+    if urdf.tip_link and full.getJointId(joint_names[-1]) not in tip_path:
+        raise InputError(f"tip_link {urdf.tip_link!r} does not move with the last joint {joint_names[-1]!r}",
+                         source=source, column=urdf.tip_column)
     if base_joint and base_joint not in tip_path:
         raise InputError(f"tip_link {urdf.tip_link or joint_names[-1]!r} is not beyond base_link "
                          f"{urdf.base_link!r} in URDF {where}", source=source, column="base_link")
@@ -122,7 +125,7 @@ def urdf_chain(urdf: UrdfSource, joint_names: Sequence[str], *, source: str) -> 
         if absent:
             raise InputError(f"the chain's movable joint {absent[0]!r} has no [[joint]] table; name every movable "
                              f"joint from base to tip: {', '.join(chain_names)}", source=source, column="joint.name")
-        raise InputError(f"the [[joint]] tables must name the chain of URDF {where} from base to tip, in order: "
+        raise InputError(f"the [[joint]] tables must name the serial chain of URDF {where} from base to tip, in order: "
                          f"{', '.join(chain_names)}", source=source, column="joint.name")
     locked = [j for j in range(1, full.njoints) if j not in chain]
     q_neutral = pin.neutral(full)

@@ -201,7 +201,7 @@ def test_a_urdf_chain_joint_without_a_table_is_refused(tmp_path):
     with pytest.raises(InputError, match=r"joint.name.*'elbow' has no \[\[joint\]\] table"):
         _urdf_robot(tmp_path, joints=("lift", "shoulder"))
     with pytest.raises(InputError, match=r"'neck' is not on the chain"):
-        _urdf_robot(tmp_path, joints=("lift", "shoulder", "neck"))
+        _urdf_robot(tmp_path, joints=("lift", "neck", "shoulder", "elbow"))
     text = (f'name = "b"\nurdf = "{tmp_path / "r.urdf"}"\nbase_link = "nowhere"\n'
             '[[joint]]\nname = "lift"\n[tool]\nload_point = [0, 0, 0]\n[tool.markers]\nP = [0, 0, 0]\n')
     with pytest.raises(InputError, match=r"base_link.*no link or frame 'nowhere'"):

@@ -9,6 +9,8 @@ import pathlib
 import numpy as np
 import pytest
 
+from elastocal.model.kinds import JointKind
+
 from elastocal.errors import InputError
 from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path, load_robot, parse_robot
 from elastocal.identify.static import identify_static
@@ -182,10 +184,20 @@ def test_bad_urdf_robots_are_one_line_errors_naming_the_key(tmp_path, mutate, ma
     assert "\n" not in str(err.value) and "robot.toml" in str(err.value)
 
 
-def test_a_prismatic_joint_is_refused(tmp_path):
+def test_a_prismatic_urdf_joint_slides_and_a_planar_one_is_refused(tmp_path):
     xml = DH.to_urdf().replace('<joint name="A6" type="revolute">', '<joint name="A6" type="prismatic">')
-    with pytest.raises(InputError, match=r"'A6'.*not a revolute joint"):
-        parse_robot(urdf_toml(write_urdf(tmp_path, xml)), base_dir=tmp_path)
+    robot = parse_robot(urdf_toml(write_urdf(tmp_path, xml)), base_dir=tmp_path)
+    assert robot.joint_kinds[5] is JointKind.PRISMATIC and robot.joint_kinds[4] is JointKind.REVOLUTE
+    theta = DH.theta(POSES[1])
+    moved = theta.copy()
+    moved[5] += 0.01          # metres now: every marker slides 1 cm along the last axis
+    axis = robot.jacobians(theta, ["R1"])[0][:3, 5]
+    np.testing.assert_allclose(robot.positions(moved, FRAMES) - robot.positions(theta, FRAMES),
+                               np.tile(0.01 * axis, (len(FRAMES), 1)), atol=1e-12)
+    assert np.linalg.norm(axis) == pytest.approx(1.0)
+    planar = DH.to_urdf().replace('<joint name="A6" type="revolute">', '<joint name="A6" type="planar">')
+    with pytest.raises(InputError, match=r"'A6'.*neither revolute nor prismatic"):
+        parse_robot(urdf_toml(write_urdf(tmp_path, planar)), base_dir=tmp_path)
 
 
 def test_a_dh_robot_cannot_name_a_flange():
