@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Mapping
 
+import tomli_w
+
 from elastocal.drivers.registers import (
     CONTROLLER_REGISTERS,
     CONTROLLER_REQUIRED,
@@ -463,75 +465,62 @@ def load_cell_config(path: str | pathlib.Path) -> CellConfig:
 
 
 # -------------------------------------------------------------- writing
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(type(v))
+def _register_table(spec: RegisterSpec, *, default_access: str) -> dict[str, Any]:
+    """A register as its cell.toml table, keys at their default left out."""
+    table: dict[str, Any] = {"address": spec.address, "type": spec.type}
+    defaults = {"count": 1, "scale": 1.0, "unit": "1", "table": "holding", "access": default_access,
+                "word_order": "big", "fault_mask": 0, "ready_mask": 0}
+    for key, default in defaults.items():
+        value = getattr(spec, key)
+        if value != default:
+            table[key] = value
+    return table
 
 
-def _register_toml(spec: RegisterSpec, *, default_access: str) -> str:
-    items = [f"address = {spec.address}", f"type = {_toml_value(spec.type)}"]
-    if spec.count != 1:
-        items.append(f"count = {spec.count}")
-    if spec.scale != 1.0:
-        items.append(f"scale = {spec.scale!r}")
-    if spec.unit != "1":
-        items.append(f"unit = {_toml_value(spec.unit)}")
-    if spec.table != "holding":
-        items.append(f"table = {_toml_value(spec.table)}")
-    if spec.access != default_access:
-        items.append(f"access = {_toml_value(spec.access)}")
-    if spec.word_order != "big":
-        items.append(f"word_order = {_toml_value(spec.word_order)}")
-    if spec.fault_mask:
-        items.append(f"fault_mask = {spec.fault_mask}")
-    if spec.ready_mask:
-        items.append(f"ready_mask = {spec.ready_mask}")
-    return f"{spec.name} = {{ " + ", ".join(items) + " }"
+def _registers(specs: tuple[RegisterSpec, ...]) -> dict[str, Any]:
+    return {r.name: _register_table(r, default_access="read") for r in specs}
 
 
-def _to_toml(c: CellConfig) -> str:
+def _document(c: CellConfig) -> dict[str, Any]:
+    """The configuration as the table cell.toml holds (read back by :func:`parse_cell_config`)."""
     robot = c.robot
     if "/" in robot or robot.endswith(".toml"):
         robot = str(c.robot_path().resolve())
-    lines = ["[cell]", f"name = {_toml_value(c.name)}", f"robot = {_toml_value(robot)}"]
+    cell: dict[str, Any] = {"name": c.name, "robot": robot}
     if c.history is not None:
-        lines.append(f"history = {_toml_value(str(c.history))}")
+        cell["history"] = str(c.history)
     if c.plan is not None:
-        lines.append(f"plan = {_toml_value(str(c.plan.resolve()))}")
+        cell["plan"] = str(c.plan.resolve())
+    doc: dict[str, Any] = {"cell": cell}
+    drives = []
     for d in c.drives:
-        lines += ["", "[[drive]]", f"joint = {d.joint}", f"url = {_toml_value(d.url.text)}",
-                  f"rate_hz = {d.rate_hz!r}", f"timeout_s = {d.timeout_s!r}", f"retries = {d.retries}",
-                  f"max_current_a = {d.max_current_a!r}"]
+        table: dict[str, Any] = {"joint": d.joint, "url": d.url.text, "rate_hz": d.rate_hz,
+                                 "timeout_s": d.timeout_s, "retries": d.retries, "max_current_a": d.max_current_a}
         if d.registers:
-            lines.append("[drive.registers]")
-            lines += [_register_toml(r, default_access="read") for r in d.registers]
+            table["registers"] = _registers(d.registers)
+        drives.append(table)
+    if drives:
+        doc["drive"] = drives
     if c.tracker is not None:
         t = c.tracker
-        lines += ["", "[tracker]", f"url = {_toml_value(t.url.text)}", f"markers = {_toml_value(list(t.markers))}",
-                  f"rate_hz = {t.rate_hz!r}", f"timeout_s = {t.timeout_s!r}", f"retries = {t.retries}"]
+        doc["tracker"] = {"url": t.url.text, "markers": list(t.markers), "rate_hz": t.rate_hz,
+                          "timeout_s": t.timeout_s, "retries": t.retries}
         if t.base_p_tracker is not None:
-            lines.append(f"base_p_tracker = {_toml_value(list(t.base_p_tracker))}")
+            doc["tracker"]["base_p_tracker"] = list(t.base_p_tracker)
     if c.controller is not None:
         k = c.controller
-        lines += ["", "[controller]", f"url = {_toml_value(k.url.text)}", f"timeout_s = {k.timeout_s!r}",
-                  f"retries = {k.retries}", f"move_timeout_s = {k.move_timeout_s!r}", "[controller.registers]"]
-        lines += [_register_toml(r, default_access="read") for r in k.registers]
+        controller: dict[str, Any] = {"url": k.url.text, "timeout_s": k.timeout_s, "retries": k.retries,
+                                      "move_timeout_s": k.move_timeout_s, "registers": _registers(k.registers)}
         if k.poses:
-            lines.append("[controller.poses]")
-            lines += [f'"{n}" = {_toml_value(list(q))}' for n, q in k.poses]
-        for p in k.paths:
-            lines += ["[[controller.path]]", f"id = {p.id}", f"u = {_toml_value(list(p.u))}",
-                      f"v = {_toml_value(list(p.v))}", f"speed_rad_s = {p.speed_rad_s!r}"]
+            controller["poses"] = {str(n): list(q) for n, q in k.poses}
+        if k.paths:
+            controller["path"] = [{"id": p.id, "u": list(p.u), "v": list(p.v), "speed_rad_s": p.speed_rad_s}
+                                  for p in k.paths]
+        doc["controller"] = controller
     if c.sim:
-        lines += ["", "[sim]"]
-        lines += [f"{name} = {_toml_value(value)}" for name, value in c.sim.items()]
-    return "\n".join(lines) + "\n"
+        doc["sim"] = {name: list(v) if isinstance(v, tuple) else v for name, v in c.sim.items()}
+    return doc
+
+
+def _to_toml(c: CellConfig) -> str:
+    return tomli_w.dumps(_document(c))

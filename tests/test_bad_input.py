@@ -481,11 +481,14 @@ def test_a_check_without_terminal_runs_unattended(data, tmp_path, capsys, monkey
     hang the load, are skipped and said so; the friction runs are checked; nothing is asked."""
     from elastocal.sims.serve import example_cell_config
 
+    from dataclasses import replace
+
     config = example_cell_config()
-    text = config.to_toml().replace("rate_hz = 1000.0", "rate_hz = 200.0")
-    text = text.replace("u = [-0.5, 0.2, -0.6, -0.3, 0.4, -0.2]\nv = [0.5, 0.5, -0.3, 0.3, 0.7, 0.3]",
-                        "u = [-0.2, 0.3, -0.5, -0.1, 0.6, -0.1]\nv = [0.0, 0.4, -0.4, 0.1, 0.7, 0.1]")
-    (tmp_path / "cell.toml").write_text(text)
+    config = replace(config, drives=tuple(replace(d, rate_hz=200.0) for d in config.drives),
+                     controller=replace(config.controller, paths=tuple(
+                         replace(p, u=(-0.2, 0.3, -0.5, -0.1, 0.6, -0.1), v=(0.0, 0.4, -0.4, 0.1, 0.7, 0.1))
+                         if p.u == (-0.5, 0.2, -0.6, -0.3, 0.4, -0.2) else p for p in config.controller.paths)))
+    (tmp_path / "cell.toml").write_text(config.to_toml())
     (tmp_path / "plan.toml").write_text(_check_plan())
     doc = json.loads((data / "cal.json").read_text())
     for j in range(1, 7):
