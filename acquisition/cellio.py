@@ -86,6 +86,11 @@ class CellIO(abc.ABC):
         """Samples acquired over the next ``duration_s`` (drives, and the tracker
         measuring ``markers``); returns after about ``duration_s``."""
 
+    def motion_reported(self) -> str | None:
+        """What says the robot moves (e.g. "the cell controller reports a motion"), None when
+        nothing does; the joints' own speeds are judged from the samples."""
+        return None if self.move_done() else "a move is running"
+
     def world(self) -> LoadWorld | None:
         """The simulated world to hang loads in, None for a real cell."""
         return None

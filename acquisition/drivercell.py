@@ -35,6 +35,13 @@ class SimWorldLoads:
     def __init__(self, world) -> None:
         self._world = world
 
+    @classmethod
+    def of(cls, world) -> LoadWorld | None:
+        """``world`` as a :class:`LoadWorld` (one already, or a simulated world to wrap; None stays None)."""
+        if world is None or hasattr(world, "hang"):
+            return world
+        return cls(world)
+
     def hang(self, wrench: Sequence[float] | None) -> None:
         if wrench is None:
             self._world.remove_load()
@@ -66,7 +73,7 @@ class DriverCellIO(CellIO):
         if controller is None:
             raise InputError("the guided procedure needs a [controller] to move the robot", source=config.source,
                              column="controller")
-        self._world = SimWorldLoads(world) if world is not None else None
+        self._world = SimWorldLoads.of(world)
         self._tracker_period_s = 1.0 / config.tracker.rate_hz if config.tracker is not None else 0.01
         self._selected: str | None = None
         self._worker: threading.Thread | None = None
@@ -130,6 +137,13 @@ class DriverCellIO(CellIO):
             error, self._worker_error = self._worker_error, None
             raise error
         return True
+
+    def motion_reported(self) -> str | None:
+        if self._worker is not None and self._worker.is_alive():
+            return "a move is running"
+        if self._controller.status().busy:
+            return "the cell controller reports a motion (busy)"
+        return None
 
     def world(self) -> LoadWorld | None:
         return self._world

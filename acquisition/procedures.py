@@ -160,13 +160,15 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
             session.load_state = UNLOADED
             session.event("unattended", text="no person at the cell: the cell is taken as unloaded; skipped "
                                              + ("; ".join(skipped) or "nothing"))
+        for step in steps:          # the steps the resumed log did count as done from the start
+            if step.id in done_before:
+                session.skip_step(step, took_s.get(step.id))
         try:
             if remaining and not unattended:
                 session.confirm(f"the robot will run {len(remaining)} step(s) of {', '.join(procs)}; "
                                 f"clear the cell")
             for index, step in enumerate(steps):
                 if step.id in done_before:
-                    session.skip_step(step, took_s.get(step.id))
                     continue
                 session.begin_step(index, step)
                 step.action(session)
@@ -211,18 +213,18 @@ def _robot_text(robot, robot_path) -> str:
 
 
 def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, yes: bool = True,
-                    ui: OperatorUI | None = None, world=None, simulate: bool = False,
+                    ui: OperatorUI | None = None, world=None,
                     procedures: Sequence[str] | None = None, resume_from: str | pathlib.Path | None = None,
                     overwrite: bool = False, unattended: bool = False) -> Outcome:
     """The guided calibration of the cell ``cell_config`` (a
     :class:`elastocal.drivers.config.CellConfig`) by ``plan``, recorded to ``out_path``.
 
     The devices are opened from the config (``elastocal.drivers.open_cell``).
-    ``simulate=True`` first serves the cell's simulated devices in this process
-    (``elastocal.sims.serve.SimulatedCell``, from the config's ``[sim]``) and
-    hangs the loads in its world; ``world`` gives that world directly when the
-    caller already serves the devices. ``yes`` answers every prompt
-    automatically (``ui`` defaults to a silent :class:`AutoUI`; otherwise a
+    ``world`` is where a simulated cell hangs its loads: a
+    :class:`~elastocal.acquisition.cellio.LoadWorld` (``hang``), or a simulated world
+    with ``set_load``/``remove_load``; the caller that serves the simulated cell (or
+    opens a served cell's load rig) passes it, None for a real cell. ``yes`` answers
+    every prompt automatically (``ui`` defaults to a silent :class:`AutoUI`; otherwise a
     :class:`TerminalUI`) and is refused for a real cell, where a person must
     confirm each load change.
     """
@@ -234,29 +236,17 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
 
     if ui is None:
         ui = AutoUI(quiet=True) if yes else TerminalUI()
+    if yes and world is None:
+        raise InputError((Arg("yes"), " answers the prompts of a simulated cell only; a person confirms every "
+                          "load change on a real cell"), argument="yes")
     robot_path = cell_config.robot_path()
     robot = cell_config.load_robot()
     plan.validate_for(robot)
     _procedures(plan, procedures)
     _check_out(out_path, overwrite, resume_from)
     with contextlib.ExitStack() as stack:
-        config = cell_config
-        if simulate:
-            from elastocal.sims.serve import SimulatedCell
-
-            sim = stack.enter_context(SimulatedCell(cell_config))
-            config, world = sim.config, sim.world
-        elif world is None:     # a cell `sim serve` serves: its load rig hangs the loads the operator confirms
-            from elastocal.sims.load_rig import served_loads
-
-            rig = served_loads(cell_config)
-            if rig is not None:
-                world = stack.enter_context(rig)
-        if yes and world is None:
-            raise InputError((Arg("yes"), " answers the prompts of a simulated cell only; a person confirms every "
-                              "load change on a real cell"), argument="yes")
-        devices = stack.enter_context(open_cell(config))
-        io = stack.enter_context(DriverCellIO(robot, config, drives=list(devices.drives.values()),
+        devices = stack.enter_context(open_cell(cell_config))
+        io = stack.enter_context(DriverCellIO(robot, cell_config, drives=list(devices.drives.values()),
                                               tracker=devices.tracker, controller=devices.controller,
                                               world=world))
         return run_procedures(io, plan, out_path, ui=ui, procedures=procedures, resume_from=resume_from,

@@ -16,7 +16,7 @@ from elastocal.formats.plan import UNLOADED, Plan, PoseSpec
 from elastocal.acquisition.recorder import Recorder
 from elastocal.acquisition.steps import Step
 from elastocal.acquisition.ui import Aborted, OperatorUI
-from elastocal.errors import DeviceTimeout
+from elastocal.errors import DeviceTimeout, NotAtRest
 
 
 #: extra time allowed for a move beyond its nominal duration before giving up [s]
@@ -33,6 +33,14 @@ READING_RETRIES = 3
 
 #: how often progress is redrawn during a step [s]
 PROGRESS_EVERY_S = 0.5
+
+
+#: standstill before a prompt: the controller reports no motion and every joint is slower than
+#: STANDSTILL_SPEED_RAD_S (its reported speed and its position span over the window) for STANDSTILL_S
+STANDSTILL_SPEED_RAD_S = 2e-3
+STANDSTILL_S = 0.5
+#: the longest wait for standstill before a prompt; then the procedure stops with a NotAtRest fault [s]
+STANDSTILL_TIMEOUT_S = 120.0
 
 
 # ------------------------------------------------------------------ settle
@@ -129,6 +137,9 @@ class Session:
         self.step_index = -1
         self.step: Step | None = None
         self.detector = SettleDetector(plan.settle.speed_rad_s, plan.settle.spread_m, plan.settle.window_s)
+        self.standstill = SettleDetector(STANDSTILL_SPEED_RAD_S, math.inf, STANDSTILL_S)
+        self.standstill.reset(io.clock())
+        self.n_joints = len(self.robot.joints)
         self.started_ns = io.clock()
         self._step_started_ns = self.started_ns
         self._spent_s = 0.0         # time of the steps done in this session
@@ -157,6 +168,7 @@ class Session:
         for g in samples.gaps:
             self.event("gap", device=g.device, window_ns=[g.start_ns, g.end_ns], missing=g.missing, text=g.reason)
         self.detector.add(samples)
+        self.standstill.add(samples)
         for d in samples.drives:
             if d.t_ns > self._latest_drive_ns.get(d.joint, -1):
                 self._latest_drive_ns[d.joint] = d.t_ns
@@ -175,9 +187,10 @@ class Session:
         so a reading's window is complete in the log before its step ends. A
         silent drive raises from its own stream first; this limit is a backstop."""
         t0 = self.io.clock()
-        while len(self._latest_drive_ns) < 6 or min(self._latest_drive_ns.values()) < t_ns:
+        joints = range(1, self.n_joints + 1)
+        while len(self._latest_drive_ns) < self.n_joints or min(self._latest_drive_ns.values()) < t_ns:
             if (self.io.clock() - t0) * 1e-9 > timeout_s:
-                late = [j for j in range(1, 7) if self._latest_drive_ns.get(j, -1) < t_ns]
+                late = [j for j in joints if self._latest_drive_ns.get(j, -1) < t_ns]
                 raise DeviceTimeout(f"drive(s) {', '.join(f'J{j}' for j in late)} sent no sample for "
                                     f"{timeout_s:g} s")
             self.poll([], 0.005)
@@ -227,14 +240,49 @@ class Session:
 
     # ------------------------------------------------------------ operator
     def confirm(self, text: str, load_id: str | None = None) -> None:
-        """Ask the operator (``load_id``: the prompt changes that load, whose name answers it too)."""
-        self.event("prompt", text=text)
+        """Ask the operator (``load_id``: the prompt changes that load, whose name answers it too),
+        once the robot stands still (:meth:`wait_standstill`). The answer is logged with who gave
+        it (``source``) and how long after the prompt was shown (``delay_s``)."""
+        self.wait_standstill(text)
+        shown = self.event("prompt", text=text)
+        source = self.ui.answer_source
         try:
             answer = self.ui.confirm(text) if load_id is None else self.ui.confirm_load(text, load_id)
         except Aborted:
-            self.event("answer", text=text, answer="abort", automatic=self.ui.automatic)
+            self.event("answer", text=text, answer="abort", automatic=self.ui.automatic, source=source,
+                       delay_s=(self.io.clock() - shown) * 1e-9)
             raise
-        self.event("answer", text=text, answer=answer, automatic=self.ui.automatic)
+        self.event("answer", text=text, answer=answer, automatic=self.ui.automatic, source=source,
+                   delay_s=(self.io.clock() - shown) * 1e-9)
+
+    def wait_standstill(self, before: str) -> None:
+        """Wait until the controller reports no motion and every joint has been slower than
+        :data:`STANDSTILL_SPEED_RAD_S` for :data:`STANDSTILL_S`; say why to the operator when it
+        takes longer than one window; :class:`~elastocal.errors.NotAtRest` after
+        :data:`STANDSTILL_TIMEOUT_S`."""
+        t0 = self.io.clock()
+        told = False
+        while True:
+            busy = self.io.motion_reported()
+            now = self.io.clock()
+            if busy:
+                self.standstill.reset(now)      # the window counts from when the controller is idle
+            ok, speed, _ = self.standstill.status(now, ())
+            waited = (now - t0) * 1e-9
+            if ok and not busy:
+                self.event("standstill", settled=True, duration_s=waited, max_speed_rad_s=speed)
+                return
+            why = busy or (f"a joint moves at {speed:.3g} rad/s (limit {STANDSTILL_SPEED_RAD_S:g})"
+                           if speed is not None and speed >= STANDSTILL_SPEED_RAD_S else "checking the drives")
+            if waited > STANDSTILL_TIMEOUT_S:
+                self.event("standstill", settled=False, duration_s=waited, max_speed_rad_s=speed, text=why)
+                raise NotAtRest(f"the robot did not stand still within {STANDSTILL_TIMEOUT_S:g} s ({why}); "
+                                f"nothing was asked ({before!r}); make sure the cell is at rest")
+            if not told and (busy or waited >= STANDSTILL_S):
+                told = True
+                self.ui.message(f"waiting for the robot to stand still before the next prompt: {why} "
+                                f"(at most {STANDSTILL_TIMEOUT_S:g} s)")
+            self.poll([], 0.02)
 
     def wrench(self, load_id: str) -> tuple[float, ...]:
         spec = self.plan.load(load_id)
@@ -268,6 +316,7 @@ class Session:
         """Move to ``q`` and wait for the controller to report the move done."""
         self.io.start_move(q, speed_rad_s)
         self.detector.reset(self.io.clock())
+        self.standstill.reset(self.io.clock())
         self._wait_move(q, speed_rad_s, markers)
 
     def _wait_move(self, q: Sequence[float], speed_rad_s: float, markers: Sequence[str]) -> None:
@@ -366,6 +415,7 @@ class Session:
         self.event("run_start", run=run_id, direction=direction, load=load_id, wrench=list(self.wrench(load_id)),
                    speed_rad_s=speed_rad_s, marker=marker, joint=joint, q=list(target))
         self.io.start_run(start, target, speed_rad_s)
+        self.standstill.reset(self.io.clock())
         self._wait_move(target, speed_rad_s, markers)
         self.event("run_end", run=run_id, direction=direction)
 

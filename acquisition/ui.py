@@ -45,6 +45,8 @@ class OperatorUI(abc.ABC):
 
     #: True when prompts are answered without a person (--yes)
     automatic: bool = False
+    #: who answers the prompts, as the log records it with each answer
+    answer_source: str = "operator"
 
     @abc.abstractmethod
     def message(self, text: str) -> None:
@@ -67,6 +69,20 @@ class OperatorUI(abc.ABC):
 
     def close(self) -> None:
         """End the progress display."""
+
+
+class NotATerminal(Exception):
+    """The standard input is not a terminal: nobody can be asked."""
+
+
+#: why a prompt is never answered from a pipe or a file
+NOT_A_TERMINAL = ("the standard input is not a terminal (a pipe or a file): prompts are answered by a person "
+                  "at the terminal")
+
+
+def stdin_is_terminal() -> bool:
+    """True when the standard input is a terminal (a person can answer prompts there)."""
+    return TerminalUI._stdin_fd() is not None
 
 
 ABORT_WORDS = ("a", "abort", "q", "quit")
@@ -92,6 +108,8 @@ class TerminalUI(OperatorUI):
     * before every prompt, input typed ahead is discarded (``termios.tcflush``
       on a terminal; ``flush_input`` replaces it): only a key pressed after
       the prompt was shown answers it;
+    * only a terminal answers: a pipe or a file on the standard input answers
+      nothing (the first prompt aborts the procedure, :data:`NOT_A_TERMINAL`);
     * the answer must be deliberate: ``yes`` (or, for a load change, the
       load's name), then Enter; a bare Enter asks again;
     * a prompt that waits stays the last thing on the screen: output while it
@@ -100,9 +118,14 @@ class TerminalUI(OperatorUI):
     """
 
     def __init__(self, stream: TextIO | None = None, read_line: Callable[[], str] | None = None,
-                 flush_input: Callable[[], None] | None = None) -> None:
+                 flush_input: Callable[[], None] | None = None, source: str | None = None) -> None:
         self.stream = stream if stream is not None else sys.stderr
         self._read_line = read_line if read_line is not None else self._stdin_line
+        if source is None:
+            fd = self._stdin_fd() if read_line is None else None
+            source = ("read_line" if read_line is not None else
+                      f"terminal {os.ttyname(fd)}" if fd is not None else "no terminal")
+        self.answer_source = source
         if flush_input is None:
             flush_input = (lambda: None) if read_line is not None else self._flush_stdin
         self._flush_input = flush_input
@@ -129,11 +152,8 @@ class TerminalUI(OperatorUI):
     @classmethod
     def _stdin_line(cls) -> str:
         fd = cls._stdin_fd()
-        if fd is None:
-            line = sys.stdin.readline()
-            if line == "":
-                raise EOFError
-            return line
+        if fd is None:      # a pipe or a file answers nothing: a person at a terminal does
+            raise NotATerminal(NOT_A_TERMINAL)
         # on a terminal, straight from the descriptor: nothing typed ahead waits in a Python buffer
         data = b""
         while not data.endswith(b"\n"):
@@ -201,6 +221,9 @@ class TerminalUI(OperatorUI):
                 finally:
                     with self._lock:
                         self._waiting = None
+            except NotATerminal:
+                self.stream.write("\n")
+                raise Aborted(f"{NOT_A_TERMINAL}; aborted at: {text}") from None
             except (EOFError, KeyboardInterrupt):
                 self.stream.write("\n")
                 raise Aborted(f"aborted by the operator at: {text}") from None
@@ -228,7 +251,7 @@ class AutoUI(TerminalUI):
 
     def __init__(self, stream: TextIO | None = None, *, quiet: bool = False,
                  answered_by: str = "answered automatically") -> None:
-        super().__init__(stream)
+        super().__init__(stream, read_line=lambda: "yes", source=answered_by)
         self.quiet = quiet
         self.answered_by = answered_by
         self.prompts: list[str] = []

@@ -32,6 +32,7 @@ from elastocal.drivers.registers import (
     _check_overlaps,
     _register,
 )
+from elastocal.drivers.endpoints import check_endpoints
 from elastocal.drivers.urls import CONTROLLER_SCHEMES, DRIVE_SCHEMES, TRACKER_SCHEMES, DeviceUrl, parse_device_url
 from elastocal.errors import InputError, check_known_keys
 from elastocal.formats.textfiles import read_text_file
@@ -440,9 +441,11 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
     if not isinstance(sim, Mapping):
         raise InputError("expected a table", source=source, column="sim")
     sim = MappingProxyType(dict(sim))
-    return CellConfig(name=str(name), robot=robot, drives=tuple(sorted(drives, key=lambda d: d.joint)),
-                      tracker=tracker, controller=controller, history=history_path, sim=sim, plan=plan_path,
-                      source=source, base_dir=base_dir)
+    config = CellConfig(name=str(name), robot=robot, drives=tuple(sorted(drives, key=lambda d: d.joint)),
+                        tracker=tracker, controller=controller, history=history_path, sim=sim, plan=plan_path,
+                        source=source, base_dir=base_dir)
+    check_endpoints(_cell_devices(config), source=source)
+    return config
 
 
 def _check_can_nodes(drives: tuple[DriveConfig, ...], *, source: str) -> None:
@@ -455,6 +458,15 @@ def _check_can_nodes(drives: tuple[DriveConfig, ...], *, source: str) -> None:
             raise InputError(f"joints {seen[key]} and {d.joint} use the same CAN node {key[2]} on "
                              f"{key[0]}/{key[1]}", source=source, column="drive")
         seen[key] = d.joint
+
+
+def _cell_devices(config: CellConfig) -> list[tuple[str, DeviceUrl, tuple[RegisterSpec, ...]]]:
+    out = [(d.name, d.url, d.registers) for d in config.drives]
+    if config.tracker is not None:
+        out.append(("tracker", config.tracker.url, ()))
+    if config.controller is not None:
+        out.append(("controller", config.controller.url, config.controller.registers))
+    return out
 
 
 def load_cell_config(path: str | pathlib.Path) -> CellConfig:

@@ -68,13 +68,12 @@ class ModbusCellController(CellController):
         for name, value in params.items():
             spec = self._writable(name)
             values = list(value) if isinstance(value, tuple) else [value]
-            writes.append((spec, encode(spec, values)))
-        command_spec = self._writable("command")
-        sequence_spec = self._writable("sequence")
-        writes.append((command_spec, encode(command_spec, [command])))
-        writes.append((sequence_spec, encode(sequence_spec, [sequence])))
-        for spec, regs in writes:   # the sequence number goes last: it is the strobe
-            self.link.write(spec.address, regs, unit=self.unit)
+            encode(spec, values)            # a value that does not fit is refused before anything is written
+            writes.append((spec, values))
+        writes.append((self._writable("command"), [command]))
+        writes.append((self._writable("sequence"), [sequence]))
+        for spec, values in writes:   # the sequence number goes last: it is the strobe
+            self.link.write_spec(spec, values, unit=self.unit)
 
     def _close(self) -> None:
         self._release_link()

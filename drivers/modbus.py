@@ -152,7 +152,15 @@ class ModbusLink:
         return {s.name: decode(s, [raw[(s.table, a)] for a in range(s.address, s.address + s.n_registers)])
                 for s in specs}
 
-    def write(self, address: int, registers: Sequence[int], *, unit: int) -> None:
+    def write_spec(self, spec: RegisterSpec, values: Sequence[float], *, unit: int) -> None:
+        """Write SI ``values`` to the register ``spec`` of the map; refused before anything is sent
+        unless the map declares it writable (``access = "write"``): the one way elastocal writes."""
+        if spec.access != "write":
+            raise InputError(f"modbus {self.where}: register {spec.name!r} (unit {unit}) is not declared "
+                             "writable (access = 'write'); nothing was written")
+        self._write_registers(spec.address, encode(spec, values), unit=unit)
+
+    def _write_registers(self, address: int, registers: Sequence[int], *, unit: int) -> None:
         regs = list(registers)
         if len(regs) == 1:
             self._execute(f"write register {address} (unit {unit})", self.client.write_register, address,

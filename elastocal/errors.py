@@ -154,6 +154,11 @@ class DeviceFault(DeviceError):
     """A device reports a fault state (drive fault, beam broken, ...)."""
 
 
+class NotAtRest(DeviceFault):
+    """The robot did not come to a standstill (controller idle, joints still) before a prompt:
+    nothing was asked, the procedure stopped."""
+
+
 class ProtocolError(DeviceError):
     """A device sent bytes that do not follow its protocol."""
 

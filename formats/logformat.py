@@ -124,7 +124,7 @@ SCHEMAS: dict[str, dict] = {
             "kind": {"type": "string", "enum": [
                 "procedure_start", "procedure_end", "step_start", "step_done", "pose", "load",
                 "settle", "hold_start", "reading", "hold_end", "run_start", "run_end",
-                "prompt", "answer", "fault", "gap", "resume", "unattended"]},
+                "prompt", "answer", "fault", "gap", "resume", "unattended", "standstill"]},
             "procedure": {"type": "string"},
             "step": {"type": "integer", "description": "0-based index of the step in the procedure"},
             "step_id": {"type": "string"},
@@ -151,6 +151,8 @@ SCHEMAS: dict[str, dict] = {
             "text": {"type": "string", "description": "prompt text or fault message"},
             "answer": {"type": "string"},
             "automatic": {"type": "boolean", "description": "answered by --yes, not by a person"},
+            "source": {"type": "string", "description": "who answered a prompt: 'terminal /dev/pts/N', '--yes'"},
+            "delay_s": {"type": "number", "description": "time from a prompt to its answer [s]"},
             "error": {"type": "string", "description": "error type of a fault"},
             "status": {"type": "string", "enum": ["completed", "aborted", "failed"]},
             "device": {"type": "string", "description": "device of a gap"},

@@ -80,5 +80,18 @@ def _sim(t: Mapping, *, source: str) -> SimConfig:
 
 
 def sim_config(config) -> SimConfig:
-    """The validated ``[sim]`` section of a :class:`~elastocal.drivers.config.CellConfig`."""
-    return _sim(config.sim, source=config.source)
+    """The validated ``[sim]`` section of a :class:`~elastocal.drivers.config.CellConfig`; a
+    ``load_url`` is a modbus+tcp URL on 127.0.0.1 that shares no register with the cell's devices."""
+    sim = _sim(config.sim, source=config.source)
+    if sim.load_url:
+        from elastocal.drivers.config import _cell_devices
+        from elastocal.drivers.endpoints import check_endpoints
+        from elastocal.drivers.load_rig import LOOPBACK, WRENCH
+        from elastocal.drivers.urls import parse_device_url
+
+        url = parse_device_url(sim.load_url, allowed=("modbus+tcp",), source=f"{config.source}, sim.load_url")
+        if url.host not in LOOPBACK:
+            raise InputError(f"{url.text}: a simulated cell's load rig is on 127.0.0.1", source=config.source,
+                             column="sim.load_url")
+        check_endpoints([*_cell_devices(config), ("load rig", url, (WRENCH,))], source=config.source)
+    return sim

@@ -295,13 +295,15 @@ class ModbusServerThread:
     ``tcp=(host, port)`` (port 0: ephemeral) or ``serial=path``."""
 
     def __init__(self, devices: Sequence[SimDevice], *, tcp: tuple[str, int] | None = None,
-                 serial: str | None = None, baudrate: int = 115200) -> None:
+                 serial: str | None = None, baudrate: int = 115200,
+                 identity: ModbusDeviceIdentification | None = None) -> None:
         if (tcp is None) == (serial is None):
             raise ValueError("give exactly one of tcp= and serial=")
         self._devices = list(devices)
         self._tcp = tcp
         self._serial = serial
         self._baudrate = baudrate
+        self._identity = identity
         self._loop: asyncio.AbstractEventLoop | None = None
         self._server = None
         self._thread: threading.Thread | None = None
@@ -365,11 +367,11 @@ class ModbusServerThread:
 
     async def _serve(self) -> None:
         if self._tcp is not None:
-            self._server = ModbusTcpServer(self._devices, address=self._tcp, identity=identity(),
+            self._server = ModbusTcpServer(self._devices, address=self._tcp, identity=self._identity or identity(),
                                            trace_packet=self._trace, trace_pdu=self._trace_pdu)
         else:
             self._server = ModbusSerialServer(self._devices, port=self._serial, baudrate=self._baudrate,
-                                              identity=identity(), trace_packet=self._trace,
+                                              identity=self._identity or identity(), trace_packet=self._trace,
                                               trace_pdu=self._trace_pdu)
         await self._server.serve_forever(background=True)
         if self._tcp is not None:

@@ -38,7 +38,7 @@ from elastocal.sims.canbus import BusStats
 from elastocal.sims.canopen_drive import SimCanopenDrive, SimCanopenNetwork
 from elastocal.sims.config import sim_config
 from elastocal.sims.modbus_server import ModbusServerThread, PtyPair, SimCellController, SimModbusDrive
-from elastocal.sims.load_rig import SimLoadRig
+from elastocal.sims.load_rig import SimLoadRig, rig_identity
 from elastocal.sims.tracker_server import SimTracker
 from elastocal.sims.world import SimWorld
 
@@ -208,7 +208,8 @@ class SimulatedCell:
         sim_table = cfg.sim
         if self._with_rig:
             self.load_rig = SimLoadRig(self.world)
-            self._rig_server = ModbusServerThread([self.load_rig.device], tcp=("127.0.0.1", 0)).start()
+            self._rig_server = ModbusServerThread([self.load_rig.device], tcp=("127.0.0.1", 0),
+                                                  identity=rig_identity()).start()
             sim_table = MappingProxyType({**cfg.sim, "load_url": f"modbus+tcp://127.0.0.1:{self._rig_server.port}"
                                                                  f"?unit={self.load_rig.unit}"})
         self.config = replace(cfg, drives=tuple(resolved_drives[d.joint] for d in cfg.drives),

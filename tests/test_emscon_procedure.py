@@ -13,6 +13,7 @@ from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_calibration
 from elastocal.drivers.urls import parse_device_url
 from elastocal.formats.robot_toml import bundled_robot
+from elastocal.sims.serve import SimulatedCell
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.serve import example_cell_config
@@ -34,7 +35,8 @@ def _run(tmp_path, name, tracker_url, channel):
     if tracker_url is not None:
         config = replace(config, tracker=replace(config.tracker, url=parse_device_url(tracker_url)))
     out = tmp_path / f"{name}.mcap"
-    outcome = run_calibration(config, plan, out, yes=True, simulate=True)
+    with SimulatedCell(config) as sim:
+        outcome = run_calibration(sim.config, plan, out, yes=True, world=sim.world)
     assert outcome.status == "completed", outcome
     log_robot, static, _ = load_log(out)
     return out, identify_static(log_robot, static, torque="current", form="exact")

@@ -42,6 +42,7 @@ FORBIDDEN = {
     ("elastocal.acquisition", "elastocal.compensation"),
     ("elastocal.diagnose", "elastocal.sims"), ("elastocal.design", "elastocal.sims"),
     ("elastocal.report", "elastocal.sims"), ("elastocal.compensation", "elastocal.report"),
+    ("elastocal.acquisition", "elastocal.sims"),
 }
 
 

@@ -17,7 +17,7 @@ from elastocal.cli import main
 from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
-from elastocal.sims.serve import example_cell_config
+from elastocal.sims.serve import SimulatedCell, example_cell_config
 from elastocal.sims.static import random_poses
 
 #: these tests run simulated devices in wall-clock time (tests/conftest.py)
@@ -48,11 +48,12 @@ def test_static_procedure_on_simulated_devices_interrupted_resumed_and_identifie
 
     # the operator aborts while hanging the first load at pose P3
     first = tmp_path / "first.mcap"
-    out = run_calibration(config, plan, first, yes=True, ui=AbortAt(1 + 3 * 2 + 2), simulate=True)
+    with SimulatedCell(config) as sim:
+        out = run_calibration(sim.config, plan, first, yes=True, ui=AbortAt(1 + 3 * 2 + 2), world=sim.world)
     assert out.status == "aborted" and out.steps_done == 2
     contents = read_log(first)
     assert contents.complete and contents.completed_steps == ("static/P1", "static/P2")
-    assert contents.cell.text == config.to_toml()
+    assert contents.cell.text == sim.config.to_toml()      # the served cell, its ports resolved
     assert sum(len(d.t_ns) for d in contents.drives) > 1000 and set(contents.markers) == {"R1", "R2", "R3"}
     # drive samples carry the SYNC time they were latched at: one monotonic clock with the events
     t_events = [e["t_ns"] for e in contents.events]
@@ -90,9 +91,9 @@ def test_calibrate_cli_refuses_yes_on_a_real_cell_and_bad_inputs(tmp_path, capsy
                               markers=("R1",)))
     cases = [
         (["--yes"], "--yes: --yes answers the prompts of simulated devices only"),
-        (["--sim", "--procedure", "static,spin"], "unknown procedure 'spin'"),
-        (["--sim", "--procedure", "sweep"], "procedure 'sweep' is not in the plan"),
-        (["--sim", "--resume", str(tmp_path / "none.mcap")], "cannot read"),
+        (["--sim", "--yes", "--procedure", "static,spin"], "unknown procedure 'spin'"),
+        (["--sim", "--yes", "--procedure", "sweep"], "procedure 'sweep' is not in the plan"),
+        (["--sim", "--yes", "--resume", str(tmp_path / "none.mcap")], "cannot read"),
     ]
     for extra, message in cases:
         rc = main(["calibrate", "--cell", str(cell), "--plan", str(plan), "--out", str(tmp_path / "x.mcap"),
@@ -134,7 +135,8 @@ def test_friction_pair_and_sweep_run_as_taught_paths_on_simulated_devices(tmp_pa
                                 sweep=SweepSpec(q=w0, q2_from=0.2, q2_to=0.45, speed_rad_s=0.25),
                                 settle=SettleSpec(spread_m=20e-6, window_s=0.15, timeout_s=10.0)))
     log = tmp_path / "runs.mcap"
-    assert run_calibration(config, plan, log, yes=True, simulate=True).status == "completed"
+    with SimulatedCell(config) as sim:
+        assert run_calibration(sim.config, plan, log, yes=True, world=sim.world).status == "completed"
     robot, static, runs = load_log(log)
     assert static is None
     assert list(dict.fromkeys(runs.run)) == ["F1-1-UV", "F1-1-VU", "sweep-1+", "sweep-1-"]

@@ -151,7 +151,7 @@ RECORD_SCRIPT = textwrap.dedent("""
     from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
     from elastocal.acquisition.procedures import run_calibration
     from elastocal.formats.robot_toml import bundled_robot
-    from elastocal.sims.serve import example_cell_config
+    from elastocal.sims.serve import SimulatedCell, example_cell_config
     from elastocal.sims.static import random_poses
 
     robot = bundled_robot()
@@ -160,7 +160,8 @@ RECORD_SCRIPT = textwrap.dedent("""
     plan = parse_plan(plan_toml(poses=poses, loads=loads, markers=("R1", "R2"), repeats=2,
                                 reading_s=0.04, settle=SettleSpec(window_s=0.1, timeout_s=10.0)))
     config = example_cell_config(can_channel="issue4-kill", move_speed_rad_s=2.0)
-    run_calibration(config, plan, sys.argv[1], yes=True, simulate=True)
+    with SimulatedCell(config) as sim:
+        run_calibration(sim.config, plan, sys.argv[1], yes=True, world=sim.world)
 """)
 
 

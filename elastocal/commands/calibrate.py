@@ -51,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.acquisition.ui import AutoUI, TerminalUI
     from elastocal.drivers.config import load_cell_config
 
+    from elastocal.commands._cell import check_answers, procedure_cell
     from elastocal.commands._outputs import Outputs
 
     # the folder and the name; an existing log is refused by the procedure unless --force
@@ -64,13 +65,12 @@ def run(args: argparse.Namespace) -> int:
         for p in procedures:
             if p not in PROCEDURES:
                 raise InputError(f"unknown procedure {p!r}; one of {', '.join(PROCEDURES)}", source="--procedure")
-    if args.yes and not args.sim and not config.sim.get("load_url"):
-        raise InputError("--yes answers the prompts of simulated devices only; add --sim (or use the cell "
-                         "`elastocal sim serve --write-cell` wrote), or let a person answer", source="--yes")
+    check_answers(config, sim=args.sim, yes=args.yes)
     ui = AutoUI(sys.stderr, quiet=args.json, answered_by="--yes") if args.yes else TerminalUI(sys.stderr)
     try:
-        outcome = run_calibration(config, plan, args.out, yes=args.yes, ui=ui, procedures=procedures,
-                                  resume_from=args.resume, overwrite=args.force, simulate=args.sim)
+        with procedure_cell(config, sim=args.sim) as (cell, world):
+            outcome = run_calibration(cell, plan, args.out, yes=args.yes, ui=ui, procedures=procedures,
+                                      resume_from=args.resume, overwrite=args.force, world=world)
     except DeviceError as exc:
         outcome = getattr(exc, "outcome", None)
         if outcome is None:       # no log was started (a device could not be opened)

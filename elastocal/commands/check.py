@@ -94,6 +94,7 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
     from elastocal.formats.plan import load_plan, parse_plan
     from elastocal.acquisition.procedures import run_calibration
     from elastocal.acquisition.ui import AutoUI, TerminalUI
+    from elastocal.commands._cell import check_answers, procedure_cell
 
     if args.plan:
         plan = load_plan(args.plan)
@@ -108,9 +109,7 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
     if plan.check is None:
         raise InputError("the plan has no [check] section", source=plan.source)
     # the flags are checked before anything is written (the checks/ folder included)
-    if args.yes and not args.sim and not config.sim.get("load_url"):
-        raise InputError("--yes answers the prompts of simulated devices only; add --sim (or use the cell "
-                         "`elastocal sim serve --write-cell` wrote), or let a person answer", source="--yes")
+    check_answers(config, sim=args.sim, yes=args.yes, prompts=not unattended(args))
     if args.yes and args.unattended:
         raise InputError("--yes answers prompts, --unattended runs without them: give one", source="--unattended")
     ui = AutoUI(sys.stderr, quiet=args.json, answered_by="--yes") if args.yes else TerminalUI(sys.stderr)
@@ -121,8 +120,9 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
         out.parent.mkdir(exist_ok=True)
     else:
         raise InputError("give --out for the check's log (no history folder to put it in)", source="--out")
-    outcome = run_calibration(config, plan, out, yes=args.yes, ui=ui, procedures=("check",), simulate=args.sim,
-                              overwrite=args.force, unattended=unattended(args))
+    with procedure_cell(config, sim=args.sim) as (cell, world):
+        outcome = run_calibration(cell, plan, out, yes=args.yes, ui=ui, procedures=("check",), world=world,
+                                  overwrite=args.force, unattended=unattended(args))
     if outcome.status != "completed":
         raise InputError(f"the check procedure did not complete ({outcome.status}: {outcome.message})",
                          source=str(out))
@@ -131,6 +131,7 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.acquisition.history import History
+    from elastocal.commands._cell import check_sim_section
     from elastocal.commands.history import clean
     from elastocal.drivers.config import load_cell_config
     from elastocal.formats.calibration import file_sha256
@@ -144,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
         Outputs(force=True, inputs=[(args.cell, "--cell"), (args.plan, "--plan"), (args.calibration,
                                     "--calibration")]).add(args.out, "--out")
     config = load_cell_config(args.cell)
+    check_sim_section(config)
     robot = config.load_robot()
     db = pathlib.Path(args.history) if args.history else config.history
     cal, cal_id, plan_text = _calibration(args, db)

@@ -62,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.acquisition.export import load_log
     from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
     from elastocal.acquisition.procedures import run_calibration
+    from elastocal.commands._cell import procedure_cell
     from elastocal.compensation.files import write_compensated_csv, write_krl, write_rapid
     from elastocal.compensation.ik import yang_path
     from elastocal.compensation.model import CompensationModel
@@ -126,7 +127,8 @@ def run(args: argparse.Namespace) -> int:
     say(f"Guided static procedure (answered automatically, --yes): {args.poses} poses, unloaded + 3 loads "
         f"(60 kg, 110 kg, a 850 N cable pull), 3 markers, {DEMO_REPEATS} readings each; every drive and tracker "
         f"sample goes to {log.name} ...")
-    outcome = run_calibration(config, plan, log, yes=True, simulate=True, overwrite=True)
+    with procedure_cell(config, sim=True) as (cell, world):
+        outcome = run_calibration(cell, plan, log, yes=True, world=world, overwrite=True)
     print(f"    {outcome.status}: {outcome.steps_done} steps in {outcome.duration_s:.0f} s; log {log} "
           f"({log.stat().st_size / 1e6:.1f} MB)")
 
