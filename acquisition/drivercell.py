@@ -23,7 +23,7 @@ import numpy as np
 
 from elastocal.acquisition.cellio import CellIO, LoadWorld, SampleGap, Samples
 from elastocal.drivers.samples import DriveSample, TrackerSample
-from elastocal.errors import DeviceTimeout, InputError
+from elastocal.errors import BeamBroken, DeviceTimeout, InputError
 
 #: two joint vectors closer than this are the same pose [rad]
 SAME_Q_RAD = 1e-6
@@ -79,6 +79,7 @@ class DriverCellIO(CellIO):
         self._worker: threading.Thread | None = None
         self._worker_error: BaseException | None = None
         self._streams = []
+        self._blocked: list[SampleGap] = []      # measurements the beam could not make, since the last poll
 
     def start(self) -> None:
         """Start the drive streams (they buffer every sample until polled)."""
@@ -162,10 +163,16 @@ class DriverCellIO(CellIO):
             if self._selected != m:
                 self._tracker.select(m)
                 self._selected = m
-            s = self._tracker.measure()
-            if s.marker != m:
-                raise DeviceTimeout(f"tracker: measured marker {s.marker!r} while {m!r} was selected")
-            out.append(s)
+            try:
+                s = self._tracker.measure()
+            except BeamBroken as exc:     # a gap: the procedure waits for the beam (Session.hold)
+                now = time.monotonic_ns()
+                self._blocked.append(SampleGap("tracker", now, now, 1, str(exc)))
+                s = None
+            if s is not None:
+                if s.marker != m:
+                    raise DeviceTimeout(f"tracker: measured marker {s.marker!r} while {m!r} was selected")
+                out.append(s)
             left = end - time.monotonic()
             if left <= 0:
                 return out
@@ -180,7 +187,8 @@ class DriverCellIO(CellIO):
             tracker = []
             time.sleep(duration_s)
         drives: list[DriveSample] = []
-        gaps: list[SampleGap] = []
+        gaps: list[SampleGap] = _merge_blocked(self._blocked)
+        self._blocked = []
         for d, stream in zip(self._drives, self._streams):
             batch = stream.read(timeout_s=self.config.drive(d.joint).timeout_s)
             drives.extend(batch.samples)
@@ -200,6 +208,18 @@ class DriverCellIO(CellIO):
             self._worker.join(timeout=self._controller_config().move_timeout_s)
         if first is not None:
             raise first
+
+
+def _merge_blocked(blocked: list[SampleGap]) -> list[SampleGap]:
+    """Consecutive blocked measurements of one reason as one gap."""
+    out: list[SampleGap] = []
+    for g in blocked:
+        if out and out[-1].reason == g.reason:
+            last = out[-1]
+            out[-1] = SampleGap(last.device, last.start_ns, g.end_ns, last.missing + 1, last.reason)
+        else:
+            out.append(g)
+    return out
 
 
 def _q(q: np.ndarray) -> str:

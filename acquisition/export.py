@@ -70,6 +70,7 @@ class StaticReading:
     wrench: tuple[float, ...]       # nominal load [N, N·m], NaN when unknown
     currents: tuple[float, ...]     # mean current of each drive over the window [A], NaN without samples
     wall_s: tuple[float, float]     # the window on the UTC clock of its session (epoch seconds)
+    no_sample: tuple[int, ...] = ()  # joints whose drive has no sample in the window (a broken log)
 
 
 def static_readings(contents: LogContents) -> list[StaticReading]:
@@ -83,16 +84,19 @@ def static_readings(contents: LogContents) -> list[StaticReading]:
             continue
         start, end = (_key(e, v) for v in e["window_ns"])
         cur = []
-        for d in contents.drives:
+        no_sample = []
+        for j, d in enumerate(contents.drives, start=1):
             dsl = _window(d.t_ns, start, end)
             cur.append(float(np.mean(d.current_a[dsl])) if dsl.stop > dsl.start else float("nan"))
+            if dsl.stop <= dsl.start:
+                no_sample.append(j)
         session = contents.sessions[min(int(e["segment"]), len(contents.sessions) - 1)]
         wall0 = _utc_seconds(session["started_utc"], contents.path) - int(session["monotonic_ns"]) * 1e-9
         out.append(StaticReading(
             pose=str(e["pose"]), load=str(e["load"]), marker=str(e["marker"]), window=(start, end),
             t_s=((start + end) // 2 - e["segment"] * SEGMENT_NS - origin) * 1e-9,
             q=tuple(float(v) for v in e["q"]), wrench=tuple(_wrench(e.get("wrench"))), currents=tuple(cur),
-            wall_s=tuple(wall0 + int(v) * 1e-9 for v in e["window_ns"])))
+            wall_s=tuple(wall0 + int(v) * 1e-9 for v in e["window_ns"]), no_sample=tuple(no_sample)))
     return out
 
 
@@ -122,6 +126,11 @@ def static_table_from_log(contents: LogContents, robot: Robot | None = None) -> 
     pose, load, t, q, wrench, currents, marker, xyz = [], [], [], [], [], [], [], []
     for r in readings:
         start, end = r.window
+        if r.no_sample:     # a recorded reading always has every drive's samples: the log lost some
+            raise InputError(f"drive(s) {', '.join(f'J{j}' for j in r.no_sample)} have no sample in the window "
+                             f"of the reading of marker {r.marker} at pose {r.pose} load {r.load}: the log "
+                             "lacks that drive's messages, and its current column would be blank",
+                             source=contents.path)
         samples = contents.markers.get(r.marker)
         sl = _window(samples.t_ns, start, end) if samples is not None else slice(0, 0)
         if samples is None or sl.stop <= sl.start:

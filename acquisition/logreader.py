@@ -134,16 +134,28 @@ class LogReader:
                 self.end_offset = stream.offset
                 yield record
 
+    def _open_chunk(self, record: Chunk) -> list:
+        try:
+            return breakup_chunk(record, validate_crc=True)
+        except CRCValidationError as exc:
+            raise InputError(f"corrupt chunk before byte {self.end_offset}: {exc}", source=str(self.path)) from None
+        except Exception as exc:  # zstandard raises its own error type on bad data
+            raise InputError(f"cannot decompress chunk before byte {self.end_offset}: {exc}",
+                             source=str(self.path)) from None
+
+    def records(self) -> Iterator[object]:
+        """Every whole record of the file in order, chunks opened (header, schemas, channels,
+        messages, metadata, ...; the summary's index records too when the file is complete)."""
+        for record in self._records():
+            if isinstance(record, Chunk):
+                yield from self._open_chunk(record)
+            else:
+                yield record
+
     def _expand(self, record: object) -> list[Message]:
         """Messages of one top-level record; schemas and channels are remembered."""
         if isinstance(record, Chunk):
-            try:
-                inner = breakup_chunk(record, validate_crc=True)
-            except CRCValidationError as exc:
-                raise InputError(f"corrupt chunk before byte {self.end_offset}: {exc}", source=str(self.path)) from None
-            except Exception as exc:  # zstandard raises its own error type on bad data
-                raise InputError(f"cannot decompress chunk before byte {self.end_offset}: {exc}",
-                                 source=str(self.path)) from None
+            inner = self._open_chunk(record)
             out = []
             for r in inner:
                 if isinstance(r, Message):

@@ -14,7 +14,7 @@ joint frames, links, markers, tracker readings and the procedure's events.
 
 Surviving a kill: the writer keeps the chunk in progress in memory, so the
 recorder finishes the chunk and flushes the file at every procedure event and
-at least every ``flush_interval_s`` while samples arrive. A process killed at
+at least every ``flush_interval_s`` (50 ms, :data:`FLUSH_INTERVAL_S`) while samples arrive. A process killed at
 any moment leaves a file whose complete chunks
 :class:`elastocal.acquisition.logreader.LogReader` reads up to the kill.
 """
@@ -25,6 +25,7 @@ import datetime
 import hashlib
 import json
 import math
+import os
 import pathlib
 import threading
 import time
@@ -39,6 +40,9 @@ from elastocal.errors import Arg, InputError
 from elastocal.formats.robot_toml import parse_robot
 
 Clock = Callable[[], int]
+
+#: the longest a sample waits in memory before the file has it (what a kill can lose) [s]
+FLUSH_INTERVAL_S = 0.05
 
 
 def _dumps(obj: dict) -> bytes:
@@ -66,11 +70,12 @@ class Recorder:
     """
 
     def __init__(self, path: str | pathlib.Path, *, overwrite: bool = False,
-                 chunk_size: int = 256 * 1024, flush_interval_s: float = 1.0,
+                 chunk_size: int = 256 * 1024, flush_interval_s: float = FLUSH_INTERVAL_S,
                  clock: Clock = time.monotonic_ns, resumed_from: str | None = None,
                  unix_clock: Clock = time.time_ns, foxglove: bool = True) -> None:
         self.path = pathlib.Path(path)
-        if not overwrite and self.path.exists():
+        self.overwrite = overwrite
+        if not overwrite and (self.path.exists() or self.path.is_symlink()):
             raise InputError(("already exists; choose another ", Arg("out"), " or remove it"), source=str(self.path))
         if chunk_size <= 0:
             raise ValueError("chunk_size must be positive")
@@ -95,10 +100,7 @@ class Recorder:
 
     # ---------------------------------------------------------- lifecycle
     def __enter__(self) -> "Recorder":
-        try:
-            self._file = open(self.path, "wb")
-        except OSError as exc:
-            raise InputError(f"cannot write: {exc.strerror}", source=str(self.path)) from None
+        self._file = self._create()
         self._writer = Writer(self._file, chunk_size=self.chunk_size, compression=CompressionType.ZSTD)
         self._writer.start(profile=lf.PROFILE, library=f"elastocal/{__version__}")
         self._writer.add_metadata("elastocal", {"format": lf.LOG_FORMAT, "software": __version__})
@@ -113,6 +115,24 @@ class Recorder:
         }, now)
         self.flush()
         return self
+
+    def _create(self):
+        """The log file, created new where it is named: never through a symbolic link and never
+        into a device or FIFO; an existing regular file is removed first (``overwrite``)."""
+        path = self.path
+        if path.is_symlink() or (path.exists() and not path.is_file()):
+            raise InputError("is not a regular file (a symbolic link, a device, a FIFO); a log is written to a "
+                             "new regular file", source=str(path))
+        try:
+            if self.overwrite and path.is_file():
+                path.unlink()
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
+        except FileExistsError:
+            raise InputError(("appeared while the log was being opened; choose another ", Arg("out")),
+                             source=str(path)) from None
+        except OSError as exc:
+            raise InputError(f"cannot write: {exc.strerror}", source=str(path)) from None
+        return os.fdopen(fd, "wb")
 
     def __exit__(self, *exc: object) -> None:
         self.close()

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import time
 from typing import Sequence
 
 import numpy as np
@@ -16,7 +17,7 @@ from elastocal.formats.plan import UNLOADED, Plan, PoseSpec
 from elastocal.acquisition.recorder import Recorder
 from elastocal.acquisition.steps import Step
 from elastocal.acquisition.ui import Aborted, OperatorUI
-from elastocal.errors import DeviceTimeout, NotAtRest
+from elastocal.errors import BeamBroken, DeviceTimeout, NotAtRest
 
 
 #: extra time allowed for a move beyond its nominal duration before giving up [s]
@@ -33,6 +34,11 @@ READING_RETRIES = 3
 
 #: how often progress is redrawn during a step [s]
 PROGRESS_EVERY_S = 0.5
+
+
+#: how long a reading waits for the tracker's beam to come back (a person or a cable in the line of
+#: sight) before the procedure stops with BeamBroken [s]; the readings are then taken again, settled
+BEAM_WAIT_S = 30.0
 
 
 #: standstill before a prompt: the controller reports no motion and every joint is slower than
@@ -244,16 +250,17 @@ class Session:
         once the robot stands still (:meth:`wait_standstill`). The answer is logged with who gave
         it (``source``) and how long after the prompt was shown (``delay_s``)."""
         self.wait_standstill(text)
-        shown = self.event("prompt", text=text)
+        self.event("prompt", text=text)
         source = self.ui.answer_source
+        shown = time.monotonic()        # a person's delay is wall-clock time, whatever clock the cell keeps
         try:
             answer = self.ui.confirm(text) if load_id is None else self.ui.confirm_load(text, load_id)
         except Aborted:
             self.event("answer", text=text, answer="abort", automatic=self.ui.automatic, source=source,
-                       delay_s=(self.io.clock() - shown) * 1e-9)
+                       delay_s=time.monotonic() - shown)
             raise
         self.event("answer", text=text, answer=answer, automatic=self.ui.automatic, source=source,
-                   delay_s=(self.io.clock() - shown) * 1e-9)
+                   delay_s=time.monotonic() - shown)
 
     def wait_standstill(self, before: str) -> None:
         """Wait until the controller reports no motion and every joint has been slower than
@@ -376,14 +383,7 @@ class Session:
         for _ in range(1 + READING_RETRIES):
             windows = []
             for r, m in todo:  # a laser tracker measures one reflector at a time
-                t0 = self.io.clock()
-                samples = self.poll([m], reading_s)
-                t1 = self.io.clock()
-                if self.io.reads_tracker and not any(s.marker == m and t0 <= s.t_ns <= t1
-                                                     for s in samples.tracker):
-                    raise DeviceTimeout(f"the tracker gave no reading of marker {m} in {reading_s:g} s at "
-                                        f"pose {pose.id}, load {load_id}")
-                windows.append((r, m, t0, t1))
+                windows.append((r, m, *self._reading_window(pose, load_id, m, reading_s)))
             self.drain(windows[-1][3])
             todo = []
             for r, m, t0, t1 in windows:
@@ -401,6 +401,33 @@ class Session:
             self.event("reading", pose=pose.id, load=load_id, marker=m, repeat=r, q=list(pose.q),
                        wrench=wrench, window_ns=[t0, t1])
         self.event("hold_end", pose=pose.id, load=load_id)
+
+    def _reading_window(self, pose: PoseSpec, load_id: str, marker: str, reading_s: float) -> tuple[int, int]:
+        """One reading of ``marker``: ``(t0, t1)`` of a window with tracker samples of it. A window
+        without any (the beam was broken: the gaps are logged) is read again once the beam is back
+        and the cell has settled again, for at most :data:`BEAM_WAIT_S`; then :class:`BeamBroken`."""
+        first_miss = None
+        while True:
+            t0 = self.io.clock()
+            samples = self.poll([marker], reading_s)
+            t1 = self.io.clock()
+            if not self.io.reads_tracker or any(s.marker == marker and t0 <= s.t_ns <= t1 for s in samples.tracker):
+                if first_miss is None:
+                    return t0, t1
+                # the beam is back: whoever broke it may have touched the cell; settle, then read again
+                self.event("beam_back", marker=marker, duration_s=(t1 - first_miss) * 1e-9, pose=pose.id,
+                           load=load_id)
+                self.settle([marker], pose=pose.id, load=load_id)
+                first_miss = None
+                continue
+            if first_miss is None:
+                first_miss = t0
+                self.ui.message(f"the tracker does not see marker {marker} (beam broken?): waiting up to "
+                                f"{BEAM_WAIT_S:g} s for it")
+            if (t1 - first_miss) * 1e-9 > BEAM_WAIT_S:
+                raise BeamBroken(f"the tracker gave no reading of marker {marker} for {BEAM_WAIT_S:g} s at pose "
+                                 f"{pose.id}, load {load_id} (beam broken or no target); clear the line of "
+                                 "sight, then resume")
 
     def _has_sample(self, joint: int, t0: int, t1: int) -> bool:
         times = self._drive_times.get(joint, [])

@@ -40,9 +40,18 @@ class ModbusExceptionError(DeviceError):
              4: "device failure", 5: "acknowledge", 6: "device busy", 8: "memory parity error",
              10: "gateway path unavailable", 11: "gateway target failed to respond"}
 
+    #: exception codes a later request may not get (the device or a gateway was busy or failed for a
+    #: moment): retried like a timeout; the others (illegal function, address, value) say the
+    #: register map is wrong and end the request at once
+    TRANSIENT = frozenset({4, 5, 6, 10, 11})
+
     def __init__(self, message: str, code: int) -> None:
         self.code = code
         super().__init__(f"{message}: Modbus exception {code} ({self.NAMES.get(code, 'unknown')})")
+
+    @property
+    def transient(self) -> bool:
+        return self.code in self.TRANSIENT
 
 
 # ------------------------------------------------------------ shared links
@@ -123,7 +132,13 @@ class Device(abc.ABC):
                 return fn(*args, **kwargs)
             except RETRYABLE as exc:
                 last = exc
+            except ModbusExceptionError as exc:
+                if not exc.transient:
+                    raise
+                last = exc
         assert last is not None
+        if isinstance(last, ModbusExceptionError):
+            raise ModbusExceptionError(f"{last} ({what}, after {self.retries + 1} attempts)", last.code) from last
         raise type(last)(f"{last} ({what}, after {self.retries + 1} attempts)") from last
 
     def _reconnect(self) -> None:

@@ -30,6 +30,8 @@ from typing import Any
 import can
 from can.interfaces.udp_multicast.bus import SO_TIMESTAMPNS, GeneralPurposeUdpMulticastBus, UdpMulticastBus
 
+from elastocal.errors import InputError
+
 INTERFACE = "udp_loopback"
 #: the default group (organisation-local scope; not python-can's default group, which other
 #: programs use off the machine)
@@ -99,6 +101,12 @@ def open_can_bus(interface: str, channel: str, **kwargs: Any) -> can.BusABC:
     """A python-can bus; ``udp_loopback`` is opened from this module directly (it
     need not be installed as an entry point to work), every other interface
     through python-can's registry."""
-    if interface == INTERFACE:
-        return LoopbackUdpBus(channel=channel, **kwargs)
-    return can.Bus(interface=interface, channel=channel, **kwargs)
+    try:
+        if interface == INTERFACE:
+            return LoopbackUdpBus(channel=channel, **kwargs)
+        return can.Bus(interface=interface, channel=channel, **kwargs)
+    except (can.CanError, OSError, ValueError, ImportError) as exc:
+        # no such interface or channel on this machine: the URL is wrong (or the adapter is not plugged in)
+        reason = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+        raise InputError(f"cannot open CAN interface {interface!r}, channel {channel!r}: {reason}; check the "
+                         "device URL (canopen://INTERFACE/CHANNEL?node=N) and that the adapter is there") from None

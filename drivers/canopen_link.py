@@ -121,8 +121,8 @@ class CanopenLink:
             kwargs["port"] = url.int_param("port", 43113, low=1, high=65535)
         try:
             bus = open_can_bus(self.interface, self.channel, **kwargs)
-        except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise DeviceError(f"cannot open CAN {self.interface}/{self.channel}: {exc}") from exc
+        except InputError as exc:
+            raise InputError(exc.detail, source=url.text) from None
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1     # so that closing does not wait a second
         self.network.connect()

@@ -16,6 +16,7 @@ validated, named in its errors and written back in one place.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import pathlib
 from dataclasses import dataclass, field
@@ -158,12 +159,26 @@ class CellConfig:
             path = self.base_dir / path
         return path
 
+    @contextlib.contextmanager
+    def key_errors(self, key: str, path: pathlib.Path | None):
+        """An error about the file ``path`` that the key ``cell.<key>`` names as a whole (it cannot be
+        read, it is no such file) is said as an error of the key, with the file in the message; an
+        error at a line or field inside that file still names the file."""
+        try:
+            yield
+        except InputError as exc:
+            if path is None or exc.source != str(path) or exc.row is not None or exc.column is not None:
+                raise
+            raise InputError(f"{path}: {exc.detail}", source=self.source, column=f"cell.{key}") from None
+
     def load_robot(self):
         """The :class:`~elastocal.model.robot.Robot` named by ``[cell] robot``, with the cell's
         tracker markers, taught poses and paths checked against it (names and joint limits)."""
         from elastocal.formats.robot_toml import load_robot
 
-        robot = load_robot(self.robot_path())
+        path = self.robot_path()
+        with self.key_errors("robot", path):
+            robot = load_robot(path)
         _check_against_robot(self, robot)
         return robot
 

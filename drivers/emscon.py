@@ -68,7 +68,7 @@ from elastocal.drivers.emscon_packets import (
     packet_type,
     result_name,
 )
-from elastocal.errors import DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout, InputError, ProtocolError
+from elastocal.errors import BeamBroken, DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout, InputError, ProtocolError
 
 DEFAULT_PORT = 700
 #: result status -> gap reason (in a stream) / fault text (single measurement)
@@ -390,7 +390,7 @@ class EmsconTracker(Tracker):
             self._drop_socket()
 
 
-class _Blocked(DeviceFault):
+class _Blocked(BeamBroken):
     """A measurement the beam could not make (beam broken, no target): a gap in a stream."""
 
     def __init__(self, reason: str, message: str) -> None:

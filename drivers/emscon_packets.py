@@ -74,8 +74,11 @@ def decode(data: bytes, *, answers: bool) -> object:
     size, kind = HEADER.unpack_from(data)
     try:
         p = es.PacketFactory().packet(data, return_type=answers)
-    except (struct.error, AttributeError, TypeError) as exc:
-        raise ProtocolError(f"emScon: cannot decode a packet of type {kind}, {size} bytes: {exc}") from None
+    except (struct.error, AttributeError, TypeError):
+        # CESAPI's own error text names its internals ('NoneType' object has no attribute 'unpack'): say
+        # what the bytes are instead
+        raise ProtocolError(f"emScon: a packet of type {kind}, {size} bytes, is not one CESAPI can decode (a "
+                            "type or layout emScon does not send: corrupt bytes on the connection?)") from None
     if p is None:
         raise ProtocolError(f"emScon: unknown packet type {kind}")
     expected = len(p.pack())

@@ -72,7 +72,10 @@ class ModbusLoadRig(Device):
                              column="sim.load_url")
 
     def _reconnect(self) -> None:
-        self.link.connect()
+        try:
+            self.link.connect()
+        except DeviceError as exc:
+            raise type(exc)(f"load rig {self.url.text}: {exc}") from exc
 
     def _identify(self) -> DeviceInfo:
         try:

@@ -5,11 +5,13 @@ The register map of the cell config names where the current and position
 unit. A reading is one Modbus transaction per contiguous block of registers;
 a stream polls at its rate from a background thread.
 
-Stream policy: a poll that fails with a timeout, lost connection or garbled
-reply is a recorded gap (the link reconnects before the next poll); failures
-lasting longer than ``timeout_s * (retries + 1)`` end the stream with the last
-error. A Modbus exception response or a status word with a fault bit ends the
-stream at once. Polls the loop could not start on time (the device is slower
+Stream policy: a poll that fails with a timeout, lost connection, garbled
+reply or a transient Modbus exception response (4 device failure, 5
+acknowledge, 6 device busy, 10/11 gateway) is a recorded gap (the link
+reconnects before the next poll); failures lasting longer than
+``timeout_s * (retries + 1)`` end the stream with the last error. An exception
+response that says the register map is wrong (1 illegal function, 2 illegal
+address, 3 illegal value) or a status word with a fault bit ends the stream at once. Polls the loop could not start on time (the device is slower
 than the rate) are recorded as gaps too, so ``expected`` always equals the
 rate times the duration.
 """
@@ -122,7 +124,17 @@ class ModbusDrive(Drive):
                 if isinstance(failing, DeviceDisconnected):
                     self.link.connect()
                 sample = self.check_sample(self._poll())
-            except (DeviceFault, ModbusExceptionError) as exc:
+            except ModbusExceptionError as exc:
+                if not exc.transient:
+                    stream.fail(exc)
+                    return
+                failing = exc
+                stream.gap(1, f"poll failed: {exc}")
+                if (time.monotonic_ns() - last_ok_ns) / 1e9 > give_up_s:
+                    stream.fail(ModbusExceptionError(f"{exc} (no valid reply for {give_up_s:g} s)", exc.code))
+                    return
+                continue
+            except DeviceFault as exc:
                 stream.fail(exc)
                 return
             except (DeviceTimeout, DeviceDisconnected, ProtocolError) as exc:

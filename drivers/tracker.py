@@ -59,7 +59,7 @@ from elastocal.drivers.tracker_protocol import (
     parse_measurement,
     valid_name,
 )
-from elastocal.errors import DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout, InputError, ProtocolError
+from elastocal.errors import BeamBroken, DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout, InputError, ProtocolError
 
 MAX_BAD_LINES = 10
 #: bytes of a typical measurement line, for the serial bandwidth check
@@ -434,7 +434,7 @@ class LineTracker(Tracker):
         body, rx_ns = self._command("MEAS?", "M ")
         m = parse_measurement(body)
         if m.status != STATUS_OK:
-            raise DeviceFault(f"tracker: {m.status.lower().replace('_', ' ')} (measurement {m.seq})")
+            raise BeamBroken(f"tracker: {m.status.lower().replace('_', ' ')} (measurement {m.seq})")
         return TrackerSample((t0 + rx_ns) // 2, m.seq, m.t_us / 1e6, m.target, m.xyz_m)
 
     def _stream(self, rate_hz: float) -> Stream[TrackerSample]:

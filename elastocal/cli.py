@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "devices": ("elastocal.commands.devices", "connect to the cell's devices and stream live readings"),
     "calibrate": ("elastocal.commands.calibrate", "run the guided calibration procedure"),
     "export": ("elastocal.commands.export", "turn an MCAP log into robot.toml and CSV tables"),
+    "repair": ("elastocal.commands.repair", "a readable copy of a killed log, with a summary"),
     "import": ("elastocal.commands.import_", "turn tracker exports plus the joint log into the static table"),
     "geometry": ("elastocal.commands.geometry", "compensator geometry from a joint-2 marker sweep"),
     "compensate": ("elastocal.commands.compensate", "compensated joint trajectory for a planned path"),
@@ -49,7 +50,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 COMMAND_DOCS: dict[str, str] = {
     "demo": "README.md (What the demo shows)", "sim": "README.md (Simulated data), docs/devices.md",
     "identify": "docs/identification.md", "diagnose": "docs/diagnose.md", "report": "docs/diagnose.md",
-    "devices": "docs/devices.md", "calibrate": "docs/calibrate.md", "export": "docs/log-format.md",
+    "devices": "docs/devices.md", "calibrate": "docs/calibrate.md", "export": "docs/log-format.md", "repair": "docs/log-format.md",
     "geometry": "docs/compensator.md", "compensate": "docs/compensation.md", "plan": "docs/plan.md",
     "check": "docs/check.md", "history": "docs/history.md", "schedule": "docs/check.md",
     "view": "docs/view.md", "import": "docs/import.md",
@@ -127,6 +128,15 @@ def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict
     return parser, modules
 
 
+def _refuse_empty_values(parser, args) -> None:
+    """A file, folder or value given as an empty string is bad input, never "not given"
+    (``--out ""`` would otherwise write nothing and exit 0)."""
+    for key, value in vars(args).items():
+        if value == "" and key != "check_args":       # schedule's --check-args: "" is "no more arguments"
+            flag = key if key in ("log", "path", "points") else "--" + key.replace("_", "-")
+            raise InputError("is empty; give a value", source=flag)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     first = next((a for a in argv if not a.startswith("-")), None)
@@ -141,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     previous_levels = _quiet_libraries()
     args.notes = []
     try:
+        _refuse_empty_values(parser, args)
         code = int(modules[args.command].run(args) or 0)
         for text in args.notes:  # after the output, and only when the command did not fail on an error
             print(text, file=sys.stderr)

@@ -154,6 +154,11 @@ class DeviceFault(DeviceError):
     """A device reports a fault state (drive fault, beam broken, ...)."""
 
 
+class BeamBroken(DeviceFault):
+    """The tracker could not measure: its beam is interrupted or finds no target (a person or a
+    cable in the line of sight, usually for seconds)."""
+
+
 class NotAtRest(DeviceFault):
     """The robot did not come to a standstill (controller idle, joints still) before a prompt:
     nothing was asked, the procedure stopped."""

@@ -124,7 +124,7 @@ SCHEMAS: dict[str, dict] = {
             "kind": {"type": "string", "enum": [
                 "procedure_start", "procedure_end", "step_start", "step_done", "pose", "load",
                 "settle", "hold_start", "reading", "hold_end", "run_start", "run_end",
-                "prompt", "answer", "fault", "gap", "resume", "unattended", "standstill"]},
+                "prompt", "answer", "fault", "gap", "resume", "unattended", "standstill", "beam_back"]},
             "procedure": {"type": "string"},
             "step": {"type": "integer", "description": "0-based index of the step in the procedure"},
             "step_id": {"type": "string"},

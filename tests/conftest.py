@@ -54,3 +54,69 @@ def runs_dataset(tmp_path_factory) -> pathlib.Path:
     out = tmp_path_factory.mktemp("runs-dataset")
     assert main(["sim", "runs", "--hidden", "friction", "--seed", "5", "--out", str(out)]) == 0
     return out
+
+
+class Terminal:
+    """A child process on a pseudo-terminal: what it shows, what we type."""
+
+    def __init__(self, args):
+        import os
+        import subprocess
+
+        self.master, slave = os.openpty()
+        self.proc = subprocess.Popen(args, stdin=slave, stdout=slave, stderr=slave, close_fds=True,
+                                     start_new_session=True)
+        os.close(slave)
+        self.screen = ""
+
+    def read(self, seconds: float) -> None:
+        import os
+        import select
+        import time
+
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            ready, _, _ = select.select([self.master], [], [], left)
+            if not ready:
+                return
+            try:
+                chunk = os.read(self.master, 65536)
+            except OSError:          # the child closed the terminal
+                return
+            if not chunk:
+                return
+            self.screen += chunk.decode("utf-8", errors="replace")
+
+    def wait_for(self, text: str, timeout_s: float, start: int = 0) -> int:
+        import time
+
+        end = time.monotonic() + timeout_s
+        while text not in self.screen[start:]:
+            if time.monotonic() > end or (self.proc.poll() is not None and not self._more()):
+                raise AssertionError(f"{text!r} not shown in {timeout_s} s; screen:\n{self.screen[-3000:]}")
+            self.read(0.2)
+        return self.screen.index(text, start)
+
+    def _more(self) -> bool:
+        before = len(self.screen)
+        self.read(0.2)
+        return len(self.screen) > before
+
+    def type(self, text: str) -> None:
+        import os
+
+        os.write(self.master, text.encode())
+
+    def close(self) -> None:
+        import os
+
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
+        os.close(self.master)
+
+
+@pytest.fixture(name="Terminal")
+def terminal_class():
+    """:class:`Terminal`: a child process on a real pseudo-terminal (what it shows, what is typed)."""
+    return Terminal

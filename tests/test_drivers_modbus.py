@@ -141,12 +141,29 @@ def test_exception_response_is_typed(tcp):
     assert drive.read().status == 1                 # the next request is answered
 
 
-def test_exception_mid_stream_ends_the_stream(tcp):
+def test_one_transient_exception_mid_stream_is_a_gap_and_the_stream_goes_on(tcp):
+    """Audit item 8: one Modbus exception response ended the run. A transient one (4, 5, 6, 10, 11)
+    is now a recorded gap; it ends the stream only when it lasts timeout_s * (retries + 1)."""
     sim, server, drive = tcp
     with drive.stream(100.0) as stream:
         assert stream.read_for(0.1).samples
-        sim.fail_with(4)
-        with pytest.raises(ModbusExceptionError, match="device failure"):
+        sim.fail_with(4)                                  # one device-failure response
+        batch = stream.read_for(0.3)
+        assert batch.samples and [g.missing for g in batch.gaps] == [1], batch.gaps
+        assert "Modbus exception 4" in batch.gaps[0].reason
+        sim.fail_with(6, count=1000)                      # busy for good: gaps, then the stream ends
+        with pytest.raises(ModbusExceptionError, match=r"device busy.*no valid reply for 0\.4 s"):
+            for _ in range(50):
+                stream.read(timeout_s=1.0)
+    assert ModbusExceptionError("x", 6).transient and not ModbusExceptionError("x", 2).transient
+
+
+def test_an_exception_that_says_the_map_is_wrong_ends_the_stream_at_once(tcp):
+    sim, server, drive = tcp
+    with drive.stream(100.0) as stream:
+        assert stream.read_for(0.1).samples
+        sim.fail_with(2)
+        with pytest.raises(ModbusExceptionError, match="illegal data address"):
             for _ in range(20):
                 stream.read(timeout_s=1.0)
 

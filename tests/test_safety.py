@@ -253,68 +253,8 @@ print("ANSWERED", file=sys.stderr, flush=True)
 """
 
 
-class Terminal:
-    """A child process on a pseudo-terminal: what it shows, what we type."""
-
-    def __init__(self, args):
-        import os
-        import subprocess
-
-        self.master, slave = os.openpty()
-        self.proc = subprocess.Popen(args, stdin=slave, stdout=slave, stderr=slave, close_fds=True,
-                                     start_new_session=True)
-        os.close(slave)
-        self.screen = ""
-
-    def read(self, seconds: float) -> None:
-        import os
-        import select
-        import time
-
-        end = time.monotonic() + seconds
-        while (left := end - time.monotonic()) > 0:
-            ready, _, _ = select.select([self.master], [], [], left)
-            if not ready:
-                return
-            try:
-                chunk = os.read(self.master, 65536)
-            except OSError:          # the child closed the terminal
-                return
-            if not chunk:
-                return
-            self.screen += chunk.decode("utf-8", errors="replace")
-
-    def wait_for(self, text: str, timeout_s: float, start: int = 0) -> int:
-        import time
-
-        end = time.monotonic() + timeout_s
-        while text not in self.screen[start:]:
-            if time.monotonic() > end or (self.proc.poll() is not None and not self._more()):
-                raise AssertionError(f"{text!r} not shown in {timeout_s} s; screen:\n{self.screen[-3000:]}")
-            self.read(0.2)
-        return self.screen.index(text, start)
-
-    def _more(self) -> bool:
-        before = len(self.screen)
-        self.read(0.2)
-        return len(self.screen) > before
-
-    def type(self, text: str) -> None:
-        import os
-
-        os.write(self.master, text.encode())
-
-    def close(self) -> None:
-        import os
-
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(10)
-        os.close(self.master)
-
-
 @pytest.mark.parametrize("mode, answer", [("plain", "yes"), ("load", "L1")])
-def test_a_key_pressed_before_the_prompt_never_answers_it(mode, answer):
+def test_a_key_pressed_before_the_prompt_never_answers_it(mode, answer, Terminal):
     import sys
 
     term = Terminal([sys.executable, "-c", PROMPT_CHILD, mode])
@@ -632,7 +572,7 @@ def test_served_cell_rehearsal_calibrates_the_true_stiffness(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_the_operator_rehearses_in_a_terminal_and_stray_keys_answer_nothing(tmp_path):
+def test_the_operator_rehearses_in_a_terminal_and_stray_keys_answer_nothing(tmp_path, Terminal):
     """`elastocal calibrate` on a terminal against `elastocal sim serve`: an Enter pressed while the
     robot moves never answers the next prompt; typing the load's name (or yes) after it appeared
     does, and the load it names hangs in the served world."""

@@ -3,9 +3,18 @@
 Every command that writes files checks all of them first (:class:`Outputs`):
 the parent folder exists, the target is not a folder, it is none of the
 command's inputs (refused even with ``--force``) and, unless ``--force``, it
-does not exist yet. The files are then written to temporary siblings and moved
-into place together (:meth:`Outputs.commit`), so a refused or failed command
+does not exist yet. Only a regular file is ever replaced: a symbolic link, a
+device, a FIFO or a socket at an output's path is refused, ``--force`` or not
+(one rule for every command: elastocal never writes through a link; name the
+file itself). The files are then written to temporary siblings and moved
+into place together (:meth:`Outputs.commit`, :func:`atomic`), so a refused or failed command
 leaves every existing file as it was and writes nothing half-way.
+
+The one exception is a procedure's log (``calibrate``, ``check``): it is written
+where ``--out`` says while the procedure runs, so that a killed run leaves it there
+for ``--resume`` and ``elastocal repair``; it is created new (an existing regular
+file removed first with ``--force``), never through a link
+(:class:`elastocal.acquisition.recorder.Recorder`).
 """
 
 from __future__ import annotations
@@ -28,9 +37,24 @@ def _same(a: pathlib.Path, b: pathlib.Path) -> bool:
     return a.resolve() == b.resolve()
 
 
+def check_replaceable(out: pathlib.Path, flag: str) -> None:
+    """Refuse an output path that holds anything but a regular file (a link, a device, a FIFO)."""
+    if out.is_symlink():
+        raise InputError(f"is a symbolic link; elastocal does not write through links: give {flag} the file "
+                         "itself", source=str(out))
+    if out.exists() and not out.is_dir() and not out.is_file():
+        raise InputError(f"is not a regular file (a device, a FIFO or a socket); {flag} names a file to write",
+                         source=str(out))
+
+
 def check_folder(path: str | os.PathLike, flag: str) -> pathlib.Path:
     """An output folder: a folder, or a path that can become one."""
+    if not str(path):
+        raise InputError(f"{flag} is empty; name the folder to write into", source=flag)
     out = pathlib.Path(path)
+    if out.is_symlink():
+        raise InputError(f"is a symbolic link; elastocal does not write through links: give {flag} the folder "
+                         "itself", source=str(out))
     if out.exists() and not out.is_dir():
         raise InputError(f"is not a folder; {flag} names the folder to write into", source=str(out))
     parent = out
@@ -63,7 +87,10 @@ class Outputs:
 
     def add(self, path: str | os.PathLike, flag: str = "--out", *, in_folder: bool = False) -> pathlib.Path:
         """Check one output file (``in_folder``: its folder may not exist yet)."""
+        if not str(path):
+            raise InputError(f"{flag} is empty; name the file to write", source=flag)
         out = pathlib.Path(path)
+        check_replaceable(out, flag)
         if out.is_dir():
             raise InputError(f"is a folder; {flag} names a file to write", source=str(out))
         parent = out.parent
@@ -88,6 +115,7 @@ class Outputs:
         outputs: refused without --force, removed on commit with it."""
         p = pathlib.Path(path)
         if p.exists() or p.is_symlink():
+            check_replaceable(p, flag)
             if p.is_dir():
                 raise InputError(f"is a folder in the way ({why})", source=str(p))
             if not self.force:
@@ -153,6 +181,28 @@ class Outputs:
             raise InputError(f"cannot write: {exc.strerror or exc}", source=str(name or self.files[0][0])) from None
         return False
 
+
+
+@contextlib.contextmanager
+def atomic(path: str | os.PathLike, flag: str = "--out"):
+    """Write ``path`` all or nothing: yields a temporary sibling to write, moved into place when
+    the block ends (removed when it fails). Refuses what :func:`check_replaceable` refuses."""
+    out = pathlib.Path(path)
+    check_replaceable(out, flag)
+    tmp = _temp_name(out)
+    try:
+        yield tmp
+        os.replace(tmp, out)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def write_text_atomic(path: str | os.PathLike, text: str, flag: str = "--out") -> None:
+    """``path.write_text(text)``, all or nothing (:func:`atomic`)."""
+    with atomic(path, flag) as tmp:
+        tmp.write_text(text, encoding="utf-8")
 
 
 def note(args, text: str) -> None:

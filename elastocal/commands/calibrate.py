@@ -40,7 +40,8 @@ def resolve_plan(plan_arg: str | None, config, resume: str | None):
             raise InputError("the log holds no plan; give --plan", source=resume)
         return parse_plan(doc.text, source=doc.path or f"{resume} (plan)")
     if config.plan is not None:
-        return load_plan(config.plan)
+        with config.key_errors("plan", config.plan):
+            return load_plan(config.plan)
     raise InputError("no plan: give --plan plan.toml or name one in [cell] of the cell config "
                      "(plan = \"plan.toml\"); `elastocal plan` makes one", source="--plan")
 

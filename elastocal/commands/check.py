@@ -101,7 +101,8 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
     elif plan_text is not None:
         plan = parse_plan(plan_text, source="the plan stored with the calibration")
     elif config.plan is not None:
-        plan = load_plan(config.plan)
+        with config.key_errors("plan", config.plan):
+            plan = load_plan(config.plan)
     else:
         raise InputError("no check plan: give --plan plan.toml (with a [check] section), record the calibration "
                          "with its log or plan (`elastocal history add --log ...`), or name the plan in [cell] "
@@ -148,7 +149,8 @@ def run(args: argparse.Namespace) -> int:
     check_sim_section(config)
     robot = config.load_robot()
     db = pathlib.Path(args.history) if args.history else config.history
-    cal, cal_id, plan_text = _calibration(args, db)
+    with config.key_errors("history", None if args.history else db):
+        cal, cal_id, plan_text = _calibration(args, db)
     if cal.robot and cal.robot != robot.name:
         raise InputError(f"the calibration is for {cal.robot!r}, the cell's robot is {robot.name!r}",
                          source=args.calibration or str(db))

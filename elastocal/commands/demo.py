@@ -44,6 +44,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                                       f"(default {DEMO_POSES})")
 
 
+#: the file that marks a folder as the demo's own (a second run into it replaces the demo's files)
+DEMO_MARK = ".elastocal-demo"
+MARK_TEXT = "elastocal demo writes here: cell.toml, plan.toml, calibration.mcap, report.html, cal.json, compensated.*\n"
+
+
+def _demo_folder(path: str) -> pathlib.Path:
+    """The demo's folder: a new one, an empty one, or one an earlier demo marked as its own
+    (:data:`DEMO_MARK`); a folder with anything else in it is refused, nothing written."""
+    from elastocal.commands._outputs import check_folder
+    from elastocal.errors import InputError
+
+    out = check_folder(path, "--out")
+    if out.is_dir() and any(out.iterdir()) and not (out / DEMO_MARK).is_file():
+        raise InputError(f"holds files the demo did not make (no {DEMO_MARK} in it); give a new or empty folder: "
+                         "the demo replaces only its own files", source=str(out))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create: {exc.strerror}", source=str(out)) from None
+    return out
+
+
 class _Say:
     def __init__(self) -> None:
         self.t0 = time.perf_counter()
@@ -63,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
     from elastocal.acquisition.procedures import run_calibration
     from elastocal.commands._cell import procedure_cell
+    from elastocal.commands._outputs import atomic, write_text_atomic
     from elastocal.compensation.files import write_compensated_csv, write_krl, write_rapid
     from elastocal.compensation.ik import yang_path
     from elastocal.compensation.model import CompensationModel
@@ -85,18 +108,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("at least 4 poses", source="--poses")
     if args.seed < 0:
         raise InputError(f"must be >= 0, got {args.seed}", source="--seed")
-    # the demo's folder is its own: a second run into it replaces the files of the first
-    # (cell.toml, plan.toml, calibration.mcap, report.html, cal.json, compensated.*, demo.json)
-    if args.out:
-        from elastocal.commands._outputs import check_folder
-
-        out = check_folder(args.out, "--out")
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise InputError(f"cannot create: {exc.strerror}", source=str(out)) from None
-    else:
-        out = pathlib.Path(tempfile.mkdtemp(prefix="elastocal-demo-"))
+    out = _demo_folder(args.out) if args.out else pathlib.Path(tempfile.mkdtemp(prefix="elastocal-demo-"))
+    (out / DEMO_MARK).write_text(MARK_TEXT, encoding="utf-8")
     say = _Say()
 
     # 1. the simulated cell: built with its real geometry (kinematic errors), the tracker 3.7 m away and turned
@@ -108,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
                                                       for d in config.drives))
     robot = config.load_robot()
     truth = CellTruth().with_hidden(cell_hidden)
-    (out / "cell.toml").write_text(config.to_toml(), encoding="utf-8")
+    write_text_atomic(out / "cell.toml", config.to_toml())
     say(f"Simulated cell '{config.name}': a {robot.name} robot whose six servo drives report their motor "
         f"currents {DEMO_DRIVE_RATE_HZ:.0f} times a second (CANopen, TPDO on SYNC), a laser tracker that measures "
         f"3 markers on the tool, and the cell controller (Modbus). Hidden in its physics, for elastocal to find: "
@@ -121,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
              LoadSpec("L3", force_n=(650.0, -300.0, -400.0)))
     plan_text = plan_toml(poses=poses, loads=loads, markers=robot.marker_names, repeats=DEMO_REPEATS,
                           reading_s=0.02, settle=SettleSpec(spread_m=20e-6, window_s=0.15, timeout_s=10.0))
-    (out / "plan.toml").write_text(plan_text, encoding="utf-8")
+    write_text_atomic(out / "plan.toml", plan_text)
     plan = parse_plan(plan_text, source=str(out / "plan.toml"))
     log = out / "calibration.mcap"
     say(f"Guided static procedure (answered automatically, --yes): {args.poses} poses, unloaded + 3 loads "
@@ -175,10 +188,10 @@ def run(args: argparse.Namespace) -> int:
     worst = sorted(absolute.base.per_pose(), key=lambda p: -p["max"])[:3]
     print("  worst poses before: " + ", ".join(f"{p['pose']} ({p['max'] * 1e3:.2f} mm)" for p in worst))
     report = out / "report.html"
-    report.write_text(render_report(robot_log, diag, inputs=[str(log)]), encoding="utf-8")
+    write_text_atomic(report, render_report(robot_log, diag, inputs=[str(log)]))
     obj = geo.to_json()
-    write_calibration(out / "cal.json", calibration_from_fit(robot.name, obj, [log],
-                                                           robot_description=robot_log.to_toml()))
+    with atomic(out / "cal.json") as tmp:
+        write_calibration(tmp, calibration_from_fit(robot.name, obj, [log], robot_description=robot_log.to_toml()))
     print(f"  report: {report}; calibration: {out / 'cal.json'}")
 
     # 5. compensated trajectory on the simulated cell
@@ -188,9 +201,10 @@ def run(args: argparse.Namespace) -> int:
     path = yang_path(robot)
     wrench = np.tile(np.asarray(YANG_WRENCH, dtype=float), (len(path), 1))
     result = compensate_path(model, path.q, wrench, form="exact")
-    write_compensated_csv(out / "compensated.csv", path.t, result)
-    write_krl(out / "compensated.src", path.t, result)
-    write_rapid(out / "compensated.mod", path.t, result)
+    for name, writer in (("compensated.csv", write_compensated_csv), ("compensated.src", write_krl),
+                         ("compensated.mod", write_rapid)):
+        with atomic(out / name) as tmp:
+            writer(tmp, path.t, result)
     validation = validate_on_sim(SimCell(robot, truth), model, path, YANG_WRENCH).summary()
     say(f"Compensated Yang's path (x 1.2 → 1.8 m at z 0.116 m, 10 mm/s, 1500 N process load, {len(path)} points) "
         f"with the calibration and ran it on the simulated cell: compensated.csv, .src (KUKA KRL), .mod (ABB RAPID)")
@@ -234,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
     print(format_parameters(final_k, truth_k))
     print(f"  Words like noise floor, ΔBIC, exact form, TPDO/SYNC and the effect names: README.md, Glossary. "
           f"Look at it in 3-D: elastocal view {log}")
-    (out / "demo.json").write_text(json.dumps({
+    write_text_atomic(out / "demo.json", json.dumps({
         "hidden": args.hidden, "verdict": diag.verdict, "rms_before": diag.fit.rms, "rms_after": final.rms,
         "absolute": {"rms_before": absolute.base.rms, "max_before": absolute.base.max, "rms_after": geo.rms,
                      "max_after": geo.max, "noise_floor": geo.noise_floor},

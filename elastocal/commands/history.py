@@ -181,9 +181,12 @@ def run(args: argparse.Namespace) -> int:
     if db is None:
         raise InputError("no history database: give --db, or --cell with `history = \"history.sqlite\"` in its "
                          "[cell] table", source=args.cell or "--db")
-    if args.action == "add":
-        return _add(args, db)
     for flag in ("calibration", "log", "plan"):
-        if getattr(args, flag):
+        if args.action != "add" and getattr(args, flag):
             raise InputError(f"--{flag} belongs to `history add`", source=f"--{flag}")
-    return _show(args, db)
+    if args.db:
+        return _add(args, db) if args.action == "add" else _show(args, db)
+    from elastocal.drivers.config import load_cell_config
+
+    with load_cell_config(args.cell).key_errors("history", db):      # the database [cell] history names
+        return _add(args, db) if args.action == "add" else _show(args, db)
