@@ -145,7 +145,7 @@ class Session:
         self.detector = SettleDetector(plan.settle.speed_rad_s, plan.settle.spread_m, plan.settle.window_s)
         self.standstill = SettleDetector(STANDSTILL_SPEED_RAD_S, math.inf, STANDSTILL_S)
         self.standstill.reset(io.clock())
-        self.n_joints = len(self.robot.joints)
+        self.n_joints = self.robot.n_joints
         self.started_ns = io.clock()
         self._step_started_ns = self.started_ns
         self._spent_s = 0.0         # time of the steps done in this session

@@ -24,7 +24,7 @@ from elastocal.acquisition.session import STANDSTILL_S, STANDSTILL_SPEED_RAD_S
 from elastocal.acquisition.ui import Aborted, AutoUI
 from elastocal.errors import DeviceFault, DeviceTimeout, ProtocolError
 from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth, SimCell
 
 ROBOT = bundled_robot()

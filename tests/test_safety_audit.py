@@ -94,7 +94,7 @@ def test_standstill_that_never_comes_is_a_fault_with_a_resume_hint(tmp_path, cap
     from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
     from elastocal.acquisition.procedures import run_procedures
     from elastocal.errors import NotAtRest
-    from elastocal.model.robot import bundled_robot
+    from elastocal.formats.robot_toml import bundled_robot
     from elastocal.sims.cell import CellTruth, SimCell
 
     class Creeping(VirtualCellIO):
@@ -160,7 +160,7 @@ from elastocal.acquisition.cellio import VirtualCellIO, VirtualTiming
 from elastocal.acquisition.procedures import run_procedures
 from elastocal.acquisition.ui import TerminalUI
 from elastocal.formats.plan import parse_plan
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth, SimCell
 
 io = VirtualCellIO(SimCell(bundled_robot(), CellTruth()), q0=(0.0, 0.2, -0.4, 0.0, 0.5, 0.0),
@@ -375,7 +375,7 @@ def test_an_empty_out_is_bad_input_not_a_silent_success(tmp_path, capsys):
 KILLED_CHILD = r"""
 import sys, time
 from elastocal.acquisition.recorder import Recorder
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 
 robot = bundled_robot()
 with Recorder(sys.argv[1]) as rec:
