@@ -59,7 +59,7 @@ from elastocal.drivers.tracker_protocol import (
     parse_measurement,
     valid_name,
 )
-from elastocal.errors import BeamBroken, DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout, InputError, ProtocolError
+from elastocal.errors import BeamBroken, DeviceDisconnected, DeviceError, DeviceTimeout, InputError, ProtocolError
 
 MAX_BAD_LINES = 10
 #: bytes of a typical measurement line, for the serial bandwidth check
