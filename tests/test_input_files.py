@@ -155,11 +155,12 @@ def test_a_byte_order_mark_is_accepted_in_toml_and_json(tmp_path):
 # --------------------------------------------------- 2. unknown keys in robot.toml
 @pytest.mark.parametrize("edit, key, reason", [
     (lambda t: t.replace("mass = 160.0", "mas = 160.0"), "joint[2].mas",
-     "unknown key mas (did you mean mass?); known keys: name, a, alpha, d, beta, offset, lower, upper, torque_constant, "
-     "mass, com"),
+     "unknown key mas (did you mean mass?); known keys: name, type, a, alpha, d, theta, beta, offset, lower, upper, "
+     "torque_constant, mass, com"),
     (lambda t: t.replace('name = "A3"\n', 'name = "A3"\nfoo = 1\n'), "joint[3].foo", "unknown key foo; known keys"),
     (lambda t: t.replace('name = "HH-150"\n', 'name = "HH-150"\nfoo = 1\n'), "foo",
-     "unknown key foo; known keys: name, convention, gravity, urdf, urdf_xml, joint, tool, compensator"),
+     "unknown key foo; known keys: name, convention, gravity, urdf, urdf_xml, base_link, tip_link, joint, tool, "
+     "compensator"),
     (lambda t: t.replace("[tool]\n", "[tool]\nflang = 1\n"), "tool.flang",
      "unknown key flang (did you mean flange?); known keys: load_point, markers, flange"),
     (lambda t: t.replace("[compensator]\n", "[compensator]\nL = 1.0\n"), "compensator.L",
