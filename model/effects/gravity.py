@@ -43,8 +43,15 @@ def excited_basis(regressor: np.ndarray) -> np.ndarray:
         return basis
     _, s, vt = np.linalg.svd(regressor[:, used], full_matrices=False)
     rank = int(np.sum(s > GRAVITY_RANK_TOL * s[0])) if s.size and s[0] > 0 else 0
+    # a singular vector's sign is the LAPACK kernel's choice (it differs between CPUs): fix it so
+    # that the identified g_k mean the same combination everywhere. The first entry of at least
+    # half the largest magnitude is made positive (not the largest: two entries of equal size,
+    # a mass moment's x and y, would let the last bits choose)
+    vectors = vt[:rank].T
+    lead = np.argmax(np.abs(vectors) >= 0.5 * np.abs(vectors).max(axis=0), axis=0)
+    vectors = vectors * np.where(vectors[lead, np.arange(rank)] < 0, -1.0, 1.0)
     basis = np.zeros((regressor.shape[1], rank))
-    basis[used] = vt[:rank].T
+    basis[used] = vectors
     return basis
 
 
