@@ -25,7 +25,6 @@ from __future__ import annotations
 import math
 import pathlib
 import threading
-import time
 from importlib import resources
 from typing import Sequence
 
@@ -64,7 +63,7 @@ class SimCanopenDrive:
         self._lock = threading.Lock()
         self._state = SW_OPERATION_ENABLED
         self._error_code = 0
-        self._silent_until = 0.0
+        self._silent_cycles = 0           # SYNCs still to leave unanswered (math.inf: until resume)
         self._malformed = 0
         self._last_controlword = 0
         self.gear_num = int(round(gear_ratio * 100))
@@ -90,18 +89,20 @@ class SimCanopenDrive:
         self.node.add_write_callback(self._on_write)
 
     # ------------------------------------------------------ fault injection
-    def go_silent(self, duration_s: float | None = None) -> None:
-        """Stop answering SYNC and SDO for ``duration_s`` (None: until :meth:`resume`)."""
+    def go_silent(self, cycles: int | None = None) -> None:
+        """Stop answering SYNC and SDO for the next ``cycles`` SYNCs the drive receives (None:
+        until :meth:`resume`). Counted in SYNCs, not seconds: the silence is the same number
+        of bus cycles however late a loaded machine runs the threads."""
         with self._lock:
-            self._silent_until = math.inf if duration_s is None else time.monotonic() + duration_s
+            self._silent_cycles = math.inf if cycles is None else int(cycles)
 
     def resume(self) -> None:
         with self._lock:
-            self._silent_until = 0.0
+            self._silent_cycles = 0
 
     def silent(self) -> bool:
         with self._lock:
-            return time.monotonic() < self._silent_until
+            return self._silent_cycles > 0
 
     def fault(self, code: int = 0x2310) -> None:
         """Go to the Fault state and send EMCY ``code`` (0x2310: continuous over-current)."""
@@ -184,12 +185,13 @@ class SimCanopenDrive:
 
     _sync_plan: tuple = ()
 
-    def latch(self, values: list[int], now_s: float) -> bool:
+    def latch(self, values: list[int]) -> bool:
         """Latch ``values`` (:data:`PDO_OBJECTS` order, from :class:`DriveUnits`;
         the statusword slot is filled here) into the synchronous TPDOs at a
         SYNC; False (nothing latched) while the drive is silent."""
         with self._lock:
-            if now_s < self._silent_until:
+            if self._silent_cycles > 0:
+                self._silent_cycles -= 1
                 return False
             values[STATUS_SLOT] = self._state
         for pdo, fields in self._sync_plan:
@@ -300,9 +302,8 @@ class SimCanopenNetwork:
         if self.world is None:
             return
         # one world sample and one unit conversion per SYNC for all drives
-        now_s = time.monotonic()
         latched = {d.node_id for d, values in zip(self._sync_drives, self._sync_units(self.world.sample()))
-                   if d.latch(values, now_s)}
+                   if d.latch(values)}
         for d, pdo in self._sync_tpdos:          # lowest COB-ID first, as arbitration orders them
             if d.node_id in latched:
                 d.transmit(pdo)
