@@ -122,7 +122,9 @@ def test_rtu_over_a_pty_pair(world, drive_config):
         assert s.position_rad == pytest.approx(0.2, abs=1e-7)
         with drive.stream(20.0) as stream:
             batch = stream.read_for(0.3)
-        assert len(batch.samples) >= 3 and not batch.gaps
+        # a poll a loaded machine started late is a recorded gap of its own kind; no other gap
+        assert len(batch.samples) >= 3
+        assert all(g.reason.startswith("poll could not start on time") for g in batch.gaps), batch.gaps
         server.corrupt_replies(1)                 # bad CRC: discarded, the retry gets a good reply
         assert drive.read().position_rad == pytest.approx(0.2, abs=1e-7)
     finally:
