@@ -17,6 +17,7 @@ import pathlib
 
 import numpy as np
 import pytest
+from golden_tolerance import RELATIVE, UNIT_FLOOR, array_mismatch, array_tolerance
 
 from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import identify_static
@@ -26,10 +27,8 @@ from elastocal.sims.static import StaticPlan, simulate_static
 
 GOLDEN = pathlib.Path(__file__).parent / "data" / "golden" / "identify_arrays.npz"
 WRITE = os.environ.get("ELASTOCAL_WRITE_GOLDEN") == "1"
-REL = 1e-9
-#: arrays in metres, and the rounding of a position of about 1 m [m] (tests/test_golden_json.py's TINY)
+#: arrays in metres
 METRES = ("predicted", "residuals", "absolute_base")
-TINY_M = 1e-15
 
 #: name -> (hidden effect, plan, model, torque, form, weighting, u95 column)
 CASES = {
@@ -109,15 +108,35 @@ def test_fit_arrays_are_todays(name):
     expected = {k for k in golden.files if k.startswith(name + "/")}
     assert set(now) == expected, f"{name}: the fit returns other arrays than the reference"
     for key, value in now.items():
-        ref = golden[key]
-        assert value.shape == ref.shape, key
-        both_nan = np.isnan(ref) & np.isnan(value)
-        scale = np.maximum(np.abs(ref), 1e-300)
-        # entries that are rounding noise next to the array's largest are compared absolutely;
-        # so are positions and deflections in metres, whose last bit is that of a 1 m position
-        floor = 1e-13 * float(np.nanmax(np.abs(ref), initial=0.0))
-        if key.split("/")[1] in METRES:
-            floor = max(floor, TINY_M)
-        err = np.where(both_nan, 0.0, np.abs(value - ref))
-        assert np.all((err <= REL * scale) | (err <= floor)), (
-            f"{key}: max relative change {float(np.nanmax(err / scale)):.3g}")
+        problem = array_mismatch(value, golden[key], _tolerance(golden, key))
+        assert problem is None, f"{key}: {problem}"
+
+
+def _tolerance(golden, key: str) -> np.ndarray:
+    """The golden rule's tolerance of one reference array (see the module's docstring)."""
+    case, what = key.split("/")
+    ref = golden[key]
+    if what == "beta":
+        return array_tolerance(ref, std=np.sqrt(np.diag(golden[f"{case}/beta_cov"])))
+    if what == "parameters":
+        tol = array_tolerance(ref)
+        tol[:, 0] = array_tolerance(ref[:, 0], std=ref[:, 1])
+        return tol
+    if what == "beta_cov":
+        sd = np.sqrt(np.diag(ref))
+        return RELATIVE * np.outer(sd, sd)
+    return array_tolerance(ref, floor=UNIT_FLOOR["m"] if what in METRES else 0.0)
+
+
+def test_the_array_comparison_can_fail():
+    """A tenth of a std on a fitted parameter fails, the last digits of a kernel do not."""
+    golden = np.load(GOLDEN)
+    key = "exact_current/beta"
+    std = np.sqrt(np.diag(golden["exact_current/beta_cov"]))
+    ref = golden[key]
+    assert array_mismatch(ref + 1e-9 * np.abs(ref), ref, _tolerance(golden, key)) is None
+    moved = ref.copy()
+    moved[2] += 0.1 * std[2]
+    assert "(2,)" in array_mismatch(moved, ref, _tolerance(golden, key))
+    res = golden["exact_current/residuals"]
+    assert array_mismatch(res * (1 + 1e-5), res, _tolerance(golden, "exact_current/residuals"))
