@@ -26,6 +26,7 @@ import collections
 import contextlib
 import logging
 import os
+import tempfile
 from typing import Callable, Iterator, Sequence
 
 from elastocal.errors import Arg, DeviceError, InputError
@@ -135,10 +136,13 @@ def _dask(tasks: list[FleetTask], fn, *, scheduler: str | None, workers: int) ->
             except (OSError, TimeoutError, ValueError) as exc:
                 raise DeviceError(f"cannot reach the Dask scheduler {scheduler}: {error_text(exc)}") from None
         else:
+            # the workers' scratch space is the run's own and goes with it (Dask's default,
+            # $TMPDIR/dask-scratch-space, stays behind)
+            scratch = stack.enter_context(tempfile.TemporaryDirectory(prefix="elastocal-dask-"))
             cluster = stack.enter_context(LocalCluster(
                 n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                 dashboard_address=LOOPBACK_ANY_PORT, worker_dashboard_address=LOOPBACK_ANY_PORT,
-                silence_logs=logging.CRITICAL))
+                silence_logs=logging.CRITICAL, local_directory=scratch))
             client = stack.enter_context(Client(cluster))
         futures = client.map(fn, tasks, pure=False)
         index = {f.key: i for i, f in enumerate(futures)}

@@ -10,7 +10,21 @@
 
 Markers (registered in pyproject.toml): ``slow`` marks tests that run simulated devices or
 procedures in wall-clock time; ``python -m pytest -m "not slow"`` leaves them out for a
-quick run (CI runs everything).
+quick run. ``heavy`` marks statistics over hundreds of seeds and long end-to-end runs:
+the default run leaves them out (``-m 'not heavy'`` in pyproject's addopts), ``python -m
+pytest -m heavy`` runs them, and ``.ci/run`` runs both. A heavy test is slow too.
+
+The run is spread over the cores by pytest-xdist (``-n auto --dist loadgroup``): the tests
+of a module that share one of its module-scoped fixtures go to one worker, so the fixture
+is computed once; every other test goes wherever a worker is free. Session fixtures are
+made once per worker. A test therefore never assumes it runs alone: ports are 0 (the
+system picks), files go to ``tmp_path``, and global state is restored by a fixture.
+
+A run leaves nothing behind: files go to ``tmp_path`` (pytest removes a green run's
+folders, ``tmp_path_retention_policy = "failed"``), and the session's end lists whatever
+appeared in the temporary folder or in ~/.config during the run (a warning; a failure
+with ``ELASTOCAL_CHECK_LEFTOVERS=1``, as ``.ci/run`` sets: on a shared machine another
+user's files may show up). Matplotlib's configuration folder is the session's own.
 
 A new test file uses these by naming them as arguments; a file that needs another robot
 defines its own fixture of the same name, which takes precedence in that file.
@@ -18,11 +32,100 @@ defines its own fixture of the same name, which takes precedence in that file.
 
 from __future__ import annotations
 
+import os
 import pathlib
+import tempfile
 
 import pytest
 
 from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path
+
+
+#: where a run must leave nothing: the temporary folder and the user's configuration
+WATCHED = (pathlib.Path(tempfile.gettempdir()), pathlib.Path.home() / ".config")
+_LEFTOVER_KEY = pytest.StashKey[dict]()
+
+
+def _entries() -> dict[pathlib.Path, set[str]]:
+    return {d: set(os.listdir(d)) if d.is_dir() else set() for d in WATCHED}
+
+
+def pytest_configure(config):
+    if not hasattr(config, "workerinput"):          # the controller (or a run without workers)
+        config.stash[_LEFTOVER_KEY] = _entries()
+        # matplotlib makes ~/.config/matplotlib on first import: this session's one instead
+        # (inherited by the xdist workers and by subprocesses), removed at the end
+        if "MPLCONFIGDIR" not in os.environ:
+            os.environ["MPLCONFIGDIR"] = tempfile.mkdtemp(prefix="elastocal-tests-mpl-")
+            config.stash[_MPL_KEY] = os.environ["MPLCONFIGDIR"]
+
+
+_MPL_KEY = pytest.StashKey[str]()
+
+
+def pytest_unconfigure(config):
+    import shutil
+
+    mpl = config.stash.get(_MPL_KEY, None)
+    if mpl:
+        shutil.rmtree(mpl, ignore_errors=True)
+
+
+@pytest.hookimpl(trylast=True)          # after pytest's own removal of a green run's tmp_path folders
+def pytest_sessionfinish(session, exitstatus):
+    config = session.config
+    before = config.stash.get(_LEFTOVER_KEY, None)
+    if before is None:
+        return
+    mpl = config.stash.get(_MPL_KEY, None)
+    user_root = f"pytest-of-{_user()}"
+    left = []
+    for folder, names in _entries().items():
+        for name in sorted(names - before[folder]):
+            path = folder / name
+            if mpl and path == pathlib.Path(mpl):
+                continue                                # removed at pytest_unconfigure
+            # pytest's own root of its numbered folders stays, without a file once a green run is removed
+            if name == user_root and path.is_dir() and not any(p.is_file() for p in path.rglob("*")):
+                continue
+            left.append(str(path))
+    if not left:
+        return
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    strict = os.environ.get("ELASTOCAL_CHECK_LEFTOVERS") == "1"
+    if reporter is not None:
+        reporter.ensure_newline()
+        reporter.write_line(f"{'error' if strict else 'warning'}: this test run left {', '.join(left)}",
+                            red=strict, yellow=not strict)
+    if strict and session.exitstatus == 0:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+def _user() -> str:
+    import getpass
+
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):
+        return "unknown"
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.get_closest_marker("heavy") and not item.get_closest_marker("slow"):
+            item.add_marker(pytest.mark.slow)
+        if not item.get_closest_marker("xdist_group") and _uses_module_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+
+
+def _uses_module_fixture(item) -> bool:
+    """Whether the test needs a fixture computed once per module (or class)."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return False
+    return any(defs and defs[-1].scope in ("module", "class", "package")
+               for defs in info.name2fixturedefs.values())
 
 
 @pytest.fixture(scope="session")

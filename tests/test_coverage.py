@@ -42,7 +42,7 @@ def _run(shared: bool):
     return np.array(z), np.array(z_crb), np.array(ratio)
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 @pytest.mark.parametrize("shared", (False, True), ids=("own-readings", "shared-readings"))
 def test_intervals_cover_truth_and_the_variance_reaches_the_bound(shared):
     z, z_crb, ratio = _run(shared)

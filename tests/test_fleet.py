@@ -95,14 +95,15 @@ def _without_seconds(rows: list[dict]) -> list[dict]:
 
 
 @pytest.fixture(scope="session")
-def scheduler():
+def scheduler(tmp_path_factory):
     """A Dask cluster the tests share through --scheduler (its start costs more than most tests' work)."""
     import logging
 
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL) as cluster:
+                      dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL,
+                      local_directory=str(tmp_path_factory.mktemp("dask"))) as cluster:
         yield cluster.scheduler_address
 
 

@@ -63,7 +63,7 @@ def _view(argv: list[str]) -> None:
     page.stop()
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_every_offline_readme_workflow_runs_from_simulated_data(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     outputs = {}
@@ -172,7 +172,7 @@ def _the_simulated_plant_shows_its_drift(root: pathlib.Path, outputs: dict, caps
                                 and expected[path] == "holds" else "holds") for path in expected}
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_every_shop_floor_readme_workflow_runs_on_the_served_simulated_cell(tmp_path, monkeypatch, capsys):
     """The second block as written: `sim serve ... &` in its own process, then devices, calibrate,
     plan, calibrate, identify, history add, check, schedule install and history against it."""

@@ -522,7 +522,7 @@ def test_a_stiffness_the_data_do_not_determine_is_marked_never_a_finding(tmp_pat
     assert f"note: k1 in {tmp_path / 'cal.json'} not determined by the calibration's data" in capsys.readouterr().err
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_served_cell_rehearsal_calibrates_the_true_stiffness(tmp_path, capsys):
     """The documented rehearsal: `elastocal sim serve --write-cell` in one process, `elastocal
     calibrate` against the written cell in another; the loads confirmed at the prompts hang in the

@@ -22,7 +22,7 @@ K_NAMES = [f"k{j}" for j in range(1, 7)]
 N_SEEDS = 100
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_stiffness_intervals_cover_truth_after_the_selection():
     truth = CellTruth().with_hidden("link_compliance")
     eff = get_effect("link_compliance")

@@ -28,6 +28,7 @@ def plant(tmp_path_factory):
     return root
 
 
+@pytest.mark.heavy
 def test_the_plant_is_laid_out_as_the_fleet_reads_it(plant, capsys):
     from elastocal.drivers.config import load_cell_config
     from elastocal.fleet.discover import find_inputs
@@ -54,6 +55,7 @@ def test_the_plant_is_laid_out_as_the_fleet_reads_it(plant, capsys):
     assert all(log["stiffness"] == a["built_stiffness"] for log in a["logs"])
 
 
+@pytest.mark.heavy
 def test_each_log_is_dated_as_measured_a_week_apart(plant):
     from elastocal.fleet.discover import find_inputs
     from elastocal.fleet.tasks import FleetTask, run_task
@@ -69,6 +71,7 @@ def test_each_log_is_dated_as_measured_a_week_apart(plant):
                      "2026-11-16.mcap": dt.datetime(2026, 11, 16, 7, tzinfo=utc)}
 
 
+@pytest.mark.heavy
 def test_each_history_holds_the_first_calibration_identified_from_the_first_log(plant, capsys):
     from elastocal.acquisition.history import History
 
@@ -92,6 +95,7 @@ def test_each_history_holds_the_first_calibration_identified_from_the_first_log(
             assert abs(p.value - cell["built_stiffness"][j - 1]) < 4 * p.std, (cell["cell"], j)
 
 
+@pytest.mark.heavy
 def test_the_same_seed_writes_the_same_plant_and_another_seed_another(plant, tmp_path, capsys):
     again, other = tmp_path / "again", tmp_path / "other"
     assert main(["sim", "plant", "--out", str(again), *SMALL, "--seed", "4"]) == 0

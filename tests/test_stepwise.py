@@ -46,6 +46,7 @@ def wobbling_reflector(table, seed: int, size_m: float = 25e-6):
     return replace(table, xyz=xyz)
 
 
+@pytest.mark.heavy
 def test_an_effect_outside_every_named_one_ends_unexplained_in_9_of_10_seeds():
     outcomes = []
     for seed in range(10):
@@ -132,6 +133,7 @@ def test_complete_fits_sit_at_the_floor_with_and_without_shared_readings(shared)
     assert abs(median - 1.0) < 0.05, median
 
 
+@pytest.mark.heavy
 def test_complete_data_with_shared_readings_give_no_verdict():
     verdicts = [diagnose_static(ROBOT, simulate_static(ROBOT, CellTruth(), seed=seed,
                                                        plan=StaticPlan(shared_currents=True))).verdict
@@ -139,6 +141,7 @@ def test_complete_data_with_shared_readings_give_no_verdict():
     assert sum(v is None for v in verdicts) >= 19, verdicts
 
 
+@pytest.mark.heavy
 def test_diagnose_json_has_steps_final_and_unexplained(tmp_path, capsys):
     out = tmp_path / "two"
     assert main(["sim", "static", "--hidden", "link_compliance,thermal_drift", "--seed", "2", "--out",

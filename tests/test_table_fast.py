@@ -8,6 +8,8 @@ shown to send every bad row to the per-row reader.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -87,12 +89,18 @@ def test_a_bad_row_is_named_by_the_per_row_reader(column, value, message):
     assert info.value.row == 8, str(info.value)      # the header is line 1
 
 
-def _run_text(drop: tuple[str, ...] = ()) -> str:
+@functools.cache
+def _run_table_text() -> str:
+    """The simulated run table's text, made once (the simulation is the costly part; read-only)."""
     from elastocal.formats.tables import format_run_table
     from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 
-    table = simulate_runs(ROBOT, default_run_truth(CellTruth()), seed=2, friction=FrictionPlan(samples=40))
-    lines = [ln.split(",") for ln in format_run_table(table).splitlines()]
+    return format_run_table(simulate_runs(ROBOT, default_run_truth(CellTruth()), seed=2,
+                                          friction=FrictionPlan(samples=40)))
+
+
+def _run_text(drop: tuple[str, ...] = ()) -> str:
+    lines = [ln.split(",") for ln in _run_table_text().splitlines()]
     keep = [i for i, c in enumerate(lines[0]) if c not in drop]
     return "\n".join(",".join(ln[i] for i in keep) for ln in lines) + "\n"
 

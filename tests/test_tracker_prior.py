@@ -141,6 +141,7 @@ def test_bad_tracker_position_is_one_line_exit_2(cell_data, capsys):
 
 
 
+@pytest.mark.heavy
 def test_a_log_whose_cell_file_says_nothing_or_garbage(cell_data, tmp_path, capsys):
     d, table, _ = cell_data
     # a procedure run without a cell file records an empty one; a cell file without [tracker]
