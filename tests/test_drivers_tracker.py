@@ -23,6 +23,7 @@ from elastocal.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, Inp
 from elastocal.sims.emscon_server import SimEmscon
 from elastocal.sims.tracker_server import SimTracker
 from elastocal.sims.world import SimWorld
+from stream_reading import read_samples
 
 #: these tests run simulated devices in wall-clock time (tests/conftest.py)
 pytestmark = pytest.mark.slow
@@ -159,10 +160,9 @@ def test_measure_gives_the_marker_in_metres(tracker, world, backend):
 def test_stream_has_consecutive_sequence_and_device_clock(tracker, backend):
     rate = backend.rate_hz
     with tracker.stream(rate) as stream:
-        batch = stream.read_for(0.5)
+        batch = read_samples(stream, int(0.35 * rate))     # a count: a loaded machine takes longer
     seq = np.array([s.seq for s in batch.samples])
     holes = sum(g.missing for g in batch.gaps)
-    assert len(seq) >= 0.7 * 0.5 * rate
     assert seq[-1] - seq[0] + 1 == len(seq) + holes                        # every slot accounted for
     assert holes <= 0.2 * len(seq)      # a host-paced stream (emScon) records the slots a loaded host missed
     t_ns = np.array([s.t_ns for s in batch.samples])
@@ -180,9 +180,9 @@ def test_stream_has_consecutive_sequence_and_device_clock(tracker, backend):
 def test_line_stream_is_stamped_with_the_trackers_clock(line_tracker):
     rate = 200.0
     with line_tracker.stream(rate) as stream:
-        batch = stream.read_for(0.5)
+        batch = read_samples(stream, int(0.35 * rate))
     seq = np.array([s.seq for s in batch.samples])
-    assert not batch.gaps and len(seq) >= 0.7 * 0.5 * rate
+    assert not batch.gaps
     assert np.all(np.diff(seq) == 1)
     t = np.diff([s.t_ns for s in batch.samples])
     # stamped with the tracker's clock, not with the arrival time of the bytes
@@ -278,8 +278,8 @@ def test_serial_tracker_on_a_pty(world):
             with pytest.raises(InputError, match="115200 baud"):
                 t.stream(1000.0)
             with t.stream(100.0) as stream:
-                batch = stream.read_for(0.3)
-            assert len(batch.samples) >= 20 and not batch.gaps
+                batch = read_samples(stream, 20)
+            assert not batch.gaps
         finally:
             t.close()
     finally:
@@ -313,9 +313,10 @@ def test_lost_and_garbled_lines_are_gaps(line_tracker, line_sim):
         sim.drop_lines(3)
         stream.read_for(0.1)
         sim.corrupt_lines(2)
-        batch = stream.read_for(0.1)
+        # until the five are seen and five good lines after them (a loaded machine sends them later)
+        got = read_samples(stream, until=lambda got: stream.stats().missing >= 5 and len(got) >= 5)
         first = stream.stats()
-    assert first.missing == 5
+    assert first.missing == 5 and sum(g.missing for g in got.gaps) <= 5
     with tracker.stream(200.0) as stream:
         stream.read_for(0.05)
         sim.corrupt_lines(50)
@@ -329,10 +330,9 @@ def test_disconnect_is_resumed_with_a_gap(tracker, sim, backend):
     with tracker.stream(rate) as stream:
         before = stream.read_for(0.1)
         sim.disconnect_all()
-        after = stream.read_for(0.4)
+        after = read_samples(stream, int(0.2 * rate) + 1)
     assert sim.connections == 2                      # the driver connected again
     assert {g.reason for g in after.gaps} <= {"reconnected"}
-    assert len(after.samples) > 0.2 * rate
     assert_accounted(before.samples + after.samples, before.gaps + after.gaps, rate)
     assert tracker.measure().marker == "R1"
 
