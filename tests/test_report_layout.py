@@ -43,7 +43,10 @@ def report_page(tmp_path_factory):
 def test_group_tables_stay_in_their_column(report_page, tmp_path, width):
     page = report_page
     with playwright.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+        # its crash reporter's folder (~/.config/chromium) goes to the test's folder, not the user's
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS,
+                                     env={**os.environ, "XDG_CONFIG_HOME": str(tmp_path / "config"),
+                                          "XDG_CACHE_HOME": str(tmp_path / "cache")})
         try:
             tab = browser.new_page(viewport={"width": width, "height": 900})
             tab.goto(page.as_uri())

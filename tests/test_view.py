@@ -76,7 +76,10 @@ def test_view_in_headless_chromium_shows_the_robot_the_errors_and_the_toggle(dat
     try:
         assert page.server.get_host() == "127.0.0.1"
         with playwright.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+            # its crash reporter's folder (~/.config/chromium) goes to the test's folder, not the user's
+            browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
+                                         env={**os.environ, "XDG_CONFIG_HOME": str(tmp_path / "config"),
+                                              "XDG_CACHE_HOME": str(tmp_path / "cache")})
             try:
                 tab = browser.new_page(viewport={"width": 1400, "height": 900})
                 tab.goto(page.url)
