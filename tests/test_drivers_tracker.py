@@ -332,7 +332,8 @@ def test_disconnect_is_resumed_with_a_gap(tracker, sim, backend):
         sim.disconnect_all()
         after = read_samples(stream, int(0.2 * rate) + 1)
     assert sim.connections == 2                      # the driver connected again
-    assert {g.reason for g in after.gaps} <= {"reconnected"}
+    # a host-paced stream (emScon) on a loaded machine also records the requests it sent late
+    assert {g.reason for g in after.gaps} <= {"reconnected", "request could not be sent on time"}
     assert_accounted(before.samples + after.samples, before.gaps + after.gaps, rate)
     assert tracker.measure().marker == "R1"
 
