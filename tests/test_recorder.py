@@ -118,6 +118,7 @@ def test_recorder_refuses_to_overwrite_and_rejects_unknown_topics(tmp_path):
             rec.drive_sample(7, 1, 0.0, 0.0, 0.0)
 
 
+@pytest.mark.heavy
 def test_a_log_cut_at_any_byte_reads_up_to_the_cut(tmp_path):
     full = small_log(tmp_path / "log.mcap", samples=20, events=5)
     data = full.read_bytes()

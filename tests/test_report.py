@@ -145,6 +145,7 @@ def test_page_with_run_data_shows_the_uv_vu_current_differences():
     assert f"+ {rdiag.verdict}" in text and rdiag.verdict == "load_dependent_friction"
 
 
+@pytest.mark.heavy
 def test_report_command_writes_the_page(tmp_path, capsys):
     d = tmp_path / "sim"
     assert main(["sim", "static", "--hidden", "thermal_drift", "--seed", "2", "--out", str(d)]) == 0

@@ -33,6 +33,7 @@ def test_current_based_exact_recovers_stiffness(seed):
     assert not fit.unidentifiable
 
 
+@pytest.mark.heavy
 def test_reported_std_matches_spread_over_20_seeds():
     ks, stds, ratios = [], [], []
     for seed in range(100, 120):

@@ -62,6 +62,7 @@ def test_an_effect_outside_every_named_one_ends_unexplained_in_9_of_10_seeds():
     assert good >= 9, outcomes
 
 
+@pytest.mark.heavy
 def test_a_named_step_that_leaves_the_residual_above_the_floor_is_no_verdict():
     # link compliance on top of the wobbling reflector: the step is real but the
     # final model stays above the floor, so the verdict is null and the text says
@@ -124,6 +125,7 @@ def test_shared_current_readings_count_once():
     np.testing.assert_allclose(ds.sigma_current, CellTruth().current_noise_a, rtol=0.3)
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize("shared", (False, True))
 def test_complete_fits_sit_at_the_floor_with_and_without_shared_readings(shared):
     ratios = [identify_static(ROBOT, simulate_static(ROBOT, CellTruth(), seed=seed,
