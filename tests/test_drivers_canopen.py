@@ -277,11 +277,12 @@ def test_long_silence_ends_in_timeout(bench):
     with bench.drives[1].stream(100.0) as other, bench.drives[2].stream(100.0) as stream:
         stream.read_for(0.1)
         bench.sims[2].go_silent(None)
-        # each read returns at the next recorded gap: read until the timeout, a deadline only ends a hang
+        # the silent drive's stream delivers nothing until the link's 2 s timeout ends it: each read
+        # waits longer than that, and the deadline only ends a hang
         deadline = time.monotonic() + 60.0
         with pytest.raises(DeviceTimeout, match="no valid TPDO for 2 s"):
             while time.monotonic() < deadline:
-                stream.read(timeout_s=1.0)
+                stream.read(timeout_s=10.0)
         assert other.read_for(0.1).samples        # the other node on the bus is unaffected
     with pytest.raises(DeviceTimeout, match="no SDO reply"):
         bench.drives[2].read()

@@ -248,8 +248,7 @@ def test_goldens_hold_on_another_blas_kernel(coretype, tmp_path):
     if here is None or forced == here:
         pytest.skip(f"numpy's BLAS runs the {coretype} kernel here already, or is no OpenBLAS")
     run = subprocess.run([sys.executable, "-m", "pytest", __file__, "-k", "test_json_output_is_unchanged",
-                          "-n", "0", "-m", "", "-p", "no:cacheprovider", "--basetemp", str(tmp_path / "t"),
-                          "-q"],
+                          "-n", "0", "-m", "", "-p", "no:cacheprovider", "--basetemp", str(tmp_path / "t")],
                          env=env, capture_output=True, text=True, cwd=pathlib.Path(__file__).parents[1])
     assert run.returncode == 0, f"kernel {forced} (here {here}):\n" + run.stdout[-3000:]
     assert f"{len(NAMES)} passed" in run.stdout
