@@ -243,27 +243,69 @@ class LatePeer:
 
 def test_a_late_backlog_is_stamped_on_the_trackers_grid():
     """Lines read at once are not stamped with their one receive time (the duplicate t_ns a
-    loaded machine showed), and the stamps never step back when later lines arrive faster."""
+    loaded machine showed), and the stamps never step back when later lines arrive faster.
+
+    The lines go through the driver's own reading code (``_on_lines``, the seam between the
+    socket and the stamping) with receive times from a virtual clock, so the test checks the
+    rule and not how fast this machine reads a socket: six lines measured 5 ms apart arrive in
+    one read 40 ms after the newest was measured, the rest 0.3 ms after each."""
+    from elastocal.drivers.samples import Stream
+    from elastocal.drivers.tracker import _StreamState
+
+    rate, period_ns, t0_ns = 200.0, 5_000_000, 10_000_000_000
+    peer = LatePeer(rate, lines=0, late=0, delay_s=0.0)      # only to open the driver; it streams nothing
+    tracker = tracker_for(f"tracker+tcp://127.0.0.1:{peer.port}", timeout_s=5.0)
+    stream = Stream("tracker", rate, stop=lambda: None)
+    tracker._state = _StreamState(stream, rate)
+    measured_ns = {}
+
+    def line(k: int) -> bytes:
+        measured_ns[k + 1] = t0_ns + k * period_ns
+        return encode_line(Measurement(k + 1, k * period_ns // 1000, "R1", (1.0, 2.0, 0.5), "OK").body())
+
+    late, lines = 6, 120
+    try:
+        tracker._on_lines([line(k) for k in range(late)], t0_ns + (late - 1) * period_ns + 40_000_000)
+        for k in range(late, lines):
+            tracker._on_lines([line(k)], t0_ns + k * period_ns + 300_000)
+        batch = stream.poll()
+    finally:
+        tracker._state = None
+        tracker.close()
+        peer.close()
+    samples = batch.samples
+    assert not batch.gaps and [s.seq for s in samples] == list(range(1, lines + 1))
+    t = np.array([s.t_ns for s in samples], dtype=np.int64)
+    dt = np.diff(t)
+    assert np.all(dt[:late - 1] == period_ns), dt[:late]              # the backlog on the tracker's grid
+    assert np.all(dt >= period_ns // 2), dt.min()                     # slewed, never a step back
+    delay = t - np.array([measured_ns[s.seq] for s in samples])
+    assert np.all(delay >= 0)                                         # never stamped before it was measured
+    assert delay[0] >= 40_000_000                                     # the backlog's delay, at first ...
+    assert delay[-1] == 300_000                                       # ... slewed out to the smallest one
+    # the slew takes at most half an interval per sample: 39.7 ms at 2.5 ms a sample is 16 samples
+    assert np.all(dt[late + 20:] == period_ns)
+
+
+def test_a_late_backlog_over_a_socket_keeps_its_order_and_measurement_times():
+    """The same backlog from a peer on 127.0.0.1, read by the driver's thread: whatever the
+    machine's load does to the reads, stamps increase, never precede the measurement, and the
+    first one carries the backlog's delay (the exact slew is checked on a virtual clock above)."""
     rate, period_ns = 200.0, 5_000_000
-    peer = LatePeer(rate, lines=120, late=6, delay_s=0.04)
-    tracker = tracker_for(f"tracker+tcp://127.0.0.1:{peer.port}", timeout_s=1.0)
+    peer = LatePeer(rate, lines=60, late=6, delay_s=0.04)
+    tracker = tracker_for(f"tracker+tcp://127.0.0.1:{peer.port}", timeout_s=5.0)
     try:
         with tracker.stream(rate) as stream:
-            batch = stream.read_for(0.55)
+            batch = read_samples(stream, 40)
     finally:
         tracker.close()
         peer.close()
     samples = batch.samples
-    assert not batch.gaps and len(samples) >= 100 and [s.seq for s in samples[:6]] == [1, 2, 3, 4, 5, 6]
+    assert not batch.gaps and [s.seq for s in samples] == list(range(1, len(samples) + 1))
     t = np.array([s.t_ns for s in samples], dtype=np.int64)
-    dt = np.diff(t)
-    assert np.all(dt[:5] == period_ns), dt[:5]                      # the backlog on the tracker's grid
-    assert np.all(dt >= period_ns // 2), dt.min()                   # slewed, never a step back
+    assert np.all(np.diff(t) >= period_ns // 2)
     late = t - np.array([peer.measured_ns[s.seq] for s in samples])
-    assert np.all(late >= 0)                                        # never stamped before it was measured
-    assert late[0] >= 0.04e9                                        # the backlog's delay, at first ...
-    assert late[-1] < 0.01e9                                        # ... slewed out to the smallest one
-    assert np.mean(dt[-50:] == period_ns) > 0.5, dt[-50:]
+    assert np.all(late >= 0) and late[0] >= 0.04e9
 
 
 def test_serial_tracker_on_a_pty(world):
