@@ -1,6 +1,7 @@
 """Device drivers: one interface per device kind, backends by URL scheme.
 
-``open_drive``, ``open_tracker`` and ``open_controller`` pick the backend for a
+``open_drive``, ``open_tracker``, ``open_controller``, ``open_guidance`` and
+``open_force_sensor`` pick the backend for a
 URL scheme from the lazy tables below (like python-can's interface table: a
 backend module is imported only when a URL uses it). Backends of other
 packages come in through entry points, named by their URL scheme, in the
@@ -35,6 +36,15 @@ TRACKER_BACKENDS = MappingProxyType({
 CONTROLLER_BACKENDS = MappingProxyType({
     "modbus+tcp": ("elastocal.drivers.controller", "ModbusCellController"),
     "modbus+rtu": ("elastocal.drivers.controller", "ModbusCellController"),
+})
+#: the robot controller's real-time guidance channel (elastocal.drivers.guidance)
+GUIDANCE_BACKENDS = MappingProxyType({
+    "egm": ("elastocal.drivers.egm", "EgmGuidance"),
+    "rsi": ("elastocal.drivers.rsi", "RsiGuidance"),
+})
+#: force/torque sensors (elastocal.drivers.force)
+FORCE_BACKENDS = MappingProxyType({
+    "netft": ("elastocal.drivers.force", "NetFtSensor"),
 })
 
 
@@ -111,6 +121,17 @@ def open_tracker(config, *, links=None):
 def open_controller(config, *, links=None):
     """Open the controller of a :class:`~elastocal.drivers.config.ControllerConfig`."""
     return backend(CONTROLLER_BACKENDS, config.url.scheme, "controller")(config, links=links)
+
+
+def open_guidance(url, *, n_joints: int, source: str = "url"):
+    """Listen for the robot controller's guidance channel at ``url`` (a parsed
+    :class:`~elastocal.drivers.urls.DeviceUrl`; ``egm://`` or ``rsi://``) for a robot of ``n_joints``."""
+    return backend(GUIDANCE_BACKENDS, url.scheme, "guidance")(url, n_joints=n_joints, source=source)
+
+
+def open_force_sensor(url, *, source: str = "url"):
+    """Open the force/torque sensor at ``url`` (``netft://``); :meth:`start` begins its stream."""
+    return backend(FORCE_BACKENDS, url.scheme, "force sensor")(url, source=source)
 
 
 def open_cell(config):

@@ -34,6 +34,13 @@ from elastocal.drivers.registers import (
     _register,
 )
 from elastocal.drivers.endpoints import check_endpoints
+from elastocal.drivers.guidance_config import (
+    ForceSensorConfig,
+    GuidanceConfig,
+    guidance_doc,
+    parse_force_sensor,
+    parse_guidance,
+)
 from elastocal.drivers.urls import CONTROLLER_SCHEMES, DRIVE_SCHEMES, TRACKER_SCHEMES, DeviceUrl, parse_device_url
 from elastocal.errors import InputError, check_known_keys
 from elastocal.formats.textfiles import read_text_file
@@ -136,6 +143,8 @@ class CellConfig:
     #: the raw ``[sim]`` table (read by :func:`elastocal.sims.config.sim_config`)
     sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
     plan: pathlib.Path | None = None        # the cell's calibration plan (default for `calibrate --plan`)
+    guidance: GuidanceConfig | None = None  # the controller's real-time guidance channel (`elastocal stream`)
+    force_sensor: ForceSensorConfig | None = None
     source: str = "<cell.toml>"
     base_dir: pathlib.Path | None = None
 
@@ -430,7 +439,8 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
         doc = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source=source) from None
-    check_known_keys(doc, ("cell", "drive", "tracker", "controller", "sim"), source=source, where="")
+    check_known_keys(doc, ("cell", "drive", "tracker", "controller", "guidance", "force_sensor", "sim"),
+                     source=source, where="")
     cell = doc.get("cell")
     if not isinstance(cell, Mapping):
         raise InputError("missing [cell] table", source=source, column="cell")
@@ -452,13 +462,15 @@ def parse_cell_config(text: str, *, source: str = "<cell.toml>",
     _check_can_nodes(drives, source=source)
     tracker = _tracker(doc["tracker"], source=source) if "tracker" in doc else None
     controller = _controller(doc["controller"], source=source) if "controller" in doc else None
+    guidance = parse_guidance(doc["guidance"], source=source) if "guidance" in doc else None
+    force_sensor = parse_force_sensor(doc["force_sensor"], source=source) if "force_sensor" in doc else None
     sim = doc.get("sim", {})
     if not isinstance(sim, Mapping):
         raise InputError("expected a table", source=source, column="sim")
     sim = MappingProxyType(dict(sim))
     config = CellConfig(name=str(name), robot=robot, drives=tuple(sorted(drives, key=lambda d: d.joint)),
                         tracker=tracker, controller=controller, history=history_path, sim=sim, plan=plan_path,
-                        source=source, base_dir=base_dir)
+                        guidance=guidance, force_sensor=force_sensor, source=source, base_dir=base_dir)
     check_endpoints(_cell_devices(config), source=source)
     return config
 
@@ -544,6 +556,7 @@ def _document(c: CellConfig) -> dict[str, Any]:
             controller["path"] = [{"id": p.id, "u": list(p.u), "v": list(p.v), "speed_rad_s": p.speed_rad_s}
                                   for p in k.paths]
         doc["controller"] = controller
+    doc.update(guidance_doc(c.guidance, c.force_sensor))
     if c.sim:
         doc["sim"] = {name: list(v) if isinstance(v, tuple) else v for name, v in c.sim.items()}
     return doc

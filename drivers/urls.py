@@ -8,6 +8,9 @@
     tracker+tcp://127.0.0.1:7000             laser tracker, line protocol over TCP
     tracker+serial:///dev/ttyUSB0?baud=115200
     tracker+emscon://192.168.0.1:700         Leica tracker through its emScon server (port 700 by default)
+    egm://0.0.0.0:6510                       ABB EGM: the UDP address elastocal listens on for the controller
+    rsi://0.0.0.0:59152?cycle_ms=4           KUKA RSI over Ethernet, likewise
+    netft://192.168.1.1                      ATI Net F/T force/torque sensor (RDT, UDP port 49152 by default)
 
 The schemes are those of the backend tables in :mod:`elastocal.drivers` (listed once, there).
 """
@@ -22,6 +25,8 @@ from elastocal.drivers import (
     CONTROLLER_BACKENDS,
     DRIVE_BACKENDS,
     ENTRY_POINT_GROUPS,
+    FORCE_BACKENDS,
+    GUIDANCE_BACKENDS,
     TRACKER_BACKENDS,
     plugin_entry_points,
 )
@@ -31,6 +36,8 @@ from elastocal.errors import InputError
 DRIVE_SCHEMES = tuple(DRIVE_BACKENDS)
 TRACKER_SCHEMES = tuple(TRACKER_BACKENDS)
 CONTROLLER_SCHEMES = tuple(CONTROLLER_BACKENDS)
+GUIDANCE_SCHEMES = tuple(GUIDANCE_BACKENDS)
+FORCE_SCHEMES = tuple(FORCE_BACKENDS)
 
 
 # ------------------------------------------------------------------- URLs
@@ -128,7 +135,7 @@ def parse_device_url(text: str, *, allowed: tuple[str, ...] | None = None,
                          source=source)
     parts = urlsplit(text)
     scheme = parts.scheme.lower()
-    known = DRIVE_SCHEMES + TRACKER_SCHEMES
+    known = DRIVE_SCHEMES + TRACKER_SCHEMES + GUIDANCE_SCHEMES + FORCE_SCHEMES
     plugins = plugin_entry_points(kind) if kind is not None and scheme not in known else {}
     if plugins:
         allowed = None if allowed is None else allowed + tuple(sorted(plugins))
@@ -167,6 +174,13 @@ def parse_device_url(text: str, *, allowed: tuple[str, ...] | None = None,
             raise InputError(f"{text}: give host and port, e.g. {scheme}://127.0.0.1:1502", source=source)
         if scheme == "modbus+tcp":
             url.int_param("unit", 1, source=source, low=0, high=247)
+    elif scheme in GUIDANCE_SCHEMES:
+        if url.port is None:
+            raise InputError(f"{text}: give the address and UDP port elastocal listens on for the controller, "
+                             f"e.g. {scheme}://0.0.0.0:{6510 if scheme == 'egm' else 59152}", source=source)
+    elif scheme in FORCE_SCHEMES:
+        if not url.host:
+            raise InputError(f"{text}: give the sensor's address, e.g. netft://192.168.1.1", source=source)
     elif scheme == "tracker+emscon":
         if not url.host:
             raise InputError(f"{text}: give the emScon server, e.g. tracker+emscon://192.168.0.1:700",
