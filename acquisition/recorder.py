@@ -253,6 +253,16 @@ class Recorder:
                 self._cell.tracker_sample(str(marker), (x, y, z), int(t_ns), self._offset_ns)
             self._maybe_flush(now)
 
+    def message(self, topic: str, t_ns: int, message: dict) -> None:
+        """A message of one of the log's other topics (``logformat.TOPIC_SCHEMAS``: the stream's
+        cycles, Foxglove's scenes) at acquisition time ``t_ns``; flushed like the samples."""
+        if topic not in lf.TOPIC_SCHEMAS:
+            raise ValueError(f"unknown topic {topic!r}")
+        with self._lock:
+            now = self.clock()
+            self._write(topic, t_ns, message, now)
+            self._maybe_flush(now)
+
     def event(self, kind: str, **fields: Any) -> int:
         """Record a procedure event stamped now; flushes the file. Returns its time [ns].
         Fields that are None or not finite numbers are left out."""

@@ -43,6 +43,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fleet": ("elastocal.commands.fleet", "identify, diagnose or check many logs at once (Dask), record, drift"),
     "validate": ("elastocal.commands.validate", "a calibration against data it was not fitted on"),
     "robot": ("elastocal.commands.robot", "write the calibrated robot description (robot.toml, URDF)"),
+    "stream": ("elastocal.commands.stream", "online compensation: stream corrections to the controller (EGM, RSI)"),
 }
 
 
@@ -53,7 +54,7 @@ COMMAND_DOCS: dict[str, str] = {
     "devices": "docs/devices.md", "calibrate": "docs/calibrate.md", "export": "docs/log-format.md", "repair": "docs/log-format.md",
     "geometry": "docs/compensator.md", "compensate": "docs/compensation.md", "plan": "docs/plan.md",
     "check": "docs/check.md", "history": "docs/history.md", "schedule": "docs/check.md",
-    "view": "docs/view.md", "import": "docs/import.md",
+    "view": "docs/view.md", "import": "docs/import.md", "stream": "docs/stream.md",
 }
 
 
@@ -61,7 +62,7 @@ COMMAND_DOCS: dict[str, str] = {
 #: interpreter switch interval, so that the SYNC producer and the receive threads get the
 #: interpreter lock within a fraction of a 1 ms cycle (Python's default lets a busy thread
 #: keep it for 5 ms); benchmarks/bench_devices.py measures the difference
-STREAMING_COMMANDS = frozenset({"demo", "sim", "devices", "calibrate", "check"})
+STREAMING_COMMANDS = frozenset({"demo", "sim", "devices", "calibrate", "check", "stream"})
 STREAMING_SWITCH_INTERVAL_S = 2e-4
 
 

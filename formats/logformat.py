@@ -171,17 +171,55 @@ SCHEMAS: dict[str, dict] = {
     },
 }
 
+#: the online compensation stream (elastocal stream, docs/stream.md)
+TOPIC_STREAM_CYCLE = "/stream/cycle"
+_VECTOR = {"type": "array", "items": {"type": "number"}}
+SCHEMAS["elastocal.StreamCycle"] = {
+    "title": "elastocal.StreamCycle",
+    "description": "One cycle of the online compensation stream; log_time is the arrival of the controller's "
+                   "state message [ns].",
+    "type": "object",
+    "properties": {
+        "cycle": {"type": "integer", "description": "0-based cycle of the stream"},
+        "sequence": {"type": "integer", "description": "the controller's message counter (EGM seqno, RSI IPOC)"},
+        "t_path_s": {"type": "number", "description": "path time by the controller's clock [s]"},
+        "q_planned": {**_VECTOR, "description": "the plan's joint coordinates at t_path_s [rad]"},
+        "correction_rad": {**_VECTOR, "description": "the correction sent, within its limits [rad]"},
+        "wanted_rad": {"type": ["array", "null"], "items": {"type": "number"},
+                       "description": "the correction the model asked for (null in a late cycle) [rad]"},
+        "q_sent": {**_VECTOR, "description": "q_planned + correction_rad, sent to the controller [rad]"},
+        "q_measured": {**_VECTOR, "description": "the joint coordinates the controller reported [rad]"},
+        "wrench": {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 6, "maxItems": 6,
+                   "description": "process wrench on the load point, base axes [N, N*m] (null: none fresh)"},
+        "wrench_source": {"type": "string", "enum": ["sensor", "currents", "path"]},
+        "wrench_age_ms": {"type": ["number", "null"], "description": "age of the wrench when used [ms]"},
+        "compute_us": {"type": "number", "description": "from taking up the message to the answer [us]"},
+        "response_us": {"type": "number", "description": "from the message's arrival to the answer [us]"},
+        "period_us": {"type": "number", "description": "since the previous message's arrival [us]"},
+        "late": {"type": ["string", "null"], "enum": ["schedule", "force", "compute", None],
+                 "description": "why the cycle held the last correction (null: on time)"},
+        "limited": {"type": "boolean", "description": "the correction was clamped to its size or rate limit"},
+        "lost_before": {"type": "integer", "description": "controller messages lost just before this one"},
+        "monotonic_ns": _MONOTONIC,
+    },
+    "required": ["cycle", "t_path_s", "q_planned", "correction_rad", "q_sent", "q_measured", "wrench",
+                 "wrench_source", "late", "limited"],
+}
+
 #: Foxglove's well-known channels (elastocal.acquisition.foxglove)
 TOPIC_FRAMES = "/cell/frames"
 TOPIC_ROBOT_SCENE = "/cell/robot"
 TOPIC_TRACKER_SCENE = "/cell/tracker"
 TOPIC_LOG = "/cell/log"
+#: the stream's path and its corrections as 3-D arrows (foxglove.SceneUpdate)
+TOPIC_STREAM_SCENE = "/stream/correction"
 #: topic -> schema name of Foxglove's well-known channels
 FOXGLOVE_TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_FRAMES: "foxglove.FrameTransforms",
     TOPIC_ROBOT_SCENE: "foxglove.SceneUpdate",
     TOPIC_TRACKER_SCENE: "foxglove.SceneUpdate",
     TOPIC_LOG: "foxglove.Log",
+    TOPIC_STREAM_SCENE: "foxglove.SceneUpdate",
 }
 #: Foxglove's published JSON Schemas, shipped verbatim with their MIT licence
 FOXGLOVE_SCHEMA_DIR = pathlib.Path(__file__).with_name("foxglove_schemas")
@@ -195,6 +233,7 @@ TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_EVENT: "elastocal.ProcedureEvent",
     TOPIC_TRACKER: "elastocal.TrackerSample",
     **{t: "elastocal.DriveSample" for t in DRIVE_TOPICS},
+    TOPIC_STREAM_CYCLE: "elastocal.StreamCycle",
     **FOXGLOVE_TOPIC_SCHEMAS,
 }
 

@@ -31,7 +31,7 @@ LAYER = {
     "elastocal.drivers": 1, "elastocal.identify": 1, "elastocal.sims": 1,
     "elastocal.diagnose": 2, "elastocal.design": 2, "elastocal.acquisition": 2, "elastocal.compensation": 2,
     "elastocal.report": 2,
-    "elastocal.fleet": 3,
+    "elastocal.fleet": 3, "elastocal.stream": 3,
     "elastocal.cli": 4, "elastocal.commands": 4, "elastocal.__main__": 4,
 }
 #: imports forbidden although the layers allow them: (importer, imported) packages
