@@ -219,7 +219,6 @@ FOXGLOVE_TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_ROBOT_SCENE: "foxglove.SceneUpdate",
     TOPIC_TRACKER_SCENE: "foxglove.SceneUpdate",
     TOPIC_LOG: "foxglove.Log",
-    TOPIC_STREAM_SCENE: "foxglove.SceneUpdate",
 }
 #: Foxglove's published JSON Schemas, shipped verbatim with their MIT licence
 FOXGLOVE_SCHEMA_DIR = pathlib.Path(__file__).with_name("foxglove_schemas")
@@ -234,6 +233,7 @@ TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_TRACKER: "elastocal.TrackerSample",
     **{t: "elastocal.DriveSample" for t in DRIVE_TOPICS},
     TOPIC_STREAM_CYCLE: "elastocal.StreamCycle",
+    TOPIC_STREAM_SCENE: "foxglove.SceneUpdate",
     **FOXGLOVE_TOPIC_SCHEMAS,
 }
 

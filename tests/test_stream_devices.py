@@ -183,3 +183,19 @@ def test_a_sensor_fault_and_a_silent_sensor(quiet_cell):
 def test_the_rdt_request_layout():
     assert rdt_request(RdtCommand.START_HIGH_SPEED, 0) == bytes.fromhex("1234 0002 00000000")
     assert RDT_RECORD.size == 36
+
+
+def test_the_guidance_and_force_sensor_sections_of_cell_toml_round_trip():
+    from elastocal.drivers.config import parse_cell_config
+
+    text = ('[cell]\nname = "c"\nrobot = "hh150"\n[guidance]\nurl = "rsi://0.0.0.0:59152?cycle_ms=12"\n'
+            'max_correction_deg = 0.1\n[force_sensor]\nurl = "netft://192.168.1.1"\nmax_age_s = 0.01\n')
+    config = parse_cell_config(text)
+    assert config.guidance.url.scheme == "rsi" and config.guidance.max_correction_deg == 0.1
+    assert config.force_sensor.max_age_s == 0.01
+    again = parse_cell_config(config.to_toml())
+    assert again.guidance == config.guidance and again.force_sensor == config.force_sensor
+    with pytest.raises(InputError, match="max_rate_deg_s"):
+        parse_cell_config(text.replace("max_correction_deg", "max_rate_deg"))
+    with pytest.raises(InputError, match="guidance.url"):
+        parse_cell_config(text.replace("rsi://0.0.0.0:59152?cycle_ms=12", "modbus+tcp://127.0.0.1:502"))
