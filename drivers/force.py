@@ -21,6 +21,7 @@ layouts are written here (docs/stream.md gives the sources).
 from __future__ import annotations
 
 import abc
+import contextlib
 import enum
 import socket
 import struct
@@ -207,10 +208,8 @@ class NetFtSensor(ForceSensor):
         if self._stop.is_set():
             return
         self._stop.set()
-        try:
+        with contextlib.suppress(OSError):      # the sensor may be gone already; closing goes on
             self._sock.send(rdt_request(RdtCommand.STOP, 0))
-        except OSError:
-            pass                      # the sensor may be gone already; closing goes on
         if self._thread is not None:
             self._thread.join(timeout=1.0)
         self._sock.close()

@@ -22,7 +22,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from elastocal.drivers.guidance import ControllerRefused, ControllerState, Guidance
+from elastocal.drivers.guidance import ControllerRefused, Guidance
 from elastocal.errors import DeviceFault, InputError
 from elastocal.stream.correction import Limits, limit, model_correction
 from elastocal.stream.plan import StreamPlan

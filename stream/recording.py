@@ -13,6 +13,9 @@ cycles become lines of Foxglove's Log panel (``/cell/log``) when they start and 
 
 from __future__ import annotations
 
+import queue
+import threading
+
 import numpy as np
 
 from elastocal.acquisition.foxglove import LOG_INFO, LOG_WARNING, stamp
@@ -51,7 +54,13 @@ def _entity(unix_ns: int, entity_id: str, **primitives) -> dict:
 
 
 class StreamLog:
-    """The stream's sink (:class:`elastocal.stream.loop.Sink`) writing into a :class:`Recorder`."""
+    """The stream's sink (:class:`elastocal.stream.loop.Sink`) writing into a :class:`Recorder`.
+
+    The cycle only hands its record over: a thread of its own turns it into messages and writes
+    them (a file write can block for as long as the disk pleases, and the cycle must not). The
+    thread keeps the stream's scheduling: at a lower priority it could be preempted while it
+    holds the interpreter lock, and the cycle would wait for it. :meth:`close` (or leaving the
+    ``with`` block) writes what is left."""
 
     def __init__(self, recorder: Recorder, plan: StreamPlan, source: str) -> None:
         self.recorder = recorder
@@ -60,12 +69,47 @@ class StreamLog:
         self._next_scene_ns: int | None = None
         self._late = False
         self._limited = False
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._error: BaseException | None = None
+        self._writer = threading.Thread(target=self._write_loop, name="stream-log", daemon=True)
+        self._writer.start()
+
+    def _write_loop(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._error is not None:
+                continue                  # the first failure is raised by close(); the rest is dropped
+            kind, payload = item
+            try:
+                if kind == "cycle":
+                    self._write_cycle(payload)
+                else:
+                    self.recorder.event(payload[0], procedure="stream", **payload[1])
+            except BaseException as exc:  # noqa: BLE001 - handed to the stream's thread by close()
+                self._error = exc
+
+    def close(self) -> None:
+        """Write everything handed over; raise what the writing thread met."""
+        if self._writer.is_alive():
+            self._queue.put(None)
+            self._writer.join()
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def _unix(self, t_ns: int) -> int:
         return int(t_ns) + self.recorder.offset_ns
 
     def event(self, kind: str, **fields) -> None:
-        self.recorder.event(kind, procedure="stream", **fields)
+        self._queue.put(("event", (kind, fields)))
 
     def path_scene(self, t_ns: int) -> dict:
         line = {"type": 0, "pose": {"position": _vec((0, 0, 0)), "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
@@ -91,6 +135,9 @@ class StreamLog:
         return {"deletions": [], "entities": [entity]}
 
     def cycle(self, r: CycleRecord) -> None:
+        self._queue.put(("cycle", r))
+
+    def _write_cycle(self, r: CycleRecord) -> None:
         msg = {"cycle": r.cycle, "sequence": int(r.sequence), "t_path_s": float(r.t_path_s),
                "q_planned": r.q_planned.tolist(), "correction_rad": r.correction.tolist(),
                "wanted_rad": None if r.wanted is None else r.wanted.tolist(), "q_sent": r.q_sent.tolist(),

@@ -14,6 +14,7 @@ import contextlib
 import dataclasses
 import pathlib
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -165,7 +166,6 @@ def _record_and_stream(config, calibration, path, options, ui, guidance, source,
     with Recorder(options.out, overwrite=options.overwrite) as rec:
         rec.document("robot", config.robot, robot_text, str(config.robot_path()))
         rec.document("cell", config.name, config.to_toml(), config.source)
-        sink = _Keeping(rec, plan, kind.value)
         host, port = guidance.address
         rec.event("procedure_start", procedure="stream", steps=1,
                   text=f"{guidance.kind.value} on {host}:{port}, {len(plan.t)} path samples over "
@@ -176,31 +176,34 @@ def _record_and_stream(config, calibration, path, options, ui, guidance, source,
                   f"{np.degrees(lim.max_rate_rad_s):.3f} deg/s, wrench from {kind.value}); the robot must stand at "
                   "the path's first point; start the guided program on the controller after answering")
         rec.event("prompt", procedure="stream", text=prompt)
+        outcome = partial(_outcome, options, guidance=guidance, kind=kind, plan=plan, sim=sim, model=model)
         try:
             ui.confirm(prompt)
         except Aborted as exc:
             rec.event("procedure_end", procedure="stream", status="aborted", text=str(exc))
-            return _outcome(options, "aborted", str(exc), guidance, kind, plan, None, sink, sim, model)
+            return outcome("aborted", str(exc), records=())
         rec.event("answer", procedure="stream", answer="yes", automatic=bool(getattr(ui, "automatic", False)))
         if sim is not None:
             sim.start_controller(guidance.kind.value, guidance.address, guidance.cycle_s)
         ui.message("streaming; Ctrl-C stops (the robot holds the last target)")
+        sink = _Keeping(rec, plan, kind.value)
         try:
-            result = run_stream(guidance, source, plan, sink, settings=settings)
+            try:
+                result = run_stream(guidance, source, plan, sink, settings=settings)
+            finally:
+                sink.close()             # every cycle written before the end's events
         except DeviceError as exc:
             rec.event("fault", procedure="stream", error=type(exc).__name__, text=str(exc))
             rec.event("procedure_end", procedure="stream", status="failed", text=str(exc),
                       **_counts_of(sink.records))
-            exc.outcome = _outcome(options, "failed", f"{type(exc).__name__}: {exc}", guidance, kind, plan, None,
-                                   sink, sim, model)
+            exc.outcome = outcome("failed", f"{type(exc).__name__}: {exc}", records=sink.records)
             raise
         except KeyboardInterrupt:
             rec.event("procedure_end", procedure="stream", status="aborted", text="interrupted by the operator",
                       **_counts_of(sink.records))
-            return _outcome(options, "aborted", "interrupted by the operator", guidance, kind, plan, None, sink, sim,
-                            model)
+            return outcome("aborted", "interrupted by the operator", records=sink.records)
         rec.event("procedure_end", procedure="stream", status="completed", **_counts_of(sink.records))
-    return _outcome(options, "completed", "completed", guidance, kind, plan, result, sink, sim, model)
+    return outcome("completed", "completed", result=result, records=sink.records)
 
 
 def _counts_of(records) -> dict:
@@ -208,6 +211,6 @@ def _counts_of(records) -> dict:
             "lost_messages": sum(r.lost_before for r in records), "limited_cycles": sum(r.limited for r in records)}
 
 
-def _outcome(options, status, message, guidance, kind, plan, result, sink, sim, model) -> StreamOutcome:
+def _outcome(options, status, message, *, guidance, kind, plan, sim, model, records, result=None) -> StreamOutcome:
     return StreamOutcome(log=str(options.out), status=status, message=message, guidance=guidance.kind, source=kind,
-                         plan=plan, result=result, records=tuple(sink.records), sim=sim, model=model)
+                         plan=plan, result=result, records=tuple(records), sim=sim, model=model)

@@ -235,8 +235,7 @@ def test_every_cycle_goes_to_the_log_with_the_correction_arrow(plan, tmp_path):
     out = tmp_path / "stream.mcap"
     clock = Clock()
     ctrl = ScriptedController(clock, lambda k: plan.q[0], 60)
-    with Recorder(out, clock=lambda: clock.t) as rec:
-        sink = StreamLog(rec, plan, "path")
+    with Recorder(out, clock=lambda: clock.t) as rec, StreamLog(rec, plan, "path") as sink:
         result = run_stream(ctrl, PathSource(plan, WRENCH), plan, sink,
                             settings=StreamSettings(limits=Limits(1.0, 100.0), end_hold_s=0.0), clock_ns=clock)
     cycles, scenes = [], []

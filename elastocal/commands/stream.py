@@ -16,6 +16,10 @@ from elastocal.errors import InputError
 DEFAULT_SIM_WRENCH = "0,0,500:0,0,1500"
 #: at most this many cycles are judged against the simulated cell's truth (evenly spread)
 TRUTH_POINTS = 400
+#: the library's arguments as this command's flags (errors name the flag)
+ARGUMENT_FLAGS = {"max_rad": "--max-correction-deg", "max_rate_rad_s": "--max-rate-deg-s",
+                  "current_filter_s": "--current-filter-s", "wrench": "--wrench", "source": "--source",
+                  "time_scale": "--sim-speed", "path": "--path"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
