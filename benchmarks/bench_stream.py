@@ -32,7 +32,7 @@ from elastocal.compensation.ik import yang_path  # noqa: E402
 from elastocal.compensation.model import CompensationModel  # noqa: E402
 from elastocal.drivers.force import WrenchSample  # noqa: E402
 from elastocal.drivers.guidance import ControllerState  # noqa: E402
-from elastocal.model.robot import bundled_robot  # noqa: E402
+from elastocal.formats.robot_toml import bundled_robot  # noqa: E402
 from elastocal.sims.cell import CellTruth  # noqa: E402
 from elastocal.stream.correction import Limits, limit, model_correction  # noqa: E402
 from elastocal.stream.plan import build_plan  # noqa: E402

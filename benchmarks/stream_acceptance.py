@@ -32,7 +32,7 @@ from elastocal.cli import main as cli
 from elastocal.commands.stream import simulated_stream_cell
 from elastocal.compensation.ik import yang_path
 from elastocal.errors import DeviceError
-from elastocal.model.robot import bundled_robot
+from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.guided_cell import GuidedCellSpec
 from elastocal.stream.evaluate import ErrorStats, offline_commands, path_errors, stream_errors
 from elastocal.stream.session import StreamOptions, run_online

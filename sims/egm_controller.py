@@ -45,7 +45,8 @@ class SimEgmController(SimGuidedController):
         msg.motorState.state = egm_pb2.EgmMotorState.MOTORS_ON
         msg.mciState.state = egm_pb2.EgmMCIState.MCI_RUNNING
         msg.rapidExecState.state = egm_pb2.EgmRapidCtrlExecState.RAPID_RUNNING
-        msg.testSignals.signals.extend(self.robot.currents().tolist())
+        if self.robot.has_currents:
+            msg.testSignals.signals.extend(self.robot.currents().tolist())
         return msg.SerializeToString()
 
     def _answer_target(self, data: bytes, cycle: int) -> np.ndarray | None:

@@ -149,6 +149,11 @@ class GuidedRobot:
         with self._lock:
             return self._q.copy()
 
+    @property
+    def has_currents(self) -> bool:
+        """Whether the robot description gives the torque constants that turn torques into currents."""
+        return self.robot.has_torque_constants
+
     def currents(self) -> np.ndarray:
         """Motor currents [A] with the simulated cell's current noise (xi i = gear torque)."""
         with self._lock:

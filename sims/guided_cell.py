@@ -101,7 +101,7 @@ class ServedGuidedCell:
         import subprocess
         import sys
 
-        from elastocal.model.robot import load_robot
+        from elastocal.formats.robot_toml import load_robot
 
         self.spec = spec
         self.cell = SimCell(load_robot(robot_path), CellTruth())
@@ -160,7 +160,7 @@ def _serve(argument: str) -> None:
     import os
     import sys
 
-    from elastocal.model.robot import load_robot
+    from elastocal.formats.robot_toml import load_robot
 
     args = json.loads(argument)
     sys.setswitchinterval(2e-4)

@@ -54,7 +54,8 @@ class SimRsiController(SimGuidedController):
                                         "B": f"{pitch * _DEG:.4f}", "C": f"{roll * _DEG:.4f}"}))
         root.append(self._axes("AIPos", q * _DEG))
         root.append(self._axes("ASPos", self.reference_deg))
-        root.append(self._axes("MACur", self.robot.currents()))
+        if self.robot.has_currents:
+            root.append(self._axes("MACur", self.robot.currents()))
         root.append(ET.Element("Delay", {"D": str(self.stats().late)}))
         ET.SubElement(root, "IPOC").text = str(self._ipoc)
         return ET.tostring(root)

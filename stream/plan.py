@@ -40,7 +40,7 @@ class StreamPlan:
     position_jacobian: np.ndarray   # (m, 3, n) of the load point at theta* [m/rad]
     tool_rotation: np.ndarray       # (m, 3, 3) base <- load point frame at theta*
     load_point: np.ndarray          # (m, 3) where the plan puts the load point [m]
-    torque_constants: np.ndarray    # (n,) xi [N·m/A]: load torque = xi * motor current
+    torque_constants: np.ndarray | None   # (n,) xi [N·m/A]: load torque = xi * motor current (None: not described)
 
     @property
     def n_joints(self) -> int:
@@ -92,4 +92,5 @@ def build_plan(model: CompensationModel, t: np.ndarray, q: np.ndarray) -> Stream
     pos = chain.position(state, kernel.fid).T
     return StreamPlan(t=t - t[0], q=q, gain=gain, tau_unloaded=tau0, wrench_of_torque=wrench_of_torque,
                       position_jacobian=jac[:, :3, :], tool_rotation=rot, load_point=pos,
-                      torque_constants=np.asarray(model.robot.torque_constants, dtype=float))
+                      torque_constants=np.asarray(model.robot.torque_constants, dtype=float)
+                      if model.robot.has_torque_constants else None)

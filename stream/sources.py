@@ -94,6 +94,9 @@ class CurrentsSource:
         if not filter_s >= 0:
             raise InputError(f"the current filter's time constant must be >= 0 s, got {filter_s!r}",
                              argument="current_filter_s")
+        if plan.torque_constants is None:
+            raise InputError("the motor currents give torques only with a torque_constant for every joint in the "
+                             "robot description", argument="source")
         self.plan = plan
         self.alpha = 1.0 if filter_s == 0 else 1.0 - float(np.exp(-cycle_s / filter_s))
         self._state: np.ndarray | None = None
