@@ -126,7 +126,8 @@ class StreamLog:
         if length > 0:
             head = min(0.3 * length, 0.03)
             color = {"r": 0.95, "g": 0.3 if (record.late or record.limited) else 0.55, "b": 0.1, "a": 1.0}
-            arrows.append({"pose": {"position": _vec(tail), "orientation": _arrow_orientation(moved / np.linalg.norm(moved))},
+            pose = {"position": _vec(tail), "orientation": _arrow_orientation(moved / np.linalg.norm(moved))}
+            arrows.append({"pose": pose,
                            "shaft_length": max(length - head, 0.0), "shaft_diameter": 0.008, "head_length": head,
                            "head_diameter": 0.02, "color": color})
         entity = _entity(self._unix(record.t_ns), "stream/correction", arrows=arrows)

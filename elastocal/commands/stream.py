@@ -62,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _wrench(text: str, source: str) -> np.ndarray:
     parts = [p.strip() for p in text.split(",")]
     if len(parts) not in (3, 6):
-        raise InputError(f"expected 3 or 6 comma-separated numbers fx,fy,fz[,mx,my,mz], got {len(parts)}", source=source)
+        raise InputError(f"expected 3 or 6 comma-separated numbers fx,fy,fz[,mx,my,mz], got {len(parts)}",
+                         source=source)
     try:
         w = np.array([float(p) for p in parts] + [0.0] * (6 - len(parts)))
     except ValueError:
@@ -144,6 +145,11 @@ def run(args: argparse.Namespace) -> int:
         duration = float(read_path(args.path, config.load_robot()).t[-1]) / args.sim_speed
         spec = GuidedCellSpec(start_wrench=tuple(sim_wrench[0]), end_wrench=tuple(sim_wrench[1]),
                               duration_s=max(duration, 1e-3), engage_s=args.sim_engage_s, seed=args.seed)
+    for flag, value in (("--max-correction-deg", args.max_correction_deg), ("--max-rate-deg-s", args.max_rate_deg_s),
+                        ("--current-filter-s", args.current_filter_s)):
+        allowed = value is None or (np.isfinite(value) and (value > 0 or (value == 0 and flag == "--current-filter-s")))
+        if not allowed:
+            raise InputError(f"must be a positive number, got {value!r}", source=flag)
     limits = Limits()
     if args.max_correction_deg is not None or args.max_rate_deg_s is not None:
         g = config.guidance
@@ -199,7 +205,8 @@ def _print(obj: dict) -> None:
               f"message to answer: p99 {r['p99']:.0f} us, max {r['max']:.0f} us")
     if obj["period_jitter"]:
         j = obj["period_jitter"]
-        print(f"  period jitter (|period - {obj['cycle_s'] * 1e3:g} ms|): p50 {j['p50']:.0f} us, p99 {j['p99']:.0f} us, "
+        print(f"  period jitter (|period - {obj['cycle_s'] * 1e3:g} ms|): p50 {j['p50']:.0f} us, "
+              f"p99 {j['p99']:.0f} us, "
               f"max {j['max']:.0f} us")
     if "truth" in obj:
         t = obj["truth"]
