@@ -82,6 +82,10 @@ def compute_times(cycles: int) -> dict[str, np.ndarray]:
             times = np.empty(cycles, dtype=np.int64)
             previous = np.zeros(n)
             for k in range(cycles):
+                if k % 500 == 0:
+                    # a stream sleeps between its cycles; a loop that never does is throttled by the kernel
+                    # (real-time tasks get at most sched_rt_runtime_us of each second: a 50 ms stall)
+                    time.sleep(0.005)
                 t_path = (k * 0.004) % plan.duration_s
                 state = ControllerState(t_ns=0, sequence=k, q=plan.q[0], currents_a=currents, controller_time_ms=4 * k)
                 t0 = time.perf_counter_ns()
