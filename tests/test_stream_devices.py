@@ -86,11 +86,14 @@ def test_rsi_ignores_an_answer_to_another_cycle(quiet_cell):
     robot = _guided(quiet_cell)
     with open_guidance(parse_device_url("rsi://127.0.0.1:0"), n_joints=6) as g:
         with SimRsiController(robot, g.address) as sim:
-            for _ in range(20):
-                s = g.receive(timeout_s=2.0)
-                g._sock.sendto(sen_message("ImFree", np.full(6, 0.05), s.sequence + 1), g._peer)
+            try:
+                for _ in range(20):
+                    s = g.receive(timeout_s=2.0)
+                    g._sock.sendto(sen_message("ImFree", np.full(6, 0.05), s.sequence + 1), g._peer)
+            except ControllerLost:
+                pass          # on a loaded machine the controller may reach its late-answer limit first
         stats = sim.stats()
-    assert stats.answered == 0 and stats.late == stats.cycles
+    assert stats.answered == 0 and stats.late == stats.cycles > 0
     assert np.max(np.abs(robot.q - Q0)) == 0.0
 
 
