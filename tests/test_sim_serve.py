@@ -41,7 +41,7 @@ joint = 3
 url = "canopen://virtual/CHANNEL?node=3"
 
 [tracker]
-url = "tracker+serial:///dev/simulated?baud=115200"
+url = "tracker+serial:///dev/simulated-tracker?baud=115200"
 markers = ["R1"]
 
 [sim]
