@@ -12,9 +12,11 @@ from elastocal.errors import InputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--robot", required=True, help="robot.toml (docs/formats.md §1): the nominal description")
+    parser.add_argument("--robot", help="robot.toml (docs/formats.md §1): the nominal description (default: the "
+                                        "description the calibration holds)")
     parser.add_argument("--calibration", required=True, help="calibration JSON (docs/formats.md §4)")
-    parser.add_argument("--static", required=True, help="static table (docs/formats.md §2) not used in the fit")
+    parser.add_argument("--static", required=True, help="static table (docs/formats.md §2), other poses or another "
+                                         "day's data than the fit's (docs/absolute.md)")
     parser.add_argument("--keep-frame", action="store_true",
                         help="keep the calibration's tracker registration (tracker_frame) instead of "
                              "registering the tracker afresh on these data")
@@ -32,18 +34,27 @@ def _row(name: str, stats) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.identify.accuracy import validate
-    from elastocal.formats.calibration import read_calibration
-    from elastocal.formats.robot_toml import load_robot
+    from elastocal.formats.calibration import file_sha256, read_calibration
+    from elastocal.formats.robot_toml import load_robot, parse_robot
     from elastocal.formats.tables import read_static_table
 
-    robot = load_robot(args.robot)
     calibration = read_calibration(args.calibration)
+    if args.robot:
+        robot = load_robot(args.robot)
+    elif calibration.robot_description:
+        robot = parse_robot(calibration.robot_description, source=f"{args.calibration} (robot_description)")
+    else:
+        raise InputError("the calibration holds no robot description; give the nominal one with --robot",
+                         source="--robot")
     table = read_static_table(args.static, robot)
     if not len(table):
         raise InputError("the table holds no readings", source=args.static)
     prior = tracker_prior(args)
     result = validate(robot, calibration, table, keep_frame=args.keep_frame, calibration_name=args.calibration)
     obj = result.to_json()
+    # the same bytes as a file the calibration was fitted on: an accuracy of the fit, not a validation
+    fit_data = file_sha256(args.static) in {d.sha256 for d in calibration.data if d.sha256}
+    obj["fit_data"] = fit_data
     if prior is not None:     # where the registration puts the tracker against where the cell says it stands
         found = np.asarray(obj["registration"]["base_p_tracker"])
         obj["registration"]["prior"] = {"base_p_tracker": list(prior.base_p_tracker), "source": prior.source,
@@ -64,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
     line = prior_line(prior, obj["registration"])
     if line:
         print(line)
-    print(f"absolute error on {result.poses} poses not used in the fit: nominal {a_n.rms * 1e6:.0f} µm rms "
+    which = ("of the fit data (the calibration was fitted on this file: its accuracy on the fit, not a "
+             "validation)" if fit_data else "not used in the fit")
+    print(f"absolute error on {result.poses} poses {which}: nominal {a_n.rms * 1e6:.0f} µm rms "
           f"(max {a_n.max * 1e3:.2f} mm) → calibrated {a_c.rms * 1e6:.1f} µm (max {a_c.max * 1e6:.0f} µm)")
     return 0
