@@ -49,7 +49,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 #: where each command is documented (shown at the end of its --help)
 COMMAND_DOCS: dict[str, str] = {
-    "demo": "README.md (What the demo shows)", "sim": "README.md (Simulated data), docs/devices.md",
+    "demo": "docs/demo.md", "sim": "docs/devices.md (simulated cells), README.md (Simulated data)",
+    "validate": "docs/absolute.md (Validate and check)", "robot": "docs/absolute.md (The calibrated robot)",
+    "fleet": "docs/fleet.md",
     "identify": "docs/identification.md", "diagnose": "docs/diagnose.md", "report": "docs/diagnose.md",
     "devices": "docs/devices.md", "calibrate": "docs/calibrate.md", "export": "docs/log-format.md", "repair": "docs/log-format.md",
     "geometry": "docs/compensator.md", "compensate": "docs/compensation.md", "plan": "docs/plan.md",

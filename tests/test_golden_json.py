@@ -94,7 +94,8 @@ COMMANDS = {
                    "--path", "{d}/path.csv", "--wrench", "0,0,-1500,0,0,0", "--out", "{d}/comp.csv", "--json"],
     "plan": ["plan", "--robot", "{d}/s0/robot.toml", "--test-pose", "0.3,0.5,-0.3,0.2,1.0,0.1",
              "--load", "800,-300,-600", "--f-max", "1100", "--tracker-position", "3.5,0,1.2",
-             "--candidates", "200", "--check-poses", "3", "--seed", "2", "--out", "{d}/plan.toml", "--json"],
+             "--candidates", "200", "--check-poses", "3", "--loads-per-pose", "2", "--seed", "2",
+             "--out", "{d}/plan.toml", "--json"],
 }
 #: output files compared like the --json objects (JSON documents), with their volatile keys
 FILES = {"calibration_static": ("{d}/s0/cal.json", ("created",))}

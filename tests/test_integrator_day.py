@@ -38,3 +38,58 @@ def test_validate_says_the_fit_data_when_the_hashes_match_and_reads_the_robot_fr
     assert main(["validate", "--robot", str(root / "a" / "robot.toml"), "--calibration", cal, "--static", other,
                  "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["fit_data"] is False
+
+
+def test_one_word_per_idea_wrench_loads_flags_and_docs_pages(tmp_path, capsys):
+    """`--wrench FX,FY,FZ[,MX,MY,MZ]` everywhere, one default of --loads-per-pose, report/view
+    take the tracker prior and --exclude-outliers as diagnose does, every --help names a docs page."""
+    import pathlib
+
+    import numpy as np
+
+    from elastocal.cli import COMMAND_DOCS, COMMANDS, build_parser
+    from elastocal.commands import compensate
+    from elastocal.errors import InputError
+
+    np.testing.assert_array_equal(compensate._parse_wrench("0,0,1500"), [0, 0, 1500, 0, 0, 0])
+    np.testing.assert_array_equal(compensate._parse_wrench("1,2,3,4,5,6"), [1, 2, 3, 4, 5, 6])
+    with pytest.raises(InputError, match="3 or 6"):
+        compensate._parse_wrench("1,2,3,4")
+    plan_args = build_parser("plan")[0].parse_args(["plan", "--test-pose", "0,0,0,0,0,0", "--out", "p.toml"])
+    sim_args = build_parser("sim")[0].parse_args(["sim", "static", "--out", "d"])
+    assert plan_args.loads_per_pose in (None, sim_args.loads)       # None: resolved to the shared default
+    from elastocal.commands._flags import DEFAULT_LOADS_PER_POSE
+    assert sim_args.loads == DEFAULT_LOADS_PER_POSE
+    for name in ("report", "view", "diagnose"):
+        parser = build_parser(name)[0]
+        args = parser.parse_args([name, "--robot", "r", "--static", "s", "--cell", "c.toml", "--tracker-position",
+                                  "1,2,3", "--exclude-outliers"] + (["--out", "o.html"] if name == "report" else []))
+        assert args.cell == "c.toml" and args.tracker_position == "1,2,3" and args.exclude_outliers
+    root = pathlib.Path(__file__).parents[1]
+    for name in COMMANDS:
+        first = COMMAND_DOCS.get(name, "").split()[0] if COMMAND_DOCS.get(name) else ""
+        assert first.startswith("docs/") and (root / first).is_file(), (name, COMMAND_DOCS.get(name))
+
+
+def test_compensate_takes_a_three_number_wrench(tmp_path, capsys):
+    """The README's `--wrench 0,0,1500` is accepted by compensate and means the 6-number one with no moment."""
+    assert main(["sim", "static", "--seed", "0", "--poses", "4", "--loads-per-pose", "1", "--repeats", "1",
+                 "--out", str(tmp_path / "s")]) == 0
+    assert main(["identify", "--robot", str(tmp_path / "s" / "robot.toml"), "--static",
+                 str(tmp_path / "s" / "static.csv"), "--out", str(tmp_path / "cal.json")]) == 0
+    assert main(["sim", "path", "--out", str(tmp_path / "p"), "--step", "0.1"]) == 0
+    import csv
+
+    rows = list(csv.reader(open(tmp_path / "p" / "path.csv")))
+    keep = [rows[0].index(c) for c in ("t", "q1", "q2", "q3", "q4", "q5", "q6")]
+    with open(tmp_path / "plain.csv", "w", newline="") as f:
+        csv.writer(f).writerows([[r[k] for k in keep] for r in rows])
+    base = ["compensate", "--robot", str(tmp_path / "s" / "robot.toml"), "--calibration", str(tmp_path / "cal.json"),
+            "--path", str(tmp_path / "plain.csv"), "--json"]
+    capsys.readouterr()
+    assert main([*base, "--wrench", "0,0,1500", "--out", str(tmp_path / "a.csv")]) == 0
+    three = json.loads(capsys.readouterr().out)
+    assert main([*base, "--wrench", "0,0,1500,0,0,0", "--out", str(tmp_path / "b.csv")]) == 0
+    six = json.loads(capsys.readouterr().out)
+    assert three["deflection"] == six["deflection"] and three["deflection"]["max"] > 1e-4
+    assert (tmp_path / "a.csv").read_text() == (tmp_path / "b.csv").read_text()

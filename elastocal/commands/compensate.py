@@ -16,8 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calibration", required=True, help="calibration JSON (docs/formats.md §4)")
     parser.add_argument("--path", required=True, help="planned path CSV: t,q1..q6 and optionally fx..mz")
     parser.add_argument("--out", required=True, help="compensated path CSV to write")
-    parser.add_argument("--wrench", help="constant process wrench fx,fy,fz,mx,my,mz on the load point "
-                                         "[N, N*m, base axes]")
+    parser.add_argument("--wrench", metavar="FX,FY,FZ[,MX,MY,MZ]",
+                        help="constant process wrench on the load point [N, N*m, base axes]; the moments 0 when "
+                             "left out")
     parser.add_argument("--form", default="exact", choices=("exact", "first-order"),
                         help="exact (default): the loaded robot reaches the plan; first-order: q - dtheta (Yang)")
     parser.add_argument("--reference", default=None, choices=("unloaded", "rigid", "nominal"),
@@ -38,16 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _parse_wrench(text: str) -> np.ndarray:
-    parts = [p.strip() for p in text.split(",")]
-    if len(parts) != 6:
-        raise InputError(f"expected 6 comma-separated numbers fx,fy,fz,mx,my,mz, got {len(parts)}", source="--wrench")
-    try:
-        w = np.array([float(p) for p in parts])
-    except ValueError:
-        raise InputError(f"not numbers: {text!r}", source="--wrench") from None
-    if not np.all(np.isfinite(w)):
-        raise InputError("values must be finite", source="--wrench")
-    return w
+    from elastocal.commands._flags import parse_wrench
+
+    return np.array(parse_wrench(text, "--wrench"))
 
 
 def _not_converged(exc, planned, wrench: np.ndarray, args: argparse.Namespace) -> InputError:

@@ -9,7 +9,7 @@ model is good enough.
 
 from __future__ import annotations
 
-from elastocal.commands._flags import add_aliased, add_seed
+from elastocal.commands._flags import DEFAULT_LOADS_PER_POSE, add_aliased, add_seed
 
 import argparse
 import json
@@ -36,7 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="the process load on the load point, base axes [N, N*m]")
     exp = parser.add_argument_group("the experiment")
     exp.add_argument("--poses", type=int, default=12, help="poses to measure (default 12)")
-    exp.add_argument("--loads-per-pose", type=int, default=2, help="loaded states per pose (default 2)")
+    exp.add_argument("--loads-per-pose", type=int, default=None,
+                     help=f"loaded states per pose (default {DEFAULT_LOADS_PER_POSE}, as `sim static`; 1 with "
+                          "--directions down)")
     exp.add_argument("--f-max", type=float, help="largest load force [N] (default: the size of the process force)")
     exp.add_argument("--directions", choices=("any", "down"), default="any",
                      help="load directions: any (weights and pulls, default) or down (hung weights only)")
@@ -163,6 +165,8 @@ def run(args: argparse.Namespace) -> int:
         outputs.add(args.map, "--map")
     if args.f_max is not None and not (math.isfinite(args.f_max) and args.f_max > 0):
         raise InputError(f"must be > 0, got {args.f_max}", source="--f-max")
+    if args.loads_per_pose is None:       # hung weights offer one direction only
+        args.loads_per_pose = 1 if args.directions == "down" else DEFAULT_LOADS_PER_POSE
     for flag in ("poses", "loads_per_pose", "candidates", "repeats", "check_poses", "map_grid"):
         if getattr(args, flag) < 1:
             raise InputError(f"must be at least 1, got {getattr(args, flag)}", source="--" + flag.replace("_", "-"))

@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 
-from elastocal.commands._inputs import add_input_arguments, input_paths, load_inputs
+from elastocal.commands._inputs import (
+    add_input_arguments,
+    add_outlier_argument,
+    add_tracker_arguments,
+    input_paths,
+    load_inputs,
+    tracker_prior,
+)
 from elastocal.commands._outputs import Outputs
 from elastocal.commands.diagnose import diagnose_inputs, identify_command
 from elastocal.errors import InputError
@@ -14,6 +21,8 @@ from elastocal.model.effects import get_effect, parse_model
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser)
+    add_outlier_argument(parser)
+    add_tracker_arguments(parser)
     parser.add_argument("--out", required=True, help="HTML file to write")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     parser.add_argument("--add", help="effect to show beside the model (default: the diagnosis' verdict)")
@@ -31,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
         if args.add in model:
             raise InputError(f"{args.add} is already in the model", source="--add")
     inputs = load_inputs(args)
-    static, runs = diagnose_inputs(inputs, model, args.torque, args.form)
+    static, runs = diagnose_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers,
+                                   prior=tracker_prior(args, inputs))
     from elastocal.report.html import render_report
 
     add = args.add

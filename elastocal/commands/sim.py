@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from elastocal.commands._flags import add_aliased, add_json, add_seed
+from elastocal.commands._flags import DEFAULT_LOADS_PER_POSE, add_aliased, add_json, add_seed
 from elastocal.errors import InputError
 
 #: Yang's process wrench (Table 8: 1500 N along z): the default of ``sim path``; the same as
@@ -41,8 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                 "--cylinder P01,P02`; truth.json gets the compensator geometry")
         if name == "static":
             p.add_argument("--poses", type=int, default=12, help="number of poses (default 12)")
-            add_aliased(p, "--loads-per-pose", "--loads", dest="loads", type=int, default=3,
-                        help="loaded states per pose (default 3)")
+            add_aliased(p, "--loads-per-pose", "--loads", dest="loads", type=int,
+                        default=DEFAULT_LOADS_PER_POSE,
+                        help=f"loaded states per pose (default {DEFAULT_LOADS_PER_POSE}, as `plan`)")
             p.add_argument("--repeats", type=int, default=3, help="readings per marker and state (default 3)")
             p.add_argument("--outliers", type=int, default=0,
                            help="bad tracker readings (0.3-0.5 mm off) to put among the repeats (default 0); "

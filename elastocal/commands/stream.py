@@ -60,17 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _wrench(text: str, source: str) -> np.ndarray:
-    parts = [p.strip() for p in text.split(",")]
-    if len(parts) not in (3, 6):
-        raise InputError(f"expected 3 or 6 comma-separated numbers fx,fy,fz[,mx,my,mz], got {len(parts)}",
-                         source=source)
-    try:
-        w = np.array([float(p) for p in parts] + [0.0] * (6 - len(parts)))
-    except ValueError:
-        raise InputError(f"not numbers: {text!r}", source=source) from None
-    if not np.all(np.isfinite(w)):
-        raise InputError("values must be finite", source=source)
-    return w
+    from elastocal.commands._flags import parse_wrench
+
+    return np.array(parse_wrench(text, source))
 
 
 def simulated_stream_cell(kind: str):

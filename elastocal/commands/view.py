@@ -21,7 +21,7 @@ import threading
 
 import numpy as np
 
-from elastocal.commands._inputs import add_input_arguments, load_inputs
+from elastocal.commands._inputs import add_input_arguments, add_outlier_argument, add_tracker_arguments, load_inputs
 from elastocal.errors import InputError
 
 HOST = "127.0.0.1"
@@ -32,6 +32,8 @@ PREDICTED_RGB = (30, 110, 230)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser)
+    add_outlier_argument(parser)
+    add_tracker_arguments(parser)
     parser.add_argument("--calibration", help="cal.json: also show what this calibration predicts (docs/formats.md §4)")
     parser.add_argument("--add", help="effect shown as 'after' (default: the diagnosis' verdict, else the best "
                                       "plausible candidate)")
@@ -45,6 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def build_view(args: argparse.Namespace):
     """The :class:`~elastocal.report.view.CellView` of the inputs (no viser needed)."""
+    from elastocal.commands._inputs import tracker_prior
     from elastocal.commands.diagnose import diagnose_inputs
     from elastocal.model.effects import parse_model
     from elastocal.report.view import cell_view
@@ -54,7 +57,9 @@ def build_view(args: argparse.Namespace):
         raise InputError("the view shows static deflections: give a log or --static table with static poses",
                          source=args.log or "--static")
     model = parse_model(args.model)
-    static, _ = diagnose_inputs(inputs, model, args.torque, args.form)
+    static, _ = diagnose_inputs(inputs, model, args.torque, args.form,
+                                exclude_outliers=getattr(args, "exclude_outliers", False),
+                                prior=tracker_prior(args, inputs))
     calibrated = robot_calibrated = None
     if args.calibration:
         from elastocal.formats.calibration import read_calibration
