@@ -93,3 +93,57 @@ def test_compensate_takes_a_three_number_wrench(tmp_path, capsys):
     six = json.loads(capsys.readouterr().out)
     assert three["deflection"] == six["deflection"] and three["deflection"]["max"] > 1e-4
     assert (tmp_path / "a.csv").read_text() == (tmp_path / "b.csv").read_text()
+
+
+def _plan(friction: bool) -> str:
+    from elastocal.formats.plan import CheckSpec, FrictionSpec, LoadSpec, SettleSpec, plan_toml
+
+    poses = {"P1": (0.2, 0.3, -0.4, 0.3, 1.0, 0.2), "P2": (0.5, 0.55, -0.2, 0.6, 1.2, 0.5)}
+    f = (FrictionSpec("F1", start=(-0.3, 0.2, -0.5, -0.3, 0.6, -0.2), end=(0.3, 0.5, -0.2, 0.3, 0.9, 0.3),
+                      speeds_rad_s=(0.2,)),) if friction else ()
+    return plan_toml(poses=poses, loads=(LoadSpec("L1", force_n=(-635.0, 635.0, -635.0)),),
+                     markers=("R1", "R2", "R3"), repeats=3, reading_s=0.04, speed_rad_s=0.8,
+                     settle=SettleSpec(speed_rad_s=2e-3, spread_m=60e-6, window_s=0.15, timeout_s=20.0),
+                     friction=f, check=CheckSpec(poses=("P1", "P2"), load="L1", friction="F1" if friction else None))
+
+
+def _calibration(path, friction: bool) -> None:
+    from elastocal.formats.calibration import calibration_from_fit, write_calibration
+
+    params = {f"k{j}": {"value": 5e5, "std": 1e3, "unit": "N*m/rad"} for j in range(1, 7)}
+    if friction:
+        params.update({f"fc{j}": {"value": 20.0, "std": 1.0, "unit": "N*m"} for j in range(1, 7)})
+    fit = {"model": ["joint_stiffness"] + (["coulomb_friction"] if friction else []), "torque": "current",
+           "parameters": params, "residual": {"rms": 1e-5, "max": 3e-5, "n": 100}}
+    write_calibration(path, calibration_from_fit("HH-150", fit))
+
+
+def test_schedule_refuses_a_check_that_cannot_run_unattended_and_links_units_outside_systemd(tmp_path, capsys):
+    cell = tmp_path / "cell.toml"
+    cell.write_text('[cell]\nname = "line 3"\nrobot = "hh150"\n')
+    for friction in (False, True):
+        (tmp_path / f"plan{friction}.toml").write_text(_plan(friction))
+        _calibration(tmp_path / f"cal{friction}.json", friction)
+    units = tmp_path / "units"
+    base = ["schedule", "install", "--every", "7d", "--cell", str(cell), "--unit-dir", str(units)]
+    capsys.readouterr()
+    # loads only (the README's plan before): every step hangs a load, a timer has nobody to do it
+    args = f"--calibration {tmp_path / 'calFalse.json'} --plan {tmp_path / 'planFalse.toml'}"
+    assert main([*base, f"--check-args={args}"]) == 2
+    err = capsys.readouterr().err
+    assert "would exit 2 every time" in err and err.count("\n") == 1 and not units.exists()
+    # a friction path but no friction in the calibration: nothing to compare the run with
+    args = f"--calibration {tmp_path / 'calFalse.json'} --plan {tmp_path / 'planTrue.toml'}"
+    assert main([*base, f"--check-args={args}"]) == 2
+    assert "no friction" in capsys.readouterr().err and not units.exists()
+    # the friction run of an unloaded cell checks a friction calibration: installed
+    args = f"--calibration {tmp_path / 'calTrue.json'} --plan {tmp_path / 'planTrue.toml'}"
+    assert main([*base, f"--check-args={args}", "--json"]) == 0
+    enable = json.loads(capsys.readouterr().out)["enable"]
+    # units/ is not on systemd's search path: linked by absolute path, not `enable NAME.timer`
+    assert enable == [f"systemctl --user link {units.resolve() / 'elastocal-check.service'}",
+                      f"systemctl --user enable --now {units.resolve() / 'elastocal-check.timer'}"]
+    assert sorted(p.name for p in units.iterdir()) == ["elastocal-check.service", "elastocal-check.timer"]
+    # --yes on a simulated cell: the prompts answered, every step runs
+    args = f"--calibration {tmp_path / 'calFalse.json'} --plan {tmp_path / 'planFalse.toml'} --sim --yes"
+    assert main([*base, f"--check-args={args}", "--force"]) == 0

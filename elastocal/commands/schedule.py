@@ -11,7 +11,9 @@ the timer.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import pathlib
 import re
 import shlex
@@ -149,6 +151,78 @@ def timer_unit(name: str, cell_name: str, every: Every, calendar: str | None) ->
     return "\n".join(lines)
 
 
+def user_unit_dir() -> pathlib.Path:
+    return pathlib.Path.home() / ".config" / "systemd" / "user"
+
+
+SYSTEM_UNIT_DIR = pathlib.Path("/etc/systemd/system")
+
+
+def enable_commands(unit_dir: pathlib.Path, name: str) -> tuple[list[str], bool]:
+    """The systemctl commands that enable the timer written into ``unit_dir``, and whether they are
+    the user's. A folder outside systemd's search path is linked (``systemctl link``) by its
+    absolute path: ``enable NAME.timer`` alone would not find the units there."""
+    where = unit_dir.resolve()
+    if where == user_unit_dir().resolve():
+        return ["systemctl --user daemon-reload", f"systemctl --user enable --now {name}.timer"], True
+    if where == SYSTEM_UNIT_DIR:
+        return ["systemctl daemon-reload", f"systemctl enable --now {name}.timer"], False
+    service, timer = (shlex.quote(str(where / f"{name}{ext}")) for ext in (".service", ".timer"))
+    return [f"systemctl --user link {service}", f"systemctl --user enable --now {timer}"], True
+
+
+def _write_atomic(files: dict[pathlib.Path, str]) -> None:
+    temps = {}
+    try:
+        for path, text in files.items():
+            temps[path] = path.with_name(f".{path.name}.elastocal-partial")
+            temps[path].write_text(text, encoding="utf-8")
+        for path, temp in temps.items():
+            os.replace(temp, path)
+    finally:
+        for temp in temps.values():
+            with contextlib.suppress(OSError):
+                temp.unlink()
+
+
+def unattended_check(check_args: argparse.Namespace, config, db: pathlib.Path | None) -> str | None:
+    """Refuse a schedule whose check can test nothing without a person: a timer runs it with no
+    terminal, so only the steps that need no person run (docs/check.md, Unattended checks).
+    Returns a note when the plan or calibration cannot be known yet (nothing recorded)."""
+    from elastocal.acquisition.steps import build_steps
+    from elastocal.commands.check import _calibration
+    from elastocal.formats.plan import load_plan, parse_plan
+
+    if not check_args.calibration and (db is None or not db.exists()):
+        return (f"no calibration recorded yet in {db}: whether the check can run unattended is not known; "
+                "`elastocal check --cell ... --unattended` tells once one is recorded")
+    cal, _, plan_text = _calibration(check_args, db)
+    if check_args.plan:
+        plan = load_plan(check_args.plan)
+    elif plan_text is not None:
+        plan = parse_plan(plan_text, source="the plan stored with the calibration")
+    elif config.plan is not None:
+        plan = load_plan(config.plan)
+    else:
+        return "no check plan found yet: whether the check can run unattended is not known"
+    if plan.check is None:
+        raise InputError("the plan has no [check] section: a scheduled check could not run", source=plan.source)
+    steps = build_steps(plan, ("check",))
+    free = [s for s in steps if not s.needs_person]
+    why = None
+    if not free:
+        why = (f"every step of its [check] needs a person ({', '.join(s.label for s in steps)}: each hangs a "
+               "load) and a timer runs it with nobody there")
+    elif not any(cal.has(f"fc{j}") for j in range(1, len(config.load_robot().joints) + 1)):
+        why = ("without a person it runs only the friction path, and the calibration holds no friction to "
+               "compare with")
+    if why:
+        raise InputError(f"the scheduled check would exit 2 every time: {why}; plan the check with a "
+                         "--friction-path and identify friction, or (a simulated cell) pass "
+                         "--check-args=\"--yes\"", source=plan.source)
+    return None
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="{install}")
     sub.required = True
@@ -189,6 +263,12 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"the scheduled check would have no calibration to check: {args.cell} names no history "
                          "(`history = \"history.sqlite\"` in its [cell] table) and the arguments give no "
                          "--calibration", source="--check-args")
+    attended = check_args.yes           # a simulated cell's prompts answered: every step runs
+    note = None if attended else unattended_check(check_args, config, db)
+    if note:
+        from elastocal.commands._outputs import note as queue_note
+
+        queue_note(args, f"note: {note}")
     command = check_command(sys.executable, cell_path, extra)
     if args.crontab:
         line = f"{crontab_schedule(every, at, args.on)} cd {shlex.quote(str(cell_path.parent))} && " \
@@ -199,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"# add this line with `crontab -e` (check of {config.name} every {every.systemd}):")
             print(line)
         return 0
-    unit_dir = pathlib.Path(args.unit_dir) if args.unit_dir else pathlib.Path.home() / ".config" / "systemd" / "user"
+    unit_dir = pathlib.Path(args.unit_dir) if args.unit_dir else user_unit_dir()
     service = unit_dir / f"{args.name}.service"
     timer = unit_dir / f"{args.name}.timer"
     for path in (service, timer):
@@ -209,14 +289,12 @@ def run(args: argparse.Namespace) -> int:
     calendar = on_calendar(every, at, args.on)
     try:
         unit_dir.mkdir(parents=True, exist_ok=True)
-        service.write_text(service_unit(config.name, command, cell_path.parent), encoding="utf-8")
-        timer.write_text(timer_unit(args.name, config.name, every, calendar), encoding="utf-8")
+        # both units or neither: each written to a temporary sibling, then renamed into place
+        _write_atomic({service: service_unit(config.name, command, cell_path.parent),
+                       timer: timer_unit(args.name, config.name, every, calendar)})
     except OSError as exc:
         raise InputError(f"cannot write: {exc.strerror}", source=str(unit_dir)) from None
-    user = not args.unit_dir or pathlib.Path(args.unit_dir).resolve() == (
-        pathlib.Path.home() / ".config" / "systemd" / "user").resolve()
-    ctl = "systemctl --user" if user else "systemctl"
-    enable = [f"{ctl} daemon-reload", f"{ctl} enable --now {args.name}.timer"]
+    enable, user = enable_commands(unit_dir, args.name)
     if args.json:
         print(json.dumps({"service": str(service), "timer": str(timer), "on_calendar": calendar,
                           "every_s": every.seconds, "command": command, "enable": enable}))
