@@ -183,7 +183,7 @@ def test_cli_input_errors_one_line_exit_2(files, robot, path, capsys, case, mess
         write_path(files / "path.csv", PlannedPath(t=path.t, q=path.q, wrench=np.zeros((len(path), 6))))
         extra = ["--wrench", "0,0,1,0,0,0"]
     elif case == "badwrench":
-        extra = ["--wrench", "0,0,1500"]
+        extra = ["--wrench", "0,0,1500,0"]      # 3 or 6 numbers: FX,FY,FZ[,MX,MY,MZ]
     elif case == "degrees":
         write_path(files / "path.csv", PlannedPath(t=path.t, q=np.degrees(path.q)))
         extra = ["--wrench", "0,0,1500,0,0,0"]

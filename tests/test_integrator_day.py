@@ -147,3 +147,18 @@ def test_schedule_refuses_a_check_that_cannot_run_unattended_and_links_units_out
     # --yes on a simulated cell: the prompts answered, every step runs
     args = f"--calibration {tmp_path / 'calFalse.json'} --plan {tmp_path / 'planFalse.toml'} --sim --yes"
     assert main([*base, f"--check-args={args}", "--force"]) == 0
+
+
+def test_compensate_validate_runs_on_the_calibrated_robot(absolute_calibration, tmp_path, capsys):
+    """A geometry calibration's compensation checked on the robot it describes: the exact
+    compensation leaves microns, not the millimetres between the calibrated and the drawing's robot."""
+    root = absolute_calibration
+    assert main(["sim", "path", "--out", str(tmp_path / "p"), "--step", "0.05"]) == 0
+    capsys.readouterr()
+    assert main(["compensate", "--robot", str(root / "a" / "robot.toml"), "--calibration", str(root / "cal.json"),
+                 "--path", str(tmp_path / "p" / "path.csv"), "--out", str(tmp_path / "c.csv"), "--validate",
+                 "--json"]) == 0
+    v = json.loads(capsys.readouterr().out)["validation"]
+    assert "kinematic_errors" in v["truth"] and "joint_stiffness" in v["truth"]
+    assert v["uncompensated"]["max"] > 1e-3            # the drawing's pose is millimetres away
+    assert v["exact"]["max"] < 20e-6, v                # the calibrated robot, compensated exactly
