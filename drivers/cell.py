@@ -7,6 +7,18 @@ from dataclasses import dataclass
 from elastocal.drivers import open_controller, open_drive, open_tracker
 from elastocal.drivers.base import CellController, Drive, SharedLinks, Tracker, close_all
 from elastocal.drivers.config import CellConfig
+from elastocal.errors import DeviceError
+
+
+class CellUnreachable(DeviceError):
+    """Devices of a cell that could not be opened, every one of them named (``failed``:
+    (name, url, error) per device)."""
+
+    def __init__(self, failed: list[tuple[str, str, DeviceError]], total: int) -> None:
+        self.failed = tuple(failed)
+        parts = "; ".join(f"{exc}" if str(exc).startswith(name) else f"{name} ({url}): {exc}"
+                          for name, url, exc in failed)
+        super().__init__(f"{len(failed)} of {total} devices could not be opened: {parts}")
 
 
 @dataclass
@@ -25,18 +37,44 @@ class CellDevices:
     links: SharedLinks
 
     @classmethod
-    def open(cls, config: CellConfig) -> "CellDevices":
+    def open(cls, config: CellConfig, *, every_failure: bool = False, on_device=None) -> "CellDevices":
+        """Open every device; the first failure is raised, or with ``every_failure`` each
+        device is still tried and one :class:`CellUnreachable` names all that failed (a single
+        failure is raised as it is).
+        ``on_device(name, url, error or None)`` is told of each device as it is tried
+        (opening a device that does not answer takes seconds)."""
         links = SharedLinks()
         opened: list = []
+        failed: list[tuple[str, str, DeviceError]] = []
+
+        def attempt(opener, device_config):
+            try:
+                device = opener(device_config, links=links)
+            except DeviceError as exc:
+                if on_device is not None:
+                    on_device(device_config.name, str(device_config.url), exc)
+                if not every_failure:
+                    raise
+                failed.append((device_config.name, str(device_config.url), exc))
+                return None
+            if on_device is not None:
+                on_device(device_config.name, str(device_config.url), None)
+            opened.append(device)
+            return device
+
         try:
             drives = {}
             for d in config.drives:
-                drives[d.joint] = open_drive(d, links=links)
-                opened.append(drives[d.joint])
-            tracker = open_tracker(config.tracker, links=links) if config.tracker is not None else None
-            if tracker is not None:
-                opened.append(tracker)
-            controller = open_controller(config.controller, links=links) if config.controller is not None else None
+                drive = attempt(open_drive, d)
+                if drive is not None:
+                    drives[d.joint] = drive
+            tracker = attempt(open_tracker, config.tracker) if config.tracker is not None else None
+            controller = attempt(open_controller, config.controller) if config.controller is not None else None
+            if len(failed) == 1:
+                raise failed[0][2]          # one device: its own error, as without every_failure
+            if failed:
+                total = len(config.drives) + (config.tracker is not None) + (config.controller is not None)
+                raise CellUnreachable(failed, total)
         except BaseException:
             try:
                 close_all(reversed(opened))

@@ -162,3 +162,37 @@ def test_compensate_validate_runs_on_the_calibrated_robot(absolute_calibration, 
     assert "kinematic_errors" in v["truth"] and "joint_stiffness" in v["truth"]
     assert v["uncompensated"]["max"] > 1e-3            # the drawing's pose is millimetres away
     assert v["exact"]["max"] < 20e-6, v                # the calibrated robot, compensated exactly
+
+
+def test_devices_on_a_dead_cell_names_every_device_and_says_what_it_is_doing(tmp_path, capsys):
+    import dataclasses
+
+    from elastocal.sims.serve import example_cell_config
+
+    config = example_cell_config(can_channel="integrator-dead", seed=0)
+    config = dataclasses.replace(config, drives=tuple(dataclasses.replace(d, timeout_s=0.05, retries=0)
+                                                      for d in config.drives))
+    (tmp_path / "cell.toml").write_text(config.to_toml())
+    assert main(["devices", "--cell", str(tmp_path / "cell.toml"), "--identify-only"]) == 1
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1
+    last = err[0]
+    assert "8 of 8 devices could not be opened" in last
+    for j in range(1, 7):
+        assert f"drive J{j}" in last
+    assert "tracker" in last and "controller" in last
+    assert captured.out.count("FAILED") == 8        # each device, as it was tried
+
+
+def test_sim_plant_reports_progress(tmp_path, capsys):
+    from elastocal.commands.sim_plant import Progress
+
+    progress = Progress(4)
+    progress(0, "cell-01 logs/2026-11-02.mcap")
+    progress(2, "cell-01 logs/2026-11-16.mcap")
+    progress.done()
+    lines = capsys.readouterr().err.splitlines()
+    assert [line.split()[1] for line in lines] == ["0/4", "2/4", "4/4"] and "left" in lines[1]
+    Progress(4, quiet=True)(1, "x")                  # --json: stdout's one object, nothing else said
+    assert capsys.readouterr().err == ""

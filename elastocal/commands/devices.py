@@ -69,7 +69,7 @@ def _line(name: str, sample, stats) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from elastocal.drivers import open_cell
+    from elastocal.drivers.cell import CellDevices
     from elastocal.drivers.config import load_cell_config
     from elastocal.errors import DeviceError
 
@@ -81,7 +81,13 @@ def run(args: argparse.Namespace) -> int:
     _quiet_libraries()
     config = load_cell_config(args.cell)
     out: dict = {"cell": config.name, "devices": [], "streams": []}
-    with open_cell(config) as cell:
+    def opened(name: str, url: str, error) -> None:      # progress: a device that does not answer takes seconds
+        if not args.json:
+            print(f"  {name:<10} {url}: {'ok' if error is None else 'FAILED'}", flush=True)
+
+    if not args.json:
+        print(f"opening the devices of {config.name} ...", flush=True)
+    with CellDevices.open(config, every_failure=True, on_device=opened) as cell:    # a dead cell: all named
         names = [d.name for d in cell.devices()]
         for device in cell.devices():
             info = device.identify()

@@ -127,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
     truth_doc: dict = {"seed": spec.seed, "robot": robot.name, "unit": "N*m/rad", "cells": []}
     for c in range(spec.cells):
         outputs.make_folder(out / spec.cell_name(c) / "logs")
+    progress = Progress(spec.cells * spec.logs + spec.cells, quiet=args.json)
     with outputs:
         for c in range(spec.cells):
             name, cell = spec.cell_name(c), out / spec.cell_name(c)
@@ -136,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
             built_k = built.stiffness * (1.0 + spread)
             logs = []
             for k in range(spec.logs):
+                progress(c * spec.logs + k, f"{name} {spec.log_name(c, k)}")
                 stiffness = built_k.copy()
                 drifted = c + 1 == spec.drift_cell and k + 1 >= spec.drift_from
                 if drifted:
@@ -156,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
                           if c + 1 == spec.drift_cell else None),
                 "first_calibration": spec.log_name(c, 0), "logs": logs})
         outputs.temp(out / "truth.json").write_text(json.dumps(truth_doc, indent=2) + "\n", encoding="utf-8")
-    recorded = _record_first_calibrations(out, spec)
+    recorded = _record_first_calibrations(out, spec, progress)
+    progress.done()
     written = {"plant": str(out), "cells": [spec.cell_name(c) for c in range(spec.cells)],
                "logs": spec.cells * spec.logs, "truth": str(out / "truth.json"),
                "first_calibrations": recorded}
@@ -175,7 +178,32 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _record_first_calibrations(out: pathlib.Path, spec: PlantSpec) -> int:
+class Progress:
+    """One line per unit of work on stderr (the plant takes a minute or two): what is being made,
+    how many of how many, the time so far and the time left at the pace so far."""
+
+    def __init__(self, total: int, *, quiet: bool = False) -> None:
+        import time
+
+        self.total, self.quiet, self.t0 = total, quiet, time.monotonic()
+
+    def __call__(self, done: int, label: str) -> None:
+        import sys
+        import time
+
+        from elastocal.acquisition.ui import progress_line
+
+        if self.quiet:
+            return
+        elapsed = time.monotonic() - self.t0
+        left = elapsed / done * (self.total - done) if done else None
+        print(progress_line(done, self.total, label, elapsed, left), file=sys.stderr, flush=True)
+
+    def done(self) -> None:
+        self(self.total, "done")
+
+
+def _record_first_calibrations(out: pathlib.Path, spec: PlantSpec, progress=None) -> int:
     """Identify each cell's first log and record it in the cell's history, as
     ``elastocal fleet identify --record`` does (the same task, the same record)."""
     import time
@@ -186,6 +214,9 @@ def _record_first_calibrations(out: pathlib.Path, spec: PlantSpec) -> int:
     results = []
     for c in range(spec.cells):
         cell = out / spec.cell_name(c)
+        if progress is not None:
+            progress(spec.cells * spec.logs + c, f"{spec.cell_name(c)}: first calibration from "
+                                                 f"{spec.log_name(c, 0)}")
         r = run_task(FleetTask(command="identify", path=str(cell / spec.log_name(c, 0)),
                                cell_config=str(cell / "cell.toml"), cell=spec.cell_name(c)))
         if not r.ok:
