@@ -38,7 +38,7 @@ MAX_GRAVITY_M_S2 = 20.0
 TOP_KEYS = ("name", "convention", "gravity", "urdf", "urdf_xml", "base_link", "tip_link", "joint", "tool",
             "compensator")
 JOINT_KEYS = ("name", "type", "a", "alpha", "d", "theta", "beta", "offset", "lower", "upper", "torque_constant",
-              "mass", "com", "stiffness")
+              "mass", "com", "stiffness", "velocity", "effort")
 TOOL_KEYS = ("load_point", "markers", "flange")
 COMPENSATOR_KEYS = {kind: ("kind", "joint", *GEOMETRY_KEYS[kind], *PARAMETER_NAMES[kind]) for kind in CompensatorKind}
 
@@ -225,12 +225,30 @@ def _joint(t: Mapping, i: int, chain: UrdfChain | None, *, source: str) -> Joint
             raise InputError(f"stiffness = {stiffness:g} {kind.stiffness_unit}: a joint's stiffness is positive",
                              source=source, column=f"{where}.stiffness")
     geometry = _geometry(t, i, kind, chain, source=source)
+    limits = _speed_effort(t, i, kind, chain, source=source)
     try:
         return JointSpec(**geometry, offset=offset, lower=lower, upper=upper,
                          torque_constant=xi, mass=mass, com=com, stiffness=stiffness, kind=kind,
-                         name=str(t.get("name", f"joint{i}")))
+                         name=str(t.get("name", f"joint{i}")), **limits)
     except InputError as exc:
         raise InputError(exc.detail, source=source, column=where) from None
+
+
+def _speed_effort(t: Mapping, i: int, kind: JointKind, chain: UrdfChain | None, *,
+                  source: str) -> dict[str, float | None]:
+    """The joint's ``velocity`` and ``effort`` limits (optional; a URDF robot's default: its URDF's)."""
+    out: dict[str, float | None] = {}
+    for key, unit in (("velocity", kind.unit + "/s"), ("effort", "N·m" if kind is JointKind.REVOLUTE else "N")):
+        value = None
+        if key in t:
+            value = _number(t, key, source=source, where=f"joint[{i}]")
+            if not value > 0.0:
+                raise InputError(f"{key} = {value:g} {unit}: a joint's {key} limit is positive", source=source,
+                                 column=f"joint[{i}].{key}")
+        elif chain is not None and math.isfinite(getattr(chain, key)[i - 1]):
+            value = float(getattr(chain, key)[i - 1])
+        out[key] = value
+    return out
 
 
 def _tool(tool: Mapping, *, source: str) -> ToolSpec:
@@ -390,6 +408,7 @@ def robot_toml(robot: Robot) -> str:
         lines += [f"mass = {_num(j.mass)}", f"com = {_vec(j.com)}"]
         if j.stiffness is not None:
             lines.append(f"stiffness = {_num(j.stiffness)}")
+        lines += [f"{key} = {_num(getattr(j, key))}" for key in ("velocity", "effort") if getattr(j, key) is not None]
         lines.append("")
     lines += ["[tool]"]
     if robot.urdf is not None and robot.urdf.tip_link:

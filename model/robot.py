@@ -34,7 +34,7 @@ import pinocchio as pin
 from elastocal.errors import InputError
 from elastocal.model.compensator import CompensatorSpec
 from elastocal.model.kinds import JointKind
-from elastocal.model.urdf import UrdfSource, dh_urdf, urdf_chain
+from elastocal.model.urdf import UrdfSource, urdf_chain
 
 LOAD_FRAME = "load_point"
 FLANGE_FRAME = "flange"
@@ -83,6 +83,10 @@ class JointSpec:
     kind: JointKind = JointKind.REVOLUTE
     #: a prismatic DH joint's fixed theta_i [rad]
     theta: float = 0.0
+    #: the joint's speed limit [rad/s, m/s] and effort limit [N·m, N] (a URDF's ``<limit>``);
+    #: None when the description gives none
+    velocity: float | None = None
+    effort: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "kind", JointKind(self.kind))
@@ -95,6 +99,10 @@ class JointSpec:
             raise InputError(f"joint {self.name}: mass must be >= 0")
         if self.stiffness is not None and not self.stiffness > 0.0:
             raise InputError(f"joint {self.name}: stiffness must be positive")
+        for key in ("velocity", "effort"):
+            value = getattr(self, key)
+            if value is not None and not (value > 0.0 and math.isfinite(value)):
+                raise InputError(f"joint {self.name}: {key} limit must be a positive number")
 
     @property
     def unit(self) -> str:
@@ -434,15 +442,11 @@ class Robot:
 
         return robot_toml(self)
 
-    def to_urdf(self) -> str:
-        """The kinematic chain and link masses as URDF text: the URDF a URDF robot
-        was built from, or a DH robot written out (links ``base_link``,
-        ``link1`` … ``linkN``, ``linkN`` being the flange; joint limits in the
-        URDF joint variable q + offset, so the ``[[joint]]`` tables keep their offsets)."""
-        if self.urdf is not None:
-            return self.urdf.xml
-        placements = [dh_placement(j) for j in self.joints]
-        return dh_urdf(self.name, placements, [j.name or f"joint{i}" for i, j in enumerate(self.joints, start=1)],
-                       [j.lower + j.offset for j in self.joints], [j.upper + j.offset for j in self.joints],
-                       [j.mass for j in self.joints], [j.com for j in self.joints], LINK_SPHERE_RADIUS_M,
-                       kinds=[j.kind for j in self.joints])
+    def to_urdf(self, *, controller_angles: bool = True) -> str:
+        """The chain as URDF text (:func:`elastocal.model.urdf_export.robot_urdf`): joint
+        variable the controller's q (offsets in the joint origins), or with
+        ``controller_angles=False`` theta = q + offset; flange, load point and marker
+        frames; limits, masses and centres of mass from the description."""
+        from elastocal.model.urdf_export import robot_urdf
+
+        return robot_urdf(self, controller_angles=controller_angles)

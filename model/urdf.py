@@ -1,5 +1,5 @@
-"""URDF robots: the serial chain elastocal needs, read from a URDF with Pinocchio,
-and the modified-DH robots written out as URDF.
+"""URDF robots: the serial chain elastocal needs, read from a URDF with Pinocchio
+(robots are written out as URDF by :mod:`elastocal.model.urdf_export`).
 
 A URDF robot's ``robot.toml`` gives ``urdf = "path.urdf"`` (or the text inline
 as ``urdf_xml``), the chain's ``base_link`` and ``tip_link`` (optional: the URDF's
@@ -21,7 +21,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from typing import Sequence
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import pinocchio as pin
@@ -57,6 +56,8 @@ class UrdfChain:
     lower: np.ndarray                      # (N,) URDF limits of the joint variable [rad or m]; nan for continuous
     upper: np.ndarray
     masses: np.ndarray                     # (N,) [kg]
+    velocity: np.ndarray                   # (N,) URDF speed limits [rad/s or m/s]; nan where 0 (not given)
+    effort: np.ndarray                     # (N,) URDF effort limits [N·m or N]; nan where 0 (not given)
     coms: np.ndarray                       # (N, 3) centres of mass in each joint's frame [m]
     flange_placement: pin.SE3              # tip_link in the last joint's frame
 
@@ -172,40 +173,14 @@ def urdf_chain(urdf: UrdfSource, joint_names: Sequence[str], *, source: str) -> 
         placements=tuple(placements), kinds=tuple(kinds),
         axes=np.array(axes), lower=np.array(lower), upper=np.array(upper),
         masses=np.array([model.inertias[i].mass for i in ids]),
+        velocity=_given([model.velocityLimit[model.joints[i].idx_v] for i in ids]),
+        effort=_given([model.effortLimit[model.joints[i].idx_v] for i in ids]),
         coms=np.array([model.inertias[i].lever for i in ids]),
         flange_placement=flange)
 
 
-def _fmt(values) -> str:
-    return " ".join(repr(float(v)) for v in values)
-
-
-def dh_urdf(name: str, placements: Sequence[pin.SE3], joint_names: Sequence[str], lower: Sequence[float],
-            upper: Sequence[float], masses: Sequence[float], coms: Sequence[Sequence[float]],
-            sphere_radius_m: float, kinds: Sequence[JointKind] | None = None) -> str:
-    """A URDF of a chain of z-axis joints (a modified-DH robot): links
-    ``base_link``, ``link1`` … ``linkN`` (``linkN`` is the flange), each link's
-    inertia that of a solid sphere of ``sphere_radius_m`` at its centre of mass.
-    Limits are given in the URDF joint variable (q + offset)."""
-    kinds = list(kinds) if kinds is not None else [JointKind.REVOLUTE] * len(placements)
-    lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(name)}>", '  <link name="base_link"/>']
-    for i, (placement, jname, lo, hi, mass, com, kind) in enumerate(
-            zip(placements, joint_names, lower, upper, masses, coms, kinds), start=1):
-        rpy = pin.rpy.matrixToRpy(placement.rotation)
-        lines.append(f'  <link name="link{i}">')
-        if mass > 0.0:
-            inertia = 0.4 * mass * sphere_radius_m ** 2
-            lines += ["    <inertial>", f'      <origin xyz="{_fmt(com)}" rpy="0 0 0"/>',
-                      f'      <mass value="{float(mass)!r}"/>',
-                      f'      <inertia ixx="{inertia!r}" iyy="{inertia!r}" izz="{inertia!r}" '
-                      'ixy="0" ixz="0" iyz="0"/>', "    </inertial>"]
-        lines.append("  </link>")
-        parent = "base_link" if i == 1 else f"link{i - 1}"
-        lines += [f"  <joint name={quoteattr(jname)} type=\"{kind.value}\">",
-                  f'    <parent link="{parent}"/>', f'    <child link="link{i}"/>',
-                  f'    <origin xyz="{_fmt(placement.translation)}" rpy="{_fmt(rpy)}"/>',
-                  '    <axis xyz="0 0 1"/>',
-                  f'    <limit lower="{float(lo)!r}" upper="{float(hi)!r}" effort="0" velocity="0"/>',
-                  "  </joint>"]
-    lines.append("</robot>")
-    return "\n".join(lines) + "\n"
+def _given(limits: Sequence[float]) -> np.ndarray:
+    """URDF limits with 0 (what a URDF writes when it does not know) as nan."""
+    out = np.array(limits, dtype=float)
+    out[~(out > 0.0) | ~np.isfinite(out)] = np.nan
+    return out

@@ -66,18 +66,14 @@ class CellView:
 
 
 def urdf_skeletons(robot: Robot, q: np.ndarray) -> np.ndarray:
-    """(P, 8, 3): the base, the six joint origins and the flange at each row of ``q``,
-    from the robot's URDF (:meth:`Robot.to_urdf`) built with Pinocchio."""
-    model = pin.buildModelFromXML(robot.to_urdf())
+    """(P, N + 2, 3): the base, the joint origins and the flange at each row of ``q``,
+    from the robot's own Pinocchio model (the chain its URDF export writes)."""
+    model = robot.model
     data = model.createData()
-    names = [j.name or f"joint{i}" for i, j in enumerate(robot.joints, start=1)]
-    idx_q = [model.idx_qs[model.getJointId(n)] for n in names]
-    joint_ids = [model.getJointId(n) for n in names]
+    joint_ids = [model.getJointId(f"joint{i}") for i in range(1, robot.n_joints + 1)]
     out = []
     for row in np.atleast_2d(q):
-        config = pin.neutral(model)
-        config[idx_q] = robot.theta(row)
-        pin.forwardKinematics(model, data, config)
+        pin.forwardKinematics(model, data, robot.theta(row))
         points = [np.zeros(3)] + [np.array(data.oMi[j].translation) for j in joint_ids]
         points.append(robot.positions(robot.theta(row), [FLANGE_FRAME])[0])
         out.append(points)

@@ -289,8 +289,8 @@ def test_robot_command_round_trip_and_urdf(calibration_file, tmp_path, capsys):
         q = rng.uniform(ROBOT.lower, ROBOT.upper)
         want = expected.positions(expected.theta(q), ROBOT.marker_names)
         np.testing.assert_allclose(again.positions(again.theta(q), ROBOT.marker_names), want, rtol=0, atol=1e-9)
-        pin.framesForwardKinematics(model, data, again.theta(q))
-        flange = data.oMf[model.getFrameId("link6")]
+        pin.framesForwardKinematics(model, data, q)          # the URDF's joint variable is the controller's q
+        flange = data.oMf[model.getFrameId("flange")]
         np.testing.assert_allclose(flange.translation, expected.positions(expected.theta(q), ["flange"])[0],
                                    rtol=0, atol=1e-9)
     # the corrections are in the file, and differ from the drawing

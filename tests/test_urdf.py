@@ -19,6 +19,8 @@ from elastocal.sims.static import simulate_static
 
 DH = bundled_robot()
 URDF = bundled_robot("hh150_urdf")
+#: the HH-150 as URDF with joint variable theta = q + offset (the offsets stay in the [[joint]] tables)
+THETA_XML = DH.to_urdf(controller_angles=False)
 POSES = np.random.default_rng(11).uniform(DH.lower, DH.upper, size=(6, 6))
 FRAMES = ["load_point", "flange", *DH.marker_names]
 
@@ -106,8 +108,8 @@ def test_awkward_urdf_text_is_inlined_as_a_basic_string():
 
 
 def test_dh_robot_written_as_urdf_reads_back_the_same():
-    xml = DH.to_urdf()
-    assert xml.count("<joint ") == 6 and 'name="A6"' in xml
+    xml = THETA_XML
+    assert xml.count('type="revolute"') == 6 and 'name="A6"' in xml
     robot = parse_robot(urdf_toml(f"urdf_xml = '''\n{xml}'''"))
     theta = DH.theta(POSES[1])
     np.testing.assert_allclose(robot.positions(theta, FRAMES), DH.positions(theta, FRAMES), atol=1e-12)
@@ -118,11 +120,11 @@ def test_fixed_links_a_flange_frame_a_flipped_axis_and_extra_joints(tmp_path):
     """A URDF as vendors write them: a tool0 frame beyond the last joint, the
     first joint's axis along -z, and a gripper joint the tables do not name
     (locked at zero)."""
-    xml = DH.to_urdf()
+    xml = THETA_XML
     xml = xml.replace('<joint name="A1" type="revolute">', '<joint name="A1" type="revolute">', 1)
     head, rest = xml.split('<joint name="A1"', 1)
     first, tail = rest.split("</joint>", 1)
-    first = first.replace('<axis xyz="0 0 1"/>', '<axis xyz="0 0 -1"/>')
+    first = first.replace('<axis xyz="0.0 0.0 1.0"/>', '<axis xyz="0 0 -1"/>')
     first = first.replace('lower="-3.2289" upper="3.2289"', 'lower="-3.2289" upper="3.2289"')
     xml = head + '<joint name="A1"' + first + "</joint>" + tail
     extra = ('  <link name="tool0"><inertial><origin xyz="0 0 0.05"/><mass value="5.0"/>'
@@ -152,7 +154,7 @@ def test_fixed_links_a_flange_frame_a_flipped_axis_and_extra_joints(tmp_path):
 
 
 def test_continuous_joint_needs_limits_in_the_table(tmp_path):
-    xml = DH.to_urdf().replace('<joint name="A4" type="revolute">', '<joint name="A4" type="continuous">')
+    xml = THETA_XML.replace('<joint name="A4" type="revolute">', '<joint name="A4" type="continuous">')
     line = write_urdf(tmp_path, xml)
     with pytest.raises(InputError, match=r"joint\[4\]\.lower.*continuous"):
         parse_robot(urdf_toml(line), base_dir=tmp_path)
@@ -178,14 +180,14 @@ def test_continuous_joint_needs_limits_in_the_table(tmp_path):
     (lambda t: t.replace('urdf = "r.urdf"', 'urdf_xml = "<robot name=\\"x\\"><link"'), r"urdf.*not a valid URDF"),
 ])
 def test_bad_urdf_robots_are_one_line_errors_naming_the_key(tmp_path, mutate, match):
-    text = mutate(urdf_toml(write_urdf(tmp_path, DH.to_urdf())))
+    text = mutate(urdf_toml(write_urdf(tmp_path, THETA_XML)))
     with pytest.raises(InputError, match=match) as err:
         parse_robot(text, source="robot.toml", base_dir=tmp_path)
     assert "\n" not in str(err.value) and "robot.toml" in str(err.value)
 
 
 def test_a_prismatic_urdf_joint_slides_and_a_planar_one_is_refused(tmp_path):
-    xml = DH.to_urdf().replace('<joint name="A6" type="revolute">', '<joint name="A6" type="prismatic">')
+    xml = THETA_XML.replace('<joint name="A6" type="revolute">', '<joint name="A6" type="prismatic">')
     robot = parse_robot(urdf_toml(write_urdf(tmp_path, xml)), base_dir=tmp_path)
     assert robot.joint_kinds[5] is JointKind.PRISMATIC and robot.joint_kinds[4] is JointKind.REVOLUTE
     theta = DH.theta(POSES[1])
@@ -195,7 +197,7 @@ def test_a_prismatic_urdf_joint_slides_and_a_planar_one_is_refused(tmp_path):
     np.testing.assert_allclose(robot.positions(moved, FRAMES) - robot.positions(theta, FRAMES),
                                np.tile(0.01 * axis, (len(FRAMES), 1)), atol=1e-12)
     assert np.linalg.norm(axis) == pytest.approx(1.0)
-    planar = DH.to_urdf().replace('<joint name="A6" type="revolute">', '<joint name="A6" type="planar">')
+    planar = THETA_XML.replace('<joint name="A6" type="revolute">', '<joint name="A6" type="planar">')
     with pytest.raises(InputError, match=r"'A6'.*neither revolute nor prismatic"):
         parse_robot(urdf_toml(write_urdf(tmp_path, planar)), base_dir=tmp_path)
 

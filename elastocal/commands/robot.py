@@ -4,8 +4,11 @@
 robot.toml of the nominal description (``--robot``, or the one the calibration
 carries) with the calibration's kinematic errors in its DH table (``a``,
 ``alpha``, ``d``, ``offset``, Hayati's ``beta``) and marker positions, and
-optionally the URDF whose joint origins carry the same corrections. elastocal
-loads either back to the same forward kinematics.
+optionally the URDF whose joint origins carry the same corrections, with the
+controller's q as joint variable (the offsets and calibrated joint zeros in the
+origins), flange, load-point and marker frames and the description's limits
+(:mod:`elastocal.model.urdf_export`). elastocal loads either back to the same
+forward kinematics; other URDF readers give it at the controller's angles.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calibration", required=True, help="calibration JSON with kinematic_errors")
     parser.add_argument("--robot", help="the nominal robot.toml (default: the description the calibration holds)")
     parser.add_argument("--out", required=True, help="write the calibrated robot.toml here")
-    parser.add_argument("--urdf", help="also write the calibrated robot as URDF here")
+    parser.add_argument("--urdf", help="also write the calibrated robot as URDF here (joint variable: the "
+                                       "controller's q; docs/robots.md)")
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
@@ -30,6 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.identify.accuracy import calibrated_robot
     from elastocal.formats.calibration import read_calibration
     from elastocal.formats.robot_toml import load_robot, parse_robot
+    from elastocal.model.urdf_export import controller_urdf_robot
 
     outputs = Outputs(force=args.force, inputs=[(args.calibration, "--calibration"), (args.robot, "--robot")])
     outputs.add(args.out, "--out")
@@ -48,17 +53,18 @@ def run(args: argparse.Namespace) -> int:
     if "kinematic_errors" not in calibration.model:
         raise InputError("the calibration holds no kinematic_errors; identify with --model "
                          "...,kinematic_errors,tracker_frame", source="--calibration")
-    if robot.urdf is not None:
-        raise InputError("kinematic corrections are written to a modified-DH robot; this one is a URDF robot",
-                         source="--robot")
     calibrated = calibrated_robot(robot, calibration)
+    if robot.urdf is None:
+        what, text = "DH table and markers corrected", calibrated.to_toml()
+    else:       # a URDF robot: its corrections live in the chain, written as the URDF at controller angles
+        what, text = "URDF at controller angles, markers corrected", controller_urdf_robot(calibrated).to_toml()
+    urdf_text = calibrated.to_urdf() if args.urdf else ""   # refused before anything is written
     written = {"robot": args.out}
     with outputs:
         outputs.temp(args.out).write_text(
-            f"# {robot.name} calibrated by {args.calibration} (elastocal robot): DH table and markers corrected\n"
-            + calibrated.to_toml(), encoding="utf-8")
+            f"# {robot.name} calibrated by {args.calibration} (elastocal robot): {what}\n" + text, encoding="utf-8")
         if args.urdf:
-            outputs.temp(args.urdf).write_text(calibrated.to_urdf(), encoding="utf-8")
+            outputs.temp(args.urdf).write_text(urdf_text, encoding="utf-8")
             written["urdf"] = args.urdf
     if args.json:
         print(json.dumps(written))
