@@ -385,7 +385,12 @@ def test_compensate_says_which_calibrated_effects_it_does_not_model(data, tmp_pa
     argv = ["compensate", "--robot", data / "robot.toml", "--path", data / "path.csv", "--json"]
     rc, out, err = run_cli(capsys, argv + ["--calibration", data / "cal.json", "--out", tmp_path / "a.csv"])
     assert rc == 0 and err == "" and json.loads(out)["unmodelled"] == {}
+    # refused by name before anything is written, unless left out knowingly
     rc, out, err = run_cli(capsys, argv + ["--calibration", tmp_path / "lc.json", "--out", tmp_path / "b.csv"])
+    assert rc == 2 and "link_compliance (cl2x, cl3y)" in err and "--without link_compliance" in err
+    assert not (tmp_path / "b.csv").exists()
+    rc, out, err = run_cli(capsys, argv + ["--calibration", tmp_path / "lc.json", "--out", tmp_path / "b.csv",
+                                           "--without", "link_compliance"])
     assert rc == 0
     assert json.loads(out)["unmodelled"] == {"link_compliance": ["cl2x", "cl3y"]}
     assert err == (f"note: compensate does not model link_compliance (cl2x, cl3y in {tmp_path / 'lc.json'}): "

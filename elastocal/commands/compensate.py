@@ -29,6 +29,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tool", default=None, metavar="MARKER",
                         help="the point the path positions: the load point (default) or a marker of the tool "
                              "(a point the calibration measured)")
+    parser.add_argument("--without", metavar="EFFECTS",
+                        help="comma-separated effects of the calibration to leave out knowingly: compensation "
+                             "models the joint springs, gravity, the compensator and the geometry, and refuses a "
+                             "calibration holding other static effects (link_compliance, backlash, ...) unless "
+                             "they are named here (their deflection then stays uncorrected)")
     parser.add_argument("--krl", metavar="FILE", help="also write a KUKA KRL program (.src)")
     parser.add_argument("--rapid", metavar="FILE", help="also write an ABB RAPID module (.mod)")
     parser.add_argument("--validate", action="store_true",
@@ -111,6 +116,18 @@ def run(args: argparse.Namespace) -> int:
     fixed = _parse_wrench(args.wrench) if args.wrench is not None else None
     robot = load_robot(args.robot)
     cal = read_calibration(args.calibration)
+    unmodelled = unmodelled_effects(cal)
+    without = {w.strip() for w in (args.without or "").split(",") if w.strip()}
+    unknown = sorted(without - set(cal.model))
+    if unknown:
+        raise InputError(f"{', '.join(unknown)} not in the calibration's model ({', '.join(cal.model)})",
+                         source="--without")
+    refused = {e: p for e, p in unmodelled.items() if e not in without}
+    if refused:                  # before anything is computed or written
+        what = "; ".join(f"{e} ({', '.join(p) or 'no parameters'})" for e, p in refused.items())
+        raise InputError(f"the calibration holds {what}, which compensation does not model: the compensated path "
+                         f"would leave {'their' if len(refused) > 1 else 'its'} deflection uncorrected; give "
+                         f"--without {','.join(refused)} to compensate the rest knowingly", source=args.calibration)
     model = CompensationModel.from_calibration(robot, cal, source=args.calibration)
     if args.tool:
         if args.tool not in robot.marker_names:
@@ -147,7 +164,6 @@ def run(args: argparse.Namespace) -> int:
             write_krl(outputs.temp(args.krl), planned.t, result, name_from=args.krl)
         if args.rapid:
             write_rapid(outputs.temp(args.rapid), planned.t, result, name_from=args.rapid)
-    unmodelled = unmodelled_effects(cal)
     for effect, params in unmodelled.items():
         note(args, f"note: compensate does not model {effect} ({', '.join(params) or 'no parameters'} in "
                    f"{args.calibration}): the compensated path leaves its deflection uncorrected")
