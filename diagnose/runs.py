@@ -101,7 +101,7 @@ class RunCandidate:
 class FrictionView:
     """Half-differences of the forward/backward pairs and what the models make of them (for plots)."""
 
-    measured: np.ndarray      # (n, 6) friction torque -sign(dq_fwd) xi (i_fwd - i_bwd)/2 [N·m]; NaN: joint still
+    measured: np.ndarray      # (n, 6) friction torque sign(dq_fwd) xi (i_fwd - i_bwd)/2 [N·m]; NaN: joint still
     speed: np.ndarray         # (n, 6) [rad/s]
     load_torque: np.ndarray   # (n, 6) [N·m]
     pair: np.ndarray          # (n,) pair index

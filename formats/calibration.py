@@ -24,6 +24,11 @@ from elastocal.errors import InputError
 from elastocal.formats.textfiles import read_text_file
 
 FORMAT = "elastocal.calibration/1"
+#: ``friction_sign`` of a calibration holding friction (elastocal extension of docs/formats.md §4):
+#: ``xi i = tau_load + f sign(dq)``, the drive supplies friction in the direction of motion, so
+#: real friction is positive. Files without it were written under the old run model
+#: ``xi i = tau_load - f sign(dq)``: their friction is read with the sign turned, and said in a note.
+FRICTION_SIGN = "direction_of_motion"
 #: the torque a calibration was identified from: motor currents or the measured wrench
 TORQUES = ("current", "force")
 STIFFNESS_NAMES = tuple(f"k{j}" for j in range(1, 7))
@@ -171,7 +176,9 @@ class Calibration:
 
     def to_json(self) -> dict:
         out = {"format": FORMAT, "robot": self.robot, "created": self.created, "model": list(self.model),
-               "torque": self.torque, "parameters": {p.name: p.to_json() for p in self.parameters},
+               "torque": self.torque,
+               **({"friction_sign": FRICTION_SIGN} if any(is_friction(p.name) for p in self.parameters) else {}),
+               "parameters": {p.name: p.to_json() for p in self.parameters},
                "residual": self.residual.to_json(), "data": [d.to_json() for d in self.data],
                **({} if self.absolute_residual is None else {"absolute_residual": self.absolute_residual.to_json()}),
                **({} if self.robot_description is None else {"robot_description": self.robot_description})}
@@ -235,6 +242,29 @@ def parameter_unit(name: str) -> str | None:
         if name in e.parameters:
             return e.units[e.parameters.index(name)]
     return None
+
+
+def is_friction(name: str) -> bool:
+    """A friction parameter of the run model (fc1.., fv1.., fl1..: every "uv/vu" effect's)."""
+    from elastocal.model.effects import get_effect, run_effects
+
+    kind = name.rstrip("0123456789")
+    return kind != name and any(get_effect(e).run_prefix == kind for e in run_effects("uv/vu"))
+
+
+def _old_friction_sign(parameters: tuple[CalibratedParameter, ...]) -> tuple[CalibratedParameter, ...]:
+    """Friction written under the old run model ``xi i = tau_load - f sign(dq)``, turned to the
+    physical sign (the drive supplies friction in the direction of motion), with a note."""
+    from dataclasses import replace
+
+    out = []
+    for p in parameters:
+        if is_friction(p.name):
+            said = (f"sign converted: written as {p.value:g} under the old run model "
+                    "xi i = tau_load - f sign(dq); the drive supplies friction in the direction of motion")
+            p = replace(p, value=-p.value, note=said if p.note is None else f"{p.note}; {said}")
+        out.append(p)
+    return tuple(out)
 
 
 def _number_or_none(p: dict, key: str) -> float | None:
@@ -350,6 +380,12 @@ def calibration_from_json(doc: object, source: str) -> Calibration:
     if not isinstance(params, dict):
         raise InputError("missing parameters", source=src, column="parameters")
     parameters = tuple(_parameter(name, p, src) for name, p in params.items())
+    sign = doc.get("friction_sign")
+    if sign is not None and sign != FRICTION_SIGN:
+        raise InputError(f"expected {FRICTION_SIGN!r} (the drive supplies friction in the direction of motion), "
+                         f"got {sign!r}", source=src, column="friction_sign")
+    if sign is None and any(is_friction(p.name) for p in parameters):
+        parameters = _old_friction_sign(parameters)
     if any(k in params for k in STIFFNESS_NAMES):   # run data alone give none; static data give all six
         for k in STIFFNESS_NAMES:
             if k not in params:

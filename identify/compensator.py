@@ -2,7 +2,8 @@
 
 Joint 2 moves slowly through a range, forward and backward, the other joints
 held. At one q2 the load torque joint 2 carries is the same both ways and
-friction changes sign (docs/formats.md sign: ``xi i = tau_load - f sign(dq)``), so
+friction changes sign (the drive supplies it in the direction of motion, docs/formats.md §3:
+``xi i = tau_load + f sign(dq)``), so
 the mean of the two directions is friction-free::
 
     xi2 (i_fwd + i_bwd)/2 = tau2_load = [J^T W]_2 - g2(theta) - M(q2)
@@ -47,7 +48,7 @@ class SweepMeans:
     theta: np.ndarray        # (n, 6) link-side configuration at each forward sample
     q2: np.ndarray           # (n,) compensator coordinate (link-side q2) [rad]
     torque: np.ndarray       # (n,) xi2 (i_fwd + i_bwd)/2 [N·m]
-    friction: np.ndarray     # (n,) xi2 (i_bwd - i_fwd)/2 at forward speed: joint-2 friction [N·m]
+    friction: np.ndarray     # (n,) xi2 (i_fwd - i_bwd)/2 at forward speed: joint-2 friction [N·m], > 0
     wrench: np.ndarray       # (n, 6) external wrench on the load point [N, N·m]
     sweep: np.ndarray        # (n,) index of the sweep (same held joints and load)
     #: (n,) variance of the interpolated backward reading per unit variance of one reading,
@@ -174,7 +175,7 @@ def sweep_means(robot: Robot, q: np.ndarray, currents: np.ndarray, direction: np
         theta.append(th)
         q2s.append(th[:, 1] - robot.joints[1].offset)
         torque.append(mean)
-        friction.append((tb_at - tau_f) / 2.0)
+        friction.append((tau_f - tb_at) / 2.0)
         wrenches.append(w[fwd])
         sweep.append(np.full(len(fwd), g))
         weights.append((1.0 - frac) ** 2 + frac ** 2)

@@ -1,10 +1,12 @@
 """Joint friction from UV/VU runs (Yang §6, eq. 48, and beyond).
 
 The same slow path is run forward (UV) and backward (VU). At one point of the
-path the load torque a joint carries is the same both ways, friction opposes
-the motion and so changes sign (docs/formats.md sign: ``xi i = tau_load - f``)::
+path the load torque a joint carries is the same both ways; friction resists the
+motion, so the drive supplies it in the direction of motion and it changes sign
+with the direction (docs/physics.md, the motor's torque balance; docs/formats.md §3:
+``xi i = tau_load + f sign(dq)``, ``f > 0``)::
 
-    xi (i_UV - i_VU) / 2 = -sign(dq_UV) f          (Y48, in torque)
+    xi (i_UV - i_VU) / 2 = +sign(dq_UV) f          (Y48, in torque)
     xi (i_UV + i_VU) / 2 = tau_load
 
 with the friction model, per joint, the sum of the columns of the friction
@@ -88,7 +90,7 @@ def match_path(q_a: np.ndarray, q_b: np.ndarray) -> PathMatch:
 class FrictionSamples:
     """Matched UV/VU samples: the half difference and half sum of Y48, in torque."""
 
-    friction: np.ndarray   # (n, 6) -sign(dq_UV) xi (i_UV - i_VU)/2 [N·m]; NaN where the joint does not move
+    friction: np.ndarray   # (n, 6) sign(dq_UV) xi (i_UV - i_VU)/2 [N·m], > 0 for real friction; NaN where still
     speed: np.ndarray      # (n, 6) (|dq_UV| + |dq_VU|)/2 [rad/s]
     load_torque: np.ndarray  # (n, 6) xi (i_UV + i_VU)/2 [N·m]
     pair: np.ndarray       # (n,) index of the UV/VU pair
@@ -160,8 +162,9 @@ class FrictionFit:
         return out
 
     def torque(self, dq: np.ndarray, load_torque: np.ndarray) -> np.ndarray:
-        """Friction torque ``sign(dq) (fc + fv |dq| + fl |tau|)`` (n, 6) with the
-        identified terms (unidentified ones count as zero)."""
+        """Friction torque ``sign(dq) (fc + fv |dq| + fl |tau|)`` (n, 6) the drive supplies on
+        top of the load torque (``xi i = tau_load + torque``), with the identified terms
+        (unidentified ones count as zero)."""
         dq = np.atleast_2d(dq)
         tau = np.atleast_2d(load_torque)
         size = np.zeros_like(dq, dtype=float)
@@ -253,7 +256,9 @@ def friction_samples(q: np.ndarray, dq: np.ndarray, currents: np.ndarray, run: n
         i_v, d_v = sub.interpolate(currents[mv]), sub.interpolate(dq[mv])
         s = np.sign(d_u)
         moving = (np.abs(d_u) >= min_speed_rad_s) & (np.abs(d_v) >= min_speed_rad_s) & (np.sign(d_v) == -s)
-        half_diff = -s * xi * (i_u - i_v) / 2.0
+        # the drive supplies friction in the direction of motion: the forward current exceeds the
+        # backward one by 2 f along the forward motion (docs/physics.md)
+        half_diff = s * xi * (i_u - i_v) / 2.0
         fr.append(np.where(moving, half_diff, np.nan))
         sp.append(np.where(moving, (np.abs(d_u) + np.abs(d_v)) / 2.0, np.nan))
         tl.append(xi * (i_u + i_v) / 2.0)

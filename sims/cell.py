@@ -9,7 +9,8 @@ static friction that absorbs part of a load change, backlash.
 
 Conventions (docs/formats.md): ``xi i`` is the load torque a joint carries,
 ``xi_j i_j = k_j (theta_j - q_j - offset_j)`` at rest. Friction during motion
-opposes the motion: ``xi i = tau_load - f(dq)`` with
+resists the motion, so the drive supplies it in the direction of motion (the
+motor's torque balance, docs/physics.md): ``xi i = tau_load + f(dq)`` with
 ``f = fc sign(dq) + fv dq + fl |tau_load| sign(dq)``.
 
 Every function is pure given its arguments; noise comes from a
@@ -366,14 +367,19 @@ class SimCell:
     def motion_currents(self, q: np.ndarray, dq: np.ndarray, wrench: np.ndarray | None = None) -> np.ndarray:
         """Noise-free currents during a slow motion (quasi-static, friction on).
 
-        ``xi i = tau_load - (fc sign(dq) + fv dq + fl |tau_load| sign(dq))``.
+        ``xi i = tau_load + (fc sign(dq) + fv dq + fl |tau_load| sign(dq))``: the motor
+        turns the load and overcomes the friction that resists the motion.
         """
         eq = self.equilibrium(q, wrench)
-        tau = eq.gear_torque
+        return (eq.gear_torque + self.friction_torque(dq, eq.gear_torque)) / self.robot.torque_constants
+
+    def friction_torque(self, dq: np.ndarray, load_torque: np.ndarray) -> np.ndarray:
+        """Friction the drive supplies on top of the load torque during a motion at ``dq``:
+        ``fc sign(dq) + fv dq + fl |tau_load| sign(dq)``, in the direction of motion."""
         t = self.truth
+        dq = np.asarray(dq, dtype=float)
         s = np.sign(dq)
-        friction = t.coulomb * s + t.viscous * dq + t.load_friction * np.abs(tau) * s
-        return (tau - friction) / self.robot.torque_constants
+        return t.coulomb * s + t.viscous * dq + t.load_friction * np.abs(load_torque) * s
 
     def load_point(self, eq: Equilibrium) -> np.ndarray:
         th10 = self.physical.theta_links(eq.theta, eq.link_angles)

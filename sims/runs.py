@@ -10,7 +10,8 @@
 
 The motion is quasi-static: each sample is the static equilibrium at the
 commanded ``q`` with friction on (:meth:`SimCell.motion_currents`), so
-``xi i = tau_load - (fc sign(dq) + fv dq + fl |tau_load| sign(dq))``, plus
+``xi i = tau_load + (fc sign(dq) + fv dq + fl |tau_load| sign(dq))`` (the drive
+supplies friction in the direction of motion), plus
 current noise from the caller's seeded generator. No tracker readings.
 """
 

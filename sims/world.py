@@ -162,17 +162,15 @@ class SimWorld:
         s_grid = np.linspace(0.0, 1.0, n)
         dq = (q1 - q0) / duration if duration > 0 else np.zeros(6)
         thetas, links, gears, currents = [], [], [], []
-        t = self.cell.truth
         for s in s_grid:
             q = q0 + (q1 - q0) * s
             eq = self.cell.equilibrium(q, wrench)
             tau = eq.gear_torque
-            sign = np.sign(dq)
-            friction = t.coulomb * sign + t.viscous * dq + t.load_friction * np.abs(tau) * sign
             thetas.append(eq.theta)
             links.append(eq.link_angles)
             gears.append(tau)
-            currents.append((tau - friction) / self.robot.torque_constants)
+            # the drive supplies the friction in the direction of motion on top of the load
+            currents.append((tau + self.cell.friction_torque(dq, tau)) / self.robot.torque_constants)
         return _Segment(t0_ns=t0_ns, duration_s=duration, q0=q0, q1=q1, s_grid=s_grid, theta=np.array(thetas),
                         link_angles=np.array(links), gear_torque=np.array(gears), currents=np.array(currents),
                         wrench=wrench.copy())

@@ -108,3 +108,84 @@ def test_uv_without_vu_is_an_input_error(robot, runs):
     with pytest.raises(InputError, match="unknown friction term"):
         identify_friction(friction_samples(runs.q, runs.dq, runs.currents, runs.run, runs.direction, runs.load,
                                            robot.torque_constants), terms=("coulomb", "stribeck"))
+
+
+def _yang_fig15_runs(fc: float, fv: float, tau_load: float, noise_a: float, seed: int):
+    """Joint 3 of Yang's Fig. 15, written from the motor's torque balance alone (no model
+    code): UV turns it negative, the payload's torque acts the same way, and the drive
+    supplies load and friction in the direction of motion, ``xi i = tau_load + f sign(dq)``."""
+    rng = np.random.default_rng(seed)
+    xi = np.ones(6)
+    n = 80
+    s = np.linspace(0.0, 1.0, n)
+    rows = {k: [] for k in ("run", "direction", "load", "t", "q", "dq", "currents")}
+    for speed in (0.05, 0.15):
+        for direction, sgn in (("UV", -1.0), ("VU", 1.0)):
+            q = np.zeros((n, 6))
+            q[:, 2] = np.interp(s, (0.0, 1.0), (0.4, -0.4) if sgn < 0 else (-0.4, 0.4))
+            dq = np.zeros((n, 6))
+            dq[:, 2] = sgn * speed
+            tau = np.zeros((n, 6))
+            tau[:, 2] = tau_load                   # same sign as the motion on UV: friction acts with it
+            i = (tau + (fc + fv * speed) * np.sign(dq)) / xi + rng.normal(0.0, noise_a, size=(n, 6))
+            rows["run"] += [f"{direction}-{speed}"] * n
+            rows["direction"] += [direction] * n
+            rows["load"] += ["1"] * n
+            rows["t"] += list(s * 0.8 / speed)
+            rows["q"] += list(q)
+            rows["dq"] += list(dq)
+            rows["currents"] += list(i)
+    table = run_table_from_arrays(**rows, wrench=np.zeros((len(rows["run"]), 6)), source="<fig15>")
+    return table, xi
+
+
+def test_friction_is_positive_when_the_drive_supplies_it_in_the_direction_of_motion():
+    """Yang Fig. 15 in words: joint 3 turns negative on UV, friction acts with the payload,
+    so UV's current is the larger in size; the fit gives positive friction."""
+    table, xi = _yang_fig15_runs(fc=120.0, fv=300.0, tau_load=-900.0, noise_a=0.5, seed=3)
+    uv, vu = table.direction == "UV", table.direction == "VU"
+    assert np.mean(np.abs(table.currents[uv, 2])) > np.mean(np.abs(table.currents[vu, 2])) + 200.0
+    fit = friction_from_run_table(table, xi, terms=("coulomb", "viscous"))
+    std = fit.std[2]
+    assert fit.coulomb[2] == pytest.approx(120.0, abs=4 * std[0]) and fit.coulomb[2] > 0
+    assert fit.viscous[2] == pytest.approx(300.0, abs=4 * std[1]) and fit.viscous[2] > 0
+
+
+def _old_calibration(fc1: float) -> dict:
+    return {"format": "elastocal.calibration/1", "robot": "HH-150", "created": "2026-11-22T10:00:00Z",
+            "model": ["coulomb_friction"], "torque": "current",
+            "parameters": {"fc1": {"value": fc1, "std": 2.0, "unit": "N*m"}},
+            "residual": {"rms": 1.0, "n": 10}, "data": []}
+
+
+def test_an_old_calibration_reads_with_its_friction_sign_turned(tmp_path):
+    """Files written under xi i = tau_load - f sign(dq) hold minus the friction; they read
+    with the physical sign and a note, and write back marked so they are not turned twice."""
+    import json
+
+    from elastocal.formats.calibration import FRICTION_SIGN, read_calibration, write_calibration
+
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(_old_calibration(-119.5)), encoding="utf-8")
+    cal = read_calibration(path)
+    p = cal.find("fc1")
+    assert p.value == 119.5 and p.std == 2.0
+    assert "sign converted" in p.note and "-119.5" in p.note
+    write_calibration(tmp_path / "new.json", cal)
+    doc = json.loads((tmp_path / "new.json").read_text(encoding="utf-8"))
+    assert doc["friction_sign"] == FRICTION_SIGN and doc["parameters"]["fc1"]["value"] == 119.5
+    again = read_calibration(tmp_path / "new.json")
+    assert again.find("fc1").value == 119.5 and again == cal
+
+
+def test_a_calibration_with_another_friction_sign_is_refused(tmp_path):
+    import json
+
+    from elastocal.formats.calibration import read_calibration
+
+    doc = _old_calibration(120.0)
+    doc["friction_sign"] = "against_motion"
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(doc), encoding="utf-8")
+    with pytest.raises(InputError, match="friction_sign"):
+        read_calibration(path)

@@ -1,8 +1,9 @@
 """viscous_friction: friction grows with speed.
 
 Parameters fv1..fv6 [N*m*s/rad]. Run model (docs/physics.md, Y §6): during a slow
-motion the motor current carries the load torque less the friction,
-``xi i = tau_load - friction``, with this effect's part ``fv_j dq_j``.
+motion the drive supplies the load torque and the friction in the direction
+of motion (friction resists the motion; the motor's torque balance),
+``xi i = tau_load + friction``, with this effect's part ``fv_j dq_j``.
 UV/VU runs (the same path forward and backward) show it: friction changes sign
 with the direction, load and gravity do not, ``i_f = (i_UV - i_VU)/2`` (Y48).
 It is identified from the run table (identify/friction.py). Static data hold
@@ -30,7 +31,7 @@ def make(robot=None) -> Effect:
         evidence="the UV/VU current difference grows with speed",
         static_refusal=_refusal,
         static_model="none: static readings are taken at rest",
-        run_model="xi i = tau_load - fv_j dq_j",
+        run_model="xi i = tau_load + fv_j dq_j",
         run_part="uv/vu",
         plausibility=lambda names, values, stds: wrong_sign(names, values, stds, "viscous friction"),
         run_column=lambda speed, load: speed,
