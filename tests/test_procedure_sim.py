@@ -145,10 +145,11 @@ def test_friction_pair_and_sweep_run_as_taught_paths_on_simulated_devices(tmp_pa
     assert runs.q[vu][0, 0] == pytest.approx(0.25, abs=2e-3) and runs.q[vu][-1, 0] == pytest.approx(0.1, abs=2e-3)
     assert np.all(runs.load[uv | vu] == "L1") and np.allclose(runs.wrench[uv][:, 2], -80.0 * 9.81)
     assert (runs.marker[uv] == "R1").mean() > 0.02      # the tracker (100 Hz) follows R1 during the runs
-    # friction opposes the motion: joint 1 carries more current backward than forward at mid-path
+    # the drive supplies friction in the direction of motion: joint 1 turns positive on UV, so
+    # its current is larger forward than backward at mid-path (docs/physics.md)
     xi1 = robot.torque_constants[0]
     mid = lambda rows: np.abs(runs.q[rows][:, 0] - 0.175) < 0.03  # noqa: E731
-    f1 = xi1 * (runs.currents[vu][mid(vu), 0].mean() - runs.currents[uv][mid(uv), 0].mean()) / 2
+    f1 = xi1 * (runs.currents[uv][mid(uv), 0].mean() - runs.currents[vu][mid(vu), 0].mean()) / 2
     assert 40.0 < f1 < 200.0   # Coulomb 40 N·m plus viscous and load-dependent parts (sim defaults)
     plus, minus = runs.run == "sweep-1+", runs.run == "sweep-1-"
     assert np.ptp(runs.q[plus][:, 1]) == pytest.approx(0.25, abs=3e-3) and np.ptp(runs.q[plus][:, 0]) < 1e-6
