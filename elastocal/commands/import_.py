@@ -1,5 +1,7 @@
 """`elastocal import EXPORT... --log LOG.mcap|--joints joints.csv --out static.csv`: tracker
-exports plus the robot's joint log as the static table (docs/import.md)."""
+exports plus the robot's joint log as the static table; `elastocal import POSTURES.csv --robot R
+--points NAME=X,Y,Z[;…] [--joints COL1,…] --out static.csv`: posture-per-row files (FIGAROH's
+calibration CSV among them) as an absolute-only table (docs/import.md)."""
 
 from __future__ import annotations
 
@@ -11,10 +13,23 @@ from elastocal.errors import say
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("exports", nargs="+", metavar="EXPORT",
-                        help="point files of the tracker software (Leica-style CSV, .xyz, or CSV with --columns)")
-    src = parser.add_mutually_exclusive_group(required=True)
+                        help="point files of the tracker software (Leica-style CSV, .xyz, or CSV with --columns); "
+                             "with --points, posture-per-row files")
+    src = parser.add_mutually_exclusive_group()
     src.add_argument("--log", help="the MCAP log of `elastocal calibrate` (poses, loads, currents, the robot)")
-    src.add_argument("--joints", help="a joint/current log CSV: t,q1..q6,i1..i6 [,pose,load] [,fx..mz]")
+    src.add_argument("--joints", help="a joint/current log CSV: t,q1..q6,i1..i6 [,pose,load] [,fx..mz]; with "
+                                      "--points, the joint columns COL1,COL2,… base to tip (default: the robot's "
+                                      "joint names)")
+    parser.add_argument("--points", metavar="NAME=X,Y,Z[;NAME=X,Y,Z…]",
+                        help="posture-per-row files: each row's measured points, a robot marker and its x,y,z "
+                             "columns (FIGAROH: R1=x1,y1,z1;R2=x2,y2,z2)")
+    parser.add_argument("--angles", choices=("rad", "deg"), default="rad",
+                        help="with --points: the unit of the revolute joints' columns (rad)")
+    unc = parser.add_mutually_exclusive_group()
+    unc.add_argument("--u95", metavar="COL", help="with --points: a column of each row's expanded (k = 2) "
+                                                  "uncertainty, in --unit")
+    unc.add_argument("--std", metavar="COL", help="with --points: a column of each row's standard uncertainty "
+                                                  "per axis, in --unit")
     parser.add_argument("--out", required=True, help="the static table to write (docs/formats.md §2)")
     parser.add_argument("--robot", help="robot.toml to check markers and joint limits against; default: the "
                                         "log's robot (with --log)")
@@ -49,6 +64,14 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.errors import InputError
     from elastocal.formats.tables import format_static_table
 
+    if args.points is not None:
+        return _run_postures(args)
+    for flag, value in (("--u95", args.u95), ("--std", args.std), ("--angles", args.angles != "rad" or None)):
+        if value is not None:
+            raise InputError("is for posture-per-row files (with --points)", source=flag)
+    if args.log is None and args.joints is None:
+        raise InputError("give the joint log (--log LOG.mcap or --joints joints.csv), or --points for "
+                         "posture-per-row files", source="--joints")
     for flag, value in (("--window", args.window), ("--tolerance", args.tolerance)):
         if not value > 0 or value != value or value == float("inf"):
             raise InputError(f"must be a positive number of seconds, got {value:g}", source=flag)
@@ -104,4 +127,38 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {out}: {len(result.table)} rows from {len(points)} points, paired by {by}")
     if result.unpaired:
         note(args, result.unpaired_line(command_line=True))
+    return 0
+
+
+def _run_postures(args: argparse.Namespace) -> int:
+    """Posture-per-row files to an absolute-only static table (acquisition.postures)."""
+    from elastocal.acquisition.postures import read_postures
+    from elastocal.commands._outputs import Outputs
+    from elastocal.errors import InputError
+    from elastocal.formats.robot_toml import load_robot
+    from elastocal.formats.tables import format_static_table
+
+    for flag, given in (("--log", args.log is not None), ("--names", args.names is not None),
+                        ("--columns", args.columns is not None), ("--by", args.by is not None),
+                        ("--layout", args.layout != "auto")):
+        if given:
+            raise InputError("is for tracker exports paired with a joint log, not posture-per-row files "
+                             "(--points)", source=flag)
+    if args.robot is None:
+        raise InputError("posture-per-row files need the robot (its joints and markers): give --robot robot.toml",
+                         source="--robot")
+    outputs = Outputs(force=args.force, inputs=[(p, "EXPORT") for p in args.exports] + [(args.robot, "--robot")])
+    out = outputs.add(args.out, "--out")
+    robot = load_robot(args.robot)
+    table = read_postures(args.exports, robot, joints=args.joints, points=args.points, unit=args.unit or "m",
+                          angles=args.angles, u95=args.u95, std=args.std)
+    with outputs:
+        outputs.temp(out).write_text(format_static_table(table), encoding="utf-8")
+    postures = len(set(table.pose))
+    if args.json:
+        print(json.dumps({"out": str(out), "rows": len(table), "postures": postures,
+                          "markers": sorted(set(table.marker)), "columns": [k for k, _ in table.extra]}))
+    else:
+        print(f"wrote {out}: {len(table)} rows, {postures} postures of {robot.name} "
+              f"(markers {', '.join(sorted(set(table.marker)))}), an absolute-only table")
     return 0
