@@ -83,7 +83,8 @@ def validate_on_sim(cell: RunnableCell, model: CompensationModel, path: PlannedP
         return np.array([cell.load_point(cell.equilibrium(qi, None if ws is None else ws[i]))
                          for i, qi in enumerate(qs)])
 
-    rigid = np.array([robot.positions(robot.theta(qi), [LOAD_FRAME])[0] for qi in q])
+    data = robot.create_data()
+    rigid = np.array([robot.positions(robot.theta(qi), [LOAD_FRAME], data=data)[0] for qi in q])
     unloaded = tcp(q, None)
     target = unloaded if reference == "unloaded" else rigid
     return ValidationResult(t=np.asarray(path.t, dtype=float), reference=reference, wrench=w,

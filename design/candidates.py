@@ -148,7 +148,8 @@ def check_poses(robot: Robot, q: np.ndarray, workspace: Workspace, markers: Sequ
     poses are within them)."""
     q = _six(q)
     origins = _joint_origins(robot, q)
-    mpos = np.array([robot.positions(robot.theta(qi), list(markers)) for qi in q])  # (n, M, 3)
+    data = robot.create_data()
+    mpos = np.array([robot.positions(robot.theta(qi), list(markers), data=data) for qi in q])  # (n, M, 3)
     load = origins[:, 7]
     out = np.full(len(q), -1)
     low = np.minimum(origins[:, 3:8, 2].min(axis=1), mpos[:, :, 2].min(axis=1))

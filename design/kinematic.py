@@ -69,9 +69,10 @@ def _regressors(robot: Robot, q: np.ndarray, markers: Sequence[str]) -> tuple[np
     about and translations along them)."""
     names = kin.parameter_names(robot, markers)
     out = np.empty((len(q), 3 * len(markers), 6 + len(names)))
+    data = robot.create_data()
     for i, qi in enumerate(q):
         theta = robot.theta(qi)
-        pos, jac = kin.position_jacobian(robot, theta, list(markers), names)
+        pos, jac = kin.position_jacobian(robot, theta, list(markers), names, data=data)
         rows = np.zeros((len(markers), 3, 6 + len(names)))
         for m, p in enumerate(pos):
             rows[m, :, :3] = -np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])

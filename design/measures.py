@@ -44,8 +44,9 @@ def pose_matrices(robot: Robot, q: np.ndarray, markers: Sequence[str]) -> tuple[
     frames = [LOAD_FRAME, *markers]
     g = np.empty((len(q), 6, 6))
     b = np.empty((len(q), 6, 6))
+    data = robot.create_data()
     for i, qi in enumerate(q):
-        jac = robot.jacobians(robot.theta(qi), frames)
+        jac = robot.jacobians(robot.theta(qi), frames, data=data)
         jm = jac[1:, :3, :]
         g[i] = np.einsum("mki,mkj->ij", jm, jm)
         b[i] = jac[0].T
@@ -54,7 +55,8 @@ def pose_matrices(robot: Robot, q: np.ndarray, markers: Sequence[str]) -> tuple[
 
 def _marker_jacobians(robot: Robot, q: np.ndarray, markers: Sequence[str]) -> np.ndarray:
     """(n, M, 3, 6) position Jacobians of the markers."""
-    return np.array([robot.jacobians(robot.theta(qi), list(markers))[:, :3, :] for qi in _six(q)])
+    data = robot.create_data()
+    return np.array([robot.jacobians(robot.theta(qi), list(markers), data=data)[:, :3, :] for qi in _six(q)])
 
 
 def a0_matrix(robot: Robot, test: TestPose) -> np.ndarray:

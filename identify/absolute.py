@@ -220,19 +220,20 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
     nm = len(markers)
     pos = np.empty((ds.n_states, nm, 3))
     jac = np.zeros((ds.n_states, nm, 3, n_el + 6 + n_k)) if jacobian else None
+    data = robot.create_data()          # this evaluation's (the corrected robot is a new model)
     for s in range(ds.n_states):
         theta = robot.theta(ds.q[ds.state_pose[s]]) + dtheta[s]
         if not jacobian:
-            pos[s] = robot.positions(robot.theta_links(theta, dlink[s]), markers, links=True)
+            pos[s] = robot.positions(robot.theta_links(theta, dlink[s]), markers, links=True, data=data)
             continue
-        p, j10 = _kinematics(robot, robot.theta_links(theta, dlink[s]), st.frames)
+        p, j10 = _kinematics(robot, robot.theta_links(theta, dlink[s]), st.frames, data)
         pos[s] = p
         j_el = (j10[:, :, robot.actuated_in_link_model] @ b_theta[s]
                 + j10[:, :, robot.springs_in_link_model] @ b_links[s])
         jac[s, :, :, :n_el] = j_el
         if n_k:
             _, jk = kin.position_jacobian(robot, theta, markers, st.kin_names, st.kin_columns,
-                                          dlink[s] if np.any(dlink[s]) else None)
+                                          dlink[s] if np.any(dlink[s]) else None, data=data)
             jac[s, :, :, n_el + 6:] = jk
     pos += b_add @ beta
     if jacobian:
@@ -263,6 +264,7 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
     sig_i = ds.sigma_current if (known and torque == "current" and ds.sigma_current is not None) else None
     covs = np.zeros((ds.n_states, 3 * nm, 3 * nm))
     jac_pose: dict[int, np.ndarray] = {}
+    data = robot.create_data()
     for s in range(ds.n_states):
         cov = np.zeros((3 * nm, 3 * nm))
         for m in range(nm):
@@ -270,7 +272,7 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
         if sig_i is not None:
             pi = int(ds.state_pose[s])
             if pi not in jac_pose:
-                _, j10 = _kinematics(robot, robot.theta_links(robot.theta(ds.q[pi])), frames)
+                _, j10 = _kinematics(robot, robot.theta_links(robot.theta(ds.q[pi])), frames, data)
                 jac_pose[pi] = np.einsum("ij,mjk->mik", rot, j10[:, :, robot.actuated_in_link_model]).reshape(3 * nm, 6)
             g = jac_pose[pi] * (compliance * robot.torque_constants)
             cov += (g * (sig_i ** 2 / ds.state_n_currents[s])) @ g.T

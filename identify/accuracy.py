@@ -151,7 +151,7 @@ def predicted_base_positions(robot: Robot, calibration: Calibration, ds: StaticD
     tau = _torques(pr, None)
     iterative = any(e.iterative for e in effects)
     bases = _absolute_bases(pr, _context(pr, tau, beta if iterative else None))
-    return absolute_positions(rob, ds, frames, beta, bases)
+    return absolute_positions(rob, ds, frames, beta, bases, pr.data)
 
 
 def _noise_floor(robot: Robot, calibration: Calibration, ds: StaticDataset, rotation: np.ndarray) -> float | None:

@@ -191,8 +191,9 @@ def sweep_means(robot: Robot, q: np.ndarray, currents: np.ndarray, direction: np
 def _external_torque2(robot: Robot, theta: np.ndarray, wrench: np.ndarray) -> np.ndarray:
     out = np.zeros(len(theta))
     nz = np.any(wrench != 0.0, axis=1)
+    data = robot.create_data()
     for k in np.flatnonzero(nz):
-        jac = robot.jacobians(theta[k], [LOAD_FRAME])[0]
+        jac = robot.jacobians(theta[k], [LOAD_FRAME], data=data)[0]
         out[k] = (jac.T @ wrench[k])[1]
     return out
 
@@ -202,7 +203,8 @@ def known_torque(robot: Robot, means: SweepMeans, *, gravity: bool = True) -> np
     description's gravity (``gravity=False``: without it)."""
     y = means.torque - _external_torque2(robot, means.theta, means.wrench)
     if gravity and robot.has_masses:
-        y = y + np.array([robot.gravity_torque(th)[1] for th in means.theta])
+        data = robot.create_data()
+        y = y + np.array([robot.gravity_torque(th, data=data)[1] for th in means.theta])
     return y
 
 

@@ -36,7 +36,7 @@ import numpy as np
 import pinocchio as pin
 
 from elastocal.errors import InputError
-from elastocal.model.robot import MARKER_PREFIX, Robot
+from elastocal.model.robot import MARKER_PREFIX, Robot, RobotData
 
 #: DH error kinds per joint, in the order of the parameter vector
 DH_KINDS = ("dq", "da", "dd", "dalpha", "dbeta")
@@ -159,11 +159,13 @@ def columns(names: Sequence[str], markers: Sequence[str]) -> Columns:
 
 def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
                       names: Sequence[str], cols: Columns | None = None,
-                      link_angles: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      link_angles: np.ndarray | None = None,
+                      data: RobotData | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Base positions (M, 3) of ``markers`` at the DH angles ``theta`` of the
     (corrected) ``robot``, and their derivatives (M, 3, len(names)) in the
     kinematic parameters ``names`` (``cols``: the same names decoded once).
-    With ``link_angles`` (the 4 link springs), on the chain with its links bent."""
+    With ``link_angles`` (the 4 link springs), on the chain with its links bent. ``data``: the
+    caller's work buffers (``robot.create_data()``), made once for a loop of calls."""
     cols = columns(names, markers) if cols is None else cols
     theta = np.asarray(theta, dtype=float)
     nj = len(robot.joints)
@@ -174,9 +176,7 @@ def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
         model, config = robot.link_model, robot.theta_links(theta, link_angles)
         ids = [0, *(int(k) + 1 for k in robot.actuated_in_link_model)]
         first = [ids[i - 1] + 1 for i in range(1, nj + 1)]
-    from elastocal.identify.static import _work_data     # one Data per model and thread, reused
-
-    data = _work_data(model)
+    data = (robot.create_data() if data is None else data).of(link_angles is not None)
     pin.forwardKinematics(model, data, config)
     pin.updateFramePlacements(model, data)
     pos = np.array([data.oMf[model.getFrameId(MARKER_PREFIX + m)].translation for m in markers])

@@ -88,13 +88,14 @@ def nominal_positions(robot: Robot, ds: "StaticDataset", theta: np.ndarray | Non
     """Base positions (S, M, 3) of every state's markers: the rigid nominal model
     at the commanded pose, or at the joint angles ``theta`` (S, 6) when given."""
     out = np.empty((ds.n_states, len(ds.markers), 3))
+    data = robot.create_data()
     if theta is None:
         for pi in range(len(ds.pose_ids)):
             states = ds.state_pose == pi
-            out[states] = robot.positions(robot.theta(ds.q[pi]), list(ds.markers))
+            out[states] = robot.positions(robot.theta(ds.q[pi]), list(ds.markers), data=data)
     else:
         for s in range(ds.n_states):
-            out[s] = robot.positions(theta[s], list(ds.markers))
+            out[s] = robot.positions(theta[s], list(ds.markers), data=data)
     return out
 
 

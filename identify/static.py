@@ -24,7 +24,6 @@ physics is not here but in identify/effects, one module each.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Sequence
@@ -41,6 +40,7 @@ from elastocal.model.robot import (
     LOAD_FRAME,
     MARKER_PREFIX,
     Robot,
+    RobotData,
 )
 from elastocal.identify.evidence import check_loads_changed, mark_stiffness
 from elastocal.identify.grouping import combine, first_seen, group_count, group_sum, sums_per_group
@@ -362,6 +362,13 @@ class _Problem:
     form: str
     complementary: bool
     frames: tuple[str, ...]
+    #: this problem's Pinocchio work buffers (made by the robot, used by every kinematics call
+    #: of the solve: creating a Data costs more than the kinematics it serves)
+    data: RobotData | None = None
+
+    def __post_init__(self) -> None:
+        if self.data is None:
+            object.__setattr__(self, "data", self.robot.create_data())
 
     @cached_property
     def nominal_theta(self) -> np.ndarray:
@@ -374,14 +381,14 @@ class _Problem:
         at its commanded configuration: computed once per problem, read by the
         first-order form, the noise covariance and its rank."""
         theta = _link_configurations(self.robot, self.ds.q + self.robot.offsets)
-        return _kinematics_batch(self.robot, theta, self.frames)
+        return _kinematics_batch(self.robot, theta, self.frames, self.data)
 
     @cached_property
     def load_jacobians(self) -> np.ndarray:
         """(P, 6, nv) Jacobian of the load point of every pose at its commanded
         configuration (LOCAL_WORLD_ALIGNED, as ``Robot.jacobians``)."""
-        model = self.robot.link_model
-        data, (fid,) = _work(model, (LOAD_FRAME,))
+        model, data = self.robot.link_model, self.data.links
+        fid = model.getFrameId(LOAD_FRAME)
         theta = _link_configurations(self.robot, self.ds.q + self.robot.offsets)
         out = np.empty((len(theta), 6, model.nv))
         for pi, th in enumerate(theta):
@@ -426,10 +433,10 @@ def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
         return ds.state_currents * robot.torque_constants
     comp = robot.compensator.nominal_parameters() if robot.compensator is not None else None
     theta = pr.nominal_theta if theta_states is None else np.ascontiguousarray(theta_states, dtype=float)
-    # Robot.load_torque's J_f^T W - g(theta) - M e2, step for step, on Data made once
-    model = robot.model
-    data, (fid,) = _work(model, (LOAD_FRAME,))
-    gravity_data = model.createData() if robot.has_masses else None
+    # Robot.load_torque's J_f^T W - g(theta) - M e2, step for step, on the problem's Data (each
+    # Pinocchio call below overwrites what the next one reads)
+    model, data = robot.model, pr.data.rigid
+    fid = model.getFrameId(LOAD_FRAME)
     world = pin.LOCAL_WORLD_ALIGNED
     offset2 = robot.joints[1].offset
     out = np.empty((ds.n_states, 6))
@@ -439,8 +446,8 @@ def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
         pin.computeJointJacobians(model, data, th)
         pin.updateFramePlacements(model, data)
         tau += pin.getFrameJacobian(model, data, fid, world).T @ ds.state_wrench[s]
-        if gravity_data is not None:
-            tau -= pin.computeGeneralizedGravity(model, gravity_data, th)
+        if robot.has_masses:
+            tau -= pin.computeGeneralizedGravity(model, data, th)
         if comp is not None:
             tau[1] -= float(robot.compensator.torque(th[1] - offset2, comp))
         out[s] = tau
@@ -479,7 +486,7 @@ def _context(pr: _Problem, tau: np.ndarray, estimate: np.ndarray | None = None) 
                          state_is_reference=ds.state_ref == np.arange(ds.n_states),
                          deflection_dt=ds.defl_dt, n_deflections=ds.n_deflections, torque_source=pr.torque,
                          form=pr.form, estimate=estimate,
-                         estimate_names=tuple(p for eff in pr.effects for p in eff.parameters))
+                         estimate_names=tuple(p for eff in pr.effects for p in eff.parameters), data=pr.data)
 
 
 def _bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -496,55 +503,31 @@ def _bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np
     return np.concatenate(thetas, axis=2), np.concatenate(links, axis=2), np.concatenate(adds, axis=2)
 
 
-_WORK = threading.local()
-
-
-def _work(model: pin.Model, frames: Sequence[str] = ()) -> tuple[pin.Data, tuple[int, ...]]:
-    """One Pinocchio Data per model and thread, reused by every kinematics call of a fit
-    (creating one costs more than the kinematics; each call overwrites what it reads),
-    and the ids of ``frames`` in that model (looked up once)."""
-    cache = getattr(_WORK, "data", None)
-    if cache is None:
-        cache = _WORK.data = {}
-    entry = cache.get(id(model))
-    if entry is None or entry[0] is not model:
-        if len(cache) > 8:
-            cache.clear()
-        entry = cache[id(model)] = (model, model.createData(), {})
-    key = tuple(frames)
-    ids = entry[2].get(key)
-    if ids is None:
-        ids = entry[2][key] = tuple(model.getFrameId(f) for f in key)
-    return entry[1], ids
-
-
-def _work_data(model: pin.Model) -> pin.Data:
-    """The Pinocchio Data of :func:`_work`."""
-    return _work(model)[0]
-
-
-def _kinematics(robot: Robot, theta10: np.ndarray, frames: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+def _kinematics(robot: Robot, theta10: np.ndarray, frames: Sequence[str],
+                data: RobotData) -> tuple[np.ndarray, np.ndarray]:
     """Positions (M, 3) and position Jacobians (M, 3, 10) of frames in the link model."""
-    pos, jac = _kinematics_batch(robot, np.asarray(theta10, dtype=float)[None], tuple(frames))
+    pos, jac = _kinematics_batch(robot, np.asarray(theta10, dtype=float)[None], tuple(frames), data)
     return pos[0], jac[0]
 
 
-def _kinematics_batch(robot: Robot, theta10: np.ndarray, frames: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _kinematics_batch(robot: Robot, theta10: np.ndarray, frames: tuple[str, ...],
+                      data: RobotData) -> tuple[np.ndarray, np.ndarray]:
     """Positions (S, M, 3) and position Jacobians (S, M, 3, 10) of frames in the link
     model at each of the configurations ``theta10`` (S, 10): one Pinocchio pass
-    (joint Jacobians and frame placements) per configuration, into arrays made once."""
-    model = robot.link_model
-    data, fids = _work(model, frames)
+    (joint Jacobians and frame placements) per configuration, into arrays made once, on the
+    caller's ``data`` (``robot.create_data()``)."""
+    model, pdata = robot.link_model, data.links
+    fids = tuple(model.getFrameId(f) for f in frames)
     theta10 = np.ascontiguousarray(theta10, dtype=float)
     pos = np.empty((len(theta10), len(fids), 3))
     jac = np.empty((len(theta10), len(fids), 3, model.nv))
     world = pin.LOCAL_WORLD_ALIGNED
     for s, th in enumerate(theta10):
-        pin.computeJointJacobians(model, data, th)
-        pin.updateFramePlacements(model, data)
+        pin.computeJointJacobians(model, pdata, th)
+        pin.updateFramePlacements(model, pdata)
         for k, fid in enumerate(fids):
-            pos[s, k] = data.oMf[fid].translation
-            jac[s, k] = pin.getFrameJacobian(model, data, fid, world)[:3]
+            pos[s, k] = pdata.oMf[fid].translation
+            jac[s, k] = pin.getFrameJacobian(model, pdata, fid, world)[:3]
     return pos, jac
 
 
@@ -556,7 +539,7 @@ def _evaluate(pr: _Problem, beta: np.ndarray, bases, exact: bool) -> tuple[np.nd
     b_theta, b_links, b_add = bases
     if exact:
         theta10 = _link_configurations(pr.robot, pr.nominal_theta + b_theta @ beta, b_links @ beta)
-        pos, jac = _kinematics_batch(pr.robot, theta10, pr.frames)
+        pos, jac = _kinematics_batch(pr.robot, theta10, pr.frames, pr.data)
     else:
         pos0, jac0 = pr.nominal_kinematics
         pos, jac = pos0[ds.state_pose], jac0[ds.state_pose]
@@ -586,18 +569,20 @@ def _absolute_bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.nd
 
 
 def absolute_positions(robot: Robot, ds: StaticDataset, frames: Sequence[str], beta: np.ndarray,
-                       bases: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+                       bases: tuple[np.ndarray, np.ndarray, np.ndarray],
+                       data: RobotData | None = None) -> np.ndarray:
     """Base positions (S, M, 3) of every state's markers under a model's absolute bases
     (:func:`_absolute_bases`): the joint angles carry the absolute torques, the link springs
     and the located compliance the moments of gravity and of the load."""
     b_theta, b_links, b_add = bases
     theta10 = _link_configurations(robot, ds.q[ds.state_pose] + robot.offsets + b_theta @ beta, b_links @ beta)
-    return _kinematics_batch(robot, theta10, tuple(frames))[0] + b_add @ beta
+    data = robot.create_data() if data is None else data
+    return _kinematics_batch(robot, theta10, tuple(frames), data)[0] + b_add @ beta
 
 
 def _absolute_base(pr: _Problem, beta: np.ndarray, ctx: StaticContext) -> np.ndarray:
     """Base positions (S, M, 3) of every state's markers under the fitted model."""
-    return absolute_positions(pr.robot, pr.ds, pr.frames, beta, _absolute_bases(pr, ctx))
+    return absolute_positions(pr.robot, pr.ds, pr.frames, beta, _absolute_bases(pr, ctx), pr.data)
 
 
 def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,

@@ -69,13 +69,13 @@ def urdf_skeletons(robot: Robot, q: np.ndarray) -> np.ndarray:
     """(P, N + 2, 3): the base, the joint origins and the flange at each row of ``q``,
     from the robot's own Pinocchio model (the chain its URDF export writes)."""
     model = robot.model
-    data = model.createData()
+    data = robot.create_data()
     joint_ids = [model.getJointId(f"joint{i}") for i in range(1, robot.n_joints + 1)]
     out = []
     for row in np.atleast_2d(q):
-        pin.forwardKinematics(model, data, robot.theta(row))
-        points = [np.zeros(3)] + [np.array(data.oMi[j].translation) for j in joint_ids]
-        points.append(robot.positions(robot.theta(row), [FLANGE_FRAME])[0])
+        pin.forwardKinematics(model, data.rigid, robot.theta(row))
+        points = [np.zeros(3)] + [np.array(data.rigid.oMi[j].translation) for j in joint_ids]
+        points.append(robot.positions(robot.theta(row), [FLANGE_FRAME], data=data)[0])
         out.append(points)
     return np.array(out)
 
@@ -115,7 +115,8 @@ def cell_view(robot: Robot, diag: Diagnosis, *, add: str | None = None,
     n_poses = len(where.pose_ids)
     first = np.array([np.flatnonzero(where.pose == p)[0] for p in range(n_poses)])
     q = where.q[first]
-    anchor = np.array([robot.positions(robot.theta(where.q[i]), [where.markers[where.marker[i]]])[0]
+    data = robot.create_data()
+    anchor = np.array([robot.positions(robot.theta(where.q[i]), [where.markers[where.marker[i]]], data=data)[0]
                        for i in range(len(where.pose))])
     floor = None
     if where.noise_var is not None:

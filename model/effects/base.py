@@ -82,6 +82,9 @@ class StaticContext:
     #: (located compliance: frames and marker positions at each pose)
     robot: object = None
     dataset: object = None
+    #: the computation's Pinocchio work buffers (``robot.create_data()``, model/robot.py), for
+    #: effects whose basis needs kinematics; None: the effect makes its own
+    data: object = None
 
     def estimated(self, name: str) -> float | None:
         """Current estimate of parameter ``name`` (None before the first solve)."""

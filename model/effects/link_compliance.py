@@ -28,8 +28,6 @@ says where the compliance is.
 
 from __future__ import annotations
 
-import functools
-from types import MappingProxyType
 from typing import Mapping
 
 import numpy as np
@@ -75,37 +73,28 @@ def _normal_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return normal(axis)
 
 
-def location_frames(robot, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, Mapping[str, np.ndarray]]:
+def location_frames(robot, theta: np.ndarray, data=None) -> tuple[np.ndarray, np.ndarray, Mapping[str, np.ndarray]]:
     """Origins (L, 3) and component axes (L, 2, 3) of the locations in base axes
-    at joint angles ``theta``, and the positions of the load point and markers
-    (read-only: remembered per robot and pose, as every fit of a pose asks again)."""
-    return _frames_at(robot, np.asarray(theta, dtype=float).tobytes())
-
-
-@functools.lru_cache(maxsize=1024)
-def _frames_at(robot, theta_bytes: bytes):
-    """:func:`location_frames` of a robot (immutable) at the angles ``theta_bytes``."""
-    theta = np.frombuffer(theta_bytes, dtype=float)
+    at joint angles ``theta``, and the positions of the load point and markers, on the
+    caller's work buffers ``data`` (``robot.create_data()``; a new one when None)."""
     model = robot.model
-    data = model.createData()
+    pdata = (robot.create_data() if data is None else data).rigid
     theta = np.asarray(theta, dtype=float)
-    pin.computeJointJacobians(model, data, theta)
-    pin.updateFramePlacements(model, data)
+    pin.computeJointJacobians(model, pdata, theta)
+    pin.updateFramePlacements(model, pdata)
     origins = np.zeros((robot.n_joints, 3))
     axes = np.zeros((robot.n_joints, 2, 3))
     for l in locations(robot):
-        axis_world = data.J[3:, l]               # the axis of joint l+1 in base axes
-        frame = pin.SE3.Identity() if l == 0 else data.oMi[l] * model.jointPlacements[l + 1]
+        axis_world = pdata.J[3:, l]               # the axis of joint l+1 in base axes
+        frame = pin.SE3.Identity() if l == 0 else pdata.oMi[l] * model.jointPlacements[l + 1]
         axis_local = frame.rotation.T @ axis_world
         u, v = _normal_axes(axis_local / np.linalg.norm(axis_local))
         origins[l] = frame.translation
         axes[l, 0] = frame.rotation @ u
         axes[l, 1] = frame.rotation @ v
-    points = {name: data.oMf[model.getFrameId(name)].translation.copy()
+    points = {name: pdata.oMf[model.getFrameId(name)].translation.copy()
               for name in [LOAD_FRAME, *(MARKER_PREFIX + m for m in robot.marker_names)]}
-    for a in (origins, axes, *points.values()):
-        a.setflags(write=False)
-    return origins, axes, MappingProxyType(points)
+    return origins, axes, points
 
 
 def _basis(ctx: StaticContext) -> StaticBasis:
@@ -122,11 +111,12 @@ def _basis(ctx: StaticContext) -> StaticBasis:
     loc_of = np.array([int(names[k][2:-1]) for k in located])
     axis_of = np.array(["xy".index(names[k][-1]) for k in located])
     defl_pose = ds.state_pose[ds.defl_state]
+    data = ctx.data if ctx.data is not None else robot.create_data()
     for pi in range(len(ds.pose_ids)):
         defl = np.flatnonzero(defl_pose == pi)
         if defl.size == 0:
             continue
-        origins, axes, points = location_frames(robot, robot.theta(ds.q[pi]))
+        origins, axes, points = location_frames(robot, robot.theta(ds.q[pi]), data)
         o = origins[loc_of]                                   # (K, 3)
         u = axes[loc_of, axis_of]                             # (K, 3)
         dw = ctx.delta_wrench[ds.defl_state[defl]]            # (n, 6)
@@ -139,14 +129,15 @@ def _basis(ctx: StaticContext) -> StaticBasis:
     return StaticBasis(links=links, add=add)
 
 
-def gravity_moments(robot, theta: np.ndarray, origins: np.ndarray) -> np.ndarray:
+def gravity_moments(robot, theta: np.ndarray, origins: np.ndarray, data=None) -> np.ndarray:
     """(L, 3) moment of the weight of everything beyond each location about its
-    origin, base axes [N·m] (the subtree of joint ``l + 1``; zero without masses)."""
+    origin, base axes [N·m] (the subtree of joint ``l + 1``; zero without masses), on the
+    caller's work buffers ``data`` (a new one when None)."""
     out = np.zeros((robot.n_joints, 3))
     if not robot.has_masses:
         return out
     model = robot.model
-    data = model.createData()
+    data = (robot.create_data() if data is None else data).rigid
     pin.centerOfMass(model, data, np.asarray(theta, dtype=float), True)     # subtree CoMs in their joint's frame
     g = np.array(robot.gravity)
     for l in locations(robot):
@@ -169,21 +160,22 @@ def _absolute_basis(ctx: StaticContext) -> AbsoluteBasis:
     axis_of = np.array(["xy".index(names[k][-1]) for k in located])
     spring_cols = [names.index(name) for name in robot.link_spring_names]
     n_springs = len(spring_cols)
+    data = ctx.data if ctx.data is not None else robot.create_data()
     for pi in range(len(ds.pose_ids)):
         states = np.flatnonzero(ds.state_pose == pi)
         theta = robot.theta(ds.q[pi])
         th10 = robot.theta_links(theta)
-        j_spr = robot.jacobians(th10, [LOAD_FRAME], links=True)[0][:, robot.springs_in_link_model]
-        g_spr = (robot.gravity_torque(th10, links=True)[robot.springs_in_link_model] if robot.has_masses
+        j_spr = robot.jacobians(th10, [LOAD_FRAME], links=True, data=data)[0][:, robot.springs_in_link_model]
+        g_spr = (robot.gravity_torque(th10, links=True, data=data)[robot.springs_in_link_model] if robot.has_masses
                  else np.zeros(n_springs))
         w = ctx.wrench[states]                                          # (n, 6)
         # the load torque of each spring, J^T W - g (docs/formats.md's sign)
         links[np.ix_(states, np.arange(n_springs), spring_cols)] = (w @ j_spr - g_spr)[:, :, None] * np.eye(n_springs)[None]
-        origins, axes, points = location_frames(robot, theta)
+        origins, axes, points = location_frames(robot, theta, data)
         o, u = origins[loc_of], axes[loc_of, axis_of]                    # (K, 3)
         lever = points[LOAD_FRAME][None, :] - o
         m_axis = w[:, 3:] @ u.T + w[:, :3] @ np.cross(u, lever).T        # (n, K): the load's moment
-        m_axis = m_axis + np.sum(u * gravity_moments(robot, theta, origins)[loc_of], axis=1)[None, :]
+        m_axis = m_axis + np.sum(u * gravity_moments(robot, theta, origins, data)[loc_of], axis=1)[None, :]
         p_m = np.array([points[MARKER_PREFIX + m] for m in ds.markers])  # (M, 3)
         arm = np.cross(u[None, :, :], p_m[:, None, :] - o[None, :, :])   # (M, K, 3)
         add[np.ix_(states, np.arange(n_markers), np.arange(3), located)] = np.einsum("mkc,sk->smck", arm, m_axis)
