@@ -155,7 +155,10 @@ def normal_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ref = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = ref - (ref @ axis) * axis
     u /= np.linalg.norm(u)
-    return u, np.cross(axis, u)
+    # axis x u written out: np.cross's own formula, without its array set-up (this runs per
+    # location and pose in link_compliance's bases)
+    return u, np.array([axis[1] * u[2] - axis[2] * u[1], axis[2] * u[0] - axis[0] * u[2],
+                        axis[0] * u[1] - axis[1] * u[0]])
 
 
 def _rz(angle: float) -> np.ndarray:
