@@ -278,9 +278,10 @@ def _evidence(effect, params: Sequence[Parameter], fallback: str) -> str:
 
 # =================================================================== diagnose
 def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequence[str], *, torque: str,
-                    form: str, noise_known: bool) -> tuple[list[Candidate], list[NotTestable]]:
+                    form: str, noise_known: bool, work=None) -> tuple[list[Candidate], list[NotTestable]]:
     """Fit ``base``'s model plus each effect of ``pool`` it lacks and test it
-    against ``base``: candidates best first, and the effects these data cannot show."""
+    against ``base``: candidates best first, and the effects these data cannot show. ``work``: the
+    diagnosis' Pinocchio work buffers (``robot.create_data()``), shared by its fits."""
     model_names = base.model
     candidates: list[Candidate] = []
     skipped: list[NotTestable] = []
@@ -290,7 +291,7 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
         eff = get_effect(name)
         given = base.effects or model_names      # restricted effects stay as they were selected
         try:
-            aug = identify_static(robot, ds, model=(*given, name), torque=torque, form=form)
+            aug = identify_static(robot, ds, model=(*given, name), torque=torque, form=form, work=work)
             fitted = next(e for e in aug.effects if e.name == name) if aug.effects else eff
             sel = next((sl for sl in aug.selections if sl.effect == name), None)
             # the controls are fitted (the joint springs stay honest) but neither tested nor named
@@ -299,7 +300,7 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
                 controls = ()
                 # nothing passes: test the best component, to say how far it is from passing
                 fitted = eff.restricted((sel.next_best,))
-                aug = identify_static(robot, ds, model=(*given, fitted), torque=torque, form=form)
+                aug = identify_static(robot, ds, model=(*given, fitted), torque=torque, form=form, work=work)
         except EffectRefused as exc:       # the effect module's own reason, typed
             skipped.append(NotTestable(exc.effect, exc.reason))
             continue
@@ -374,7 +375,8 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     noise_known = ds.sigma_tracker is not None
     if not noise_known:
         ds = _assumed_noise(robot, ds, model, torque, form)
-    base = identify_static(robot, ds, model=model, torque=torque, form=form)
+    work = robot.create_data()        # one computation: its fits share the work buffers
+    base = identify_static(robot, ds, model=model, torque=torque, form=form, work=work)
     ds_abs = ds
     ds = base.dataset          # the deflections turned to base axes once: every candidate sees the same data
     pool = ALL_EFFECTS if effects is None else tuple(effects)
@@ -383,7 +385,8 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     skipped_first: list[NotTestable] = []
 
     def test(fit: StaticFit, added: Sequence[str]) -> list[Candidate]:
-        cands, skipped = test_candidates(robot, ds, fit, pool, torque=torque, form=form, noise_known=noise_known)
+        cands, skipped = test_candidates(robot, ds, fit, pool, torque=torque, form=form, noise_known=noise_known,
+                                         work=work)
         if not added:
             skipped_first.extend(skipped)
         return cands

@@ -317,11 +317,12 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
         kin_names = kin.parameter_names(robot, ds0.markers)
     else:
         kin_names = ()
-    fit = identify_static(robot, ds0, model=static_model, torque=torque, form=form)
+    work = robot.create_data()        # the static fit's and the absolute bases' buffers
+    fit = identify_static(robot, ds0, model=static_model, torque=torque, form=form, work=work)
     ds = fit.dataset
     effects = fit.effects or tuple(get_effect(n) for n in static_model)   # as fitted (selected components)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
-    pr = _Problem(robot, ds, effects, torque, form, "complementary_stiffness" in static_model, frames)
+    pr = _Problem(robot, ds, effects, torque, form, "complementary_stiffness" in static_model, frames, work)
     tau = _torques(pr, None)
     iterative = any(e.iterative for e in effects)
     bases = _absolute_bases(pr, _context(pr, tau, fit.beta if iterative else None))

@@ -369,6 +369,8 @@ class _Problem:
     def __post_init__(self) -> None:
         if self.data is None:
             object.__setattr__(self, "data", self.robot.create_data())
+        elif not self.data.belongs_to(self.robot):
+            raise ValueError("the work buffers were made by another robot")
 
     @cached_property
     def nominal_theta(self) -> np.ndarray:
@@ -776,7 +778,7 @@ def _lstsq(a: np.ndarray, y: np.ndarray, w: np.ndarray | None) -> np.ndarray:
 def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
                     model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
                     form: str = "exact", max_iter: int = 30, tol: float = 1e-10,
-                    weighting: str = "gls") -> StaticFit:
+                    weighting: str = "gls", work: RobotData | None = None) -> StaticFit:
     """Fit the static model ``model`` (effect names, or effects restricted to
     some parameters) to a table or dataset.
 
@@ -784,7 +786,11 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     covariance the repeated readings give (generalised least squares: the
     variance of the parameters reaches the Cramér-Rao bound); ``ols`` is plain
     least squares with the sandwich covariance. Without repeated readings the
-    fit is ordinary least squares either way."""
+    fit is ordinary least squares either way.
+
+    ``work``: the Pinocchio work buffers of the computation this fit is part of
+    (``robot.create_data()``; a diagnosis passes one to all its fits), new ones when None."""
+    work = robot.create_data() if work is None else work
     if torque not in TORQUE_SOURCES:
         raise InputError(f"must be current or force, got {torque!r}", argument="torque")
     if form not in FORMS:
@@ -794,11 +800,11 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         # a tracker placed anywhere: the deflections turned back to base axes by the
         # registration of the nominal model, then by that of this model's fit
         first = identify_static(robot, in_base_axes(robot, ds), model=model, torque=torque, form=form,
-                                max_iter=max_iter, tol=tol)
+                                max_iter=max_iter, tol=tol, work=work)
         refined = refine_registration(robot, ds, first.absolute_base)
         if refined is None:
             return first
-        return identify_static(robot, refined, model=model, torque=torque, form=form, max_iter=max_iter, tol=tol)
+        return identify_static(robot, refined, model=model, torque=torque, form=form, max_iter=max_iter, tol=tol, work=work)
     if torque == "current" and not ds.has_currents:
         raise InputError(("current-based identification needs the currents i1..i6 in every row; use ",
                           Arg("torque", "force")), source=ds.source)
@@ -817,12 +823,12 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
 
             # (first-order: one linear solve; the kept components are then fitted in ``form``)
             full = identify_static(robot, ds, model=[*effects[:k], eff.restricted(eff.parameters), *effects[k + 1:]],
-                                   torque=torque, form="first-order", max_iter=max_iter, tol=tol)
+                                   torque=torque, form="first-order", max_iter=max_iter, tol=tol, work=work)
             sel = forward_select(full, eff.name, eff.parameters)
             if form != "first-order" and sel.kept:
                 confirmed = confirm_selection(sel, lambda keep: identify_static(
                     robot, ds, model=[*effects[:k], eff.restricted(sel.fitted(keep)), *effects[k + 1:]],
-                    torque=torque, form=form, max_iter=max_iter, tol=tol), n=ds.dP.size)
+                    torque=torque, form=form, max_iter=max_iter, tol=tol, work=work), n=ds.dP.size)
                 if confirmed.kept != sel.kept:     # the controls of what stays
                     sel = replace(confirmed, controls=confounders(full, confirmed.kept, eff.parameters))
             selections.append(sel)
@@ -832,7 +838,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     for m in ds.markers:
         robot.frame_id(m)
     complementary = "complementary_stiffness" in names
-    pr = _Problem(robot, ds, effects, torque, form, complementary, frames)
+    pr = _Problem(robot, ds, effects, torque, form, complementary, frames, work)
     exact = form == "exact"
     tau_dependent = torque == "force" and (exact or complementary)
     #: effects whose basis depends on the current estimate (static_friction's saturation)

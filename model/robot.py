@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -129,9 +129,26 @@ class RobotData:
 
     rigid: pin.Data
     links: pin.Data
+    #: the rigid model the buffers belong to (a Data serves its own model only)
+    model: pin.Model | None = None
+    _reused: dict = field(default_factory=dict, repr=False)
 
     def of(self, links: bool) -> pin.Data:
         return self.links if links else self.rigid
+
+    def belongs_to(self, robot: "Robot") -> bool:
+        return self.model is robot.model
+
+    def reuse(self, key: tuple, compute: Callable[[], Any]) -> Any:
+        """``compute()`` once per ``key`` within this computation: what its fits ask again at the
+        same configuration (a diagnosis fits many models at the same poses). The key names the
+        function and its arguments (e.g. ``(location_frames, theta.tobytes())``); the value is
+        not to be written to."""
+        try:
+            return self._reused[key]
+        except KeyError:
+            value = self._reused[key] = compute()
+            return value
 
 
 def _joint_model(kind: JointKind, axis: np.ndarray) -> pin.JointModel:
@@ -264,7 +281,7 @@ class Robot:
 
     def create_data(self) -> RobotData:
         """Work buffers for one computation (module docstring)."""
-        return RobotData(rigid=self.model.createData(), links=self.link_model.createData())
+        return RobotData(rigid=self.model.createData(), links=self.link_model.createData(), model=self.model)
 
     # ------------------------------------------------------------ properties
     @property

@@ -28,6 +28,7 @@ says where the compliance is.
 
 from __future__ import annotations
 
+from types import MappingProxyType
 from typing import Mapping
 
 import numpy as np
@@ -75,11 +76,16 @@ def _normal_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def location_frames(robot, theta: np.ndarray, data=None) -> tuple[np.ndarray, np.ndarray, Mapping[str, np.ndarray]]:
     """Origins (L, 3) and component axes (L, 2, 3) of the locations in base axes
-    at joint angles ``theta``, and the positions of the load point and markers, on the
-    caller's work buffers ``data`` (``robot.create_data()``; a new one when None)."""
-    model = robot.model
-    pdata = (robot.create_data() if data is None else data).rigid
+    at joint angles ``theta``, and the positions of the load point and markers (read-only),
+    on the caller's work buffers ``data`` (``robot.create_data()``; a new one when None),
+    which keep them for the rest of the computation (every fit of a pose asks again)."""
+    data = robot.create_data() if data is None else data
     theta = np.asarray(theta, dtype=float)
+    return data.reuse((location_frames, theta.tobytes()), lambda: _frames_at(robot, theta, data.rigid))
+
+
+def _frames_at(robot, theta: np.ndarray, pdata) -> tuple[np.ndarray, np.ndarray, Mapping[str, np.ndarray]]:
+    model = robot.model
     pin.computeJointJacobians(model, pdata, theta)
     pin.updateFramePlacements(model, pdata)
     origins = np.zeros((robot.n_joints, 3))
@@ -94,7 +100,9 @@ def location_frames(robot, theta: np.ndarray, data=None) -> tuple[np.ndarray, np
         axes[l, 1] = frame.rotation @ v
     points = {name: pdata.oMf[model.getFrameId(name)].translation.copy()
               for name in [LOAD_FRAME, *(MARKER_PREFIX + m for m in robot.marker_names)]}
-    return origins, axes, points
+    for a in (origins, axes, *points.values()):
+        a.setflags(write=False)
+    return origins, axes, MappingProxyType(points)
 
 
 def _basis(ctx: StaticContext) -> StaticBasis:
