@@ -15,7 +15,7 @@ from elastocal.design.measures import DesignQuality, NoiseModel, evaluate_design
 from elastocal.model.robot import Robot
 
 
-def _load_specs(forces: np.ndarray, gravity: np.ndarray):
+def load_specs(forces: np.ndarray, gravity: np.ndarray):
     g = float(np.linalg.norm(gravity))
     down = gravity / g
     specs = []
@@ -77,7 +77,7 @@ def plan_calibration(robot: Robot, test: TestPose, workspace: Workspace, noise: 
                                      noise=noise)
     check = choose_check(robot, design, test, n_check=min(n_check, n_poses), markers=markers,
                          prior_stiffness=prior_stiffness, noise=noise)
-    loads = _load_specs(design.forces, np.array(robot.gravity))
+    loads = load_specs(design.forces, np.array(robot.gravity))
     pose_ids = tuple(f"P{k}" for k in range(1, len(design.q) + 1))
     friction = tuple(friction)
     check_spec = CheckSpec(poses=tuple(pose_ids[i] for i in check.poses), load=loads[check.load].id,

@@ -290,7 +290,9 @@ def parse_plan(text: str, *, source: str = "<plan.toml>") -> Plan:
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source=source) from None
     top = _Table(doc, source, "")
-    top.check_keys(("name", "procedures", "settle", "load", "static", "friction", "sweep", "check"))
+    top.check_keys(("name", "procedures", "settle", "load", "static", "friction", "sweep", "check", "expected"))
+    if "expected" in doc and not isinstance(doc["expected"], dict):
+        raise top.fail("expected", "must be a table (what the planner predicts; the procedures ignore it)")
     name = top.text("name", "calibration")
 
     settle = SettleSpec()
@@ -429,12 +431,14 @@ def plan_toml(*, poses: Sequence[Sequence[float]] | Mapping[str, Sequence[float]
               speed_rad_s: float = 0.3, settle: SettleSpec | None = None,
               friction: Sequence[FrictionSpec] = (), sweep: SweepSpec | None = None,
               check: CheckSpec | None = None, procedures: Sequence[str] | None = None,
-              pose_loads: Mapping[str, Sequence[str]] | None = None) -> str:
+              pose_loads: Mapping[str, Sequence[str]] | None = None,
+              expected: Mapping[str, object] | None = None) -> str:
     """plan.toml text for poses (a list, ids P1.., or a mapping id -> q), loads and
     markers, plus optional friction paths, sweep and check; :func:`parse_plan`
     reads it back. ``pose_loads`` gives some poses their own loaded states
-    (pose id -> load ids; the others get every load). For the demo, the ``plan``
-    command and tests."""
+    (pose id -> load ids; the others get every load). ``expected``: what the planner
+    predicts, written as the informational ``[expected]`` table (numbers and strings,
+    one level of sub-tables). For the demo, the ``plan`` command and tests."""
     lines = [f'name = "{name}"']
     if procedures is not None:
         lines.append(f"procedures = {_toml_list(procedures)}")
@@ -475,4 +479,27 @@ def plan_toml(*, poses: Sequence[Sequence[float]] | Mapping[str, Sequence[float]
         lines += ["", "[check]", f"poses = {_toml_list(check.poses)}", f'load = "{check.load}"']
         if check.friction:
             lines.append(f'friction = "{check.friction}"')
+    if expected:
+        lines += _expected_lines(expected)
     return "\n".join(lines) + "\n"
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(float(v)) if isinstance(v, float) else str(int(v))
+
+
+def _expected_lines(expected: Mapping[str, object]) -> list[str]:
+    """The ``[expected]`` table: plain keys first, then one sub-table per mapping."""
+    lines = ["", "[expected]            # what the planner predicts; the procedures ignore it"]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in expected.items() if not isinstance(v, Mapping)]
+    for k, v in expected.items():
+        if isinstance(v, Mapping):
+            lines += ["", f"[expected.{k}]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in v.items()
+                                                if vv is not None]
+    return lines

@@ -18,7 +18,7 @@ import math
 import operator
 import pathlib
 from dataclasses import dataclass
-from typing import Iterable, Iterator
+from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -797,3 +797,27 @@ def run_table_from_arrays(*, run, direction, load, t, q, dq=None, currents=None,
     check_table_values(table, robot)
     _check_speeds_against_motion(table)
     return table
+
+
+def concat_static_tables(tables: Sequence[StaticTable]) -> StaticTable:
+    """Several static tables as one (the logs of two rounds diagnosed together): rows in
+    order; a table whose pose ids repeat an earlier table's gets them prefixed with its
+    place (``2:P1``), so every pose keeps its own unloaded reference. Optional columns
+    are kept when every table has them."""
+    if not tables:
+        raise ValueError("no table to join")
+    if len(tables) == 1:
+        return tables[0]
+    seen: set[str] = set()
+    poses = []
+    for k, tb in enumerate(tables, start=1):
+        ids = np.asarray(tb.pose, dtype=str)
+        if seen & set(ids.tolist()):
+            ids = np.char.add(f"{k}:", ids)
+        seen |= set(ids.tolist())
+        poses.append(ids)
+    names = [name for name, _ in tables[0].extra if all(tb.optional(name) is not None for tb in tables)]
+    return StaticTable(" + ".join(tb.source for tb in tables), np.concatenate(poses),
+                       *(np.concatenate([getattr(tb, f) for tb in tables])
+                         for f in ("load", "t", "q", "wrench", "currents", "marker", "xyz", "line")),
+                       tuple((name, np.concatenate([tb.optional(name) for tb in tables])) for name in names))

@@ -31,8 +31,13 @@ class TrackerPrior:
     source: str
 
 
-def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = True) -> None:
-    parser.add_argument("log", nargs="?", help="an MCAP log written by `elastocal calibrate` (instead of tables)")
+def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = True,
+                        several_logs: bool = False) -> None:
+    if several_logs:    # the rounds of one cell diagnosed together (docs/plan.md, "The next experiment")
+        parser.add_argument("log", nargs="*", help="MCAP logs written by `elastocal calibrate` (instead of tables); "
+                                                   "several: their static experiments diagnosed together")
+    else:
+        parser.add_argument("log", nargs="?", help="an MCAP log written by `elastocal calibrate` (instead of tables)")
     parser.add_argument("--robot", help="robot.toml (docs/formats.md §1)")
     parser.add_argument("--static", help="static deflection table, CSV (docs/formats.md §2)")
     parser.add_argument("--runs", help="run table, CSV (docs/formats.md §3)")
@@ -131,7 +136,35 @@ def load_log_noted(args: argparse.Namespace, path: str | pathlib.Path, *, with_t
     return tables_from_log(contents)
 
 
+def _load_several(args: argparse.Namespace, logs: list[str]) -> Inputs:
+    """The static experiments of several logs of one robot as one table (pose ids kept apart)."""
+    from elastocal.formats.tables import concat_static_tables
+
+    robot, tables, tracker = None, [], None
+    for path in logs:
+        r, static, runs, where = load_log_noted(args, path, with_tracker=True)
+        if runs is not None:
+            raise InputError("runs of several logs are not diagnosed together: give the log with runs alone",
+                             source=path)
+        if static is None:
+            raise InputError("the log holds no static experiment", source=path)
+        if robot is not None and (r.marker_names != robot.marker_names or r.n_joints != robot.n_joints):
+            raise InputError(f"another robot or other markers than {logs[0]}", source=path)
+        robot, tracker = robot or r, tracker or where
+        tables.append(static)
+    if args.robot:
+        robot = load_robot(args.robot)
+    return Inputs(robot, concat_static_tables(tables), None, tuple(pathlib.Path(p) for p in logs),
+                  pathlib.Path(logs[0]), tracker)
+
+
 def load_inputs(args: argparse.Namespace) -> Inputs:
+    if isinstance(args.log, list):      # a command that takes several logs
+        if len(args.log) > 1:
+            if args.static or args.runs:
+                raise InputError("give either logs or --static/--runs tables, not both", source=args.log[0])
+            return _load_several(args, args.log)
+        args = argparse.Namespace(**{**vars(args), "log": args.log[0] if args.log else None})
     if args.log:
         if args.static or args.runs:
             raise InputError("give either a log or --static/--runs tables, not both", source=args.log)

@@ -19,7 +19,7 @@ from elastocal.diagnose.pipeline import diagnose_data, diagnosis_json
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_input_arguments(parser)
+    add_input_arguments(parser, several_logs=True)
     add_outlier_argument(parser)
     add_tracker_arguments(parser)
 
@@ -48,8 +48,9 @@ def _p(p: float | None) -> str:
 
 def identify_command(args: argparse.Namespace, model: tuple[str, ...]) -> str:
     parts = ["elastocal", "identify"]
-    if getattr(args, "log", None):
-        parts.append(args.log)
+    logs = getattr(args, "log", None)
+    if logs:
+        parts += logs if isinstance(logs, list) else [logs]
     for flag in ("robot", "static", "runs", "cell", "tracker_position"):   # the same data and tracker prior
         value = getattr(args, flag, None)
         if value:
@@ -64,10 +65,38 @@ def identify_command(args: argparse.Namespace, model: tuple[str, ...]) -> str:
     return " ".join(shlex.quote(p) for p in parts)
 
 
+def plannable(effect: str) -> bool:
+    """An effect a discriminating static experiment can be planned for (design/discriminate.py)."""
+    from elastocal.model.effects import get_effect
+
+    eff = get_effect(effect)
+    return "static" in eff.seen_in and eff.design_size is not None
+
+
+def plan_command(args: argparse.Namespace, effects) -> str:
+    """`elastocal plan --discriminate` for ``effects`` from the same data."""
+    from elastocal.commands.plan_discriminate import command_for
+
+    logs = getattr(args, "log", None)
+    logs = logs if isinstance(logs, list) else ([logs] if logs else [])
+    return command_for(effects, logs, robot=getattr(args, "robot", None), static=getattr(args, "static", None))
+
+
+def open_effects(diag) -> tuple[str, ...]:
+    """The plannable effects the static diagnosis leaves open: not testable, unidentifiable in
+    part, or leaning towards the effect without deciding (-10 < delta BIC < 0)."""
+    if diag.verdict is not None:
+        return ()
+    out = [n.effect for n in diag.not_testable]
+    out += [c.effect for c in diag.candidates if c.unidentifiable or (not c.significant and c.delta_bic < 0)]
+    return tuple(e for e in dict.fromkeys(out) if plannable(e))
+
+
 def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:
     fit = diag.fit
     lines = [f"static: {', '.join(diag.model)} ({diag.torque}-based, {diag.form} form), "
              f"{fit.n} deflection components"]
+    planned = set(open_effects(diag))
     floor = diag.noise_floor
     if floor is None:
         lines.append(f"  residual {_um(fit.rms)} rms; no repeated readings, so the noise floor is unknown")
@@ -88,10 +117,13 @@ def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str
             words = f"ΔBIC {c.delta_bic:.0f}   {_p(c.p_value)}   {c.evidence}"
         else:
             words = f"not significant (ΔBIC {c.delta_bic:+.0f}, {_p(c.p_value)})"
+            if c.delta_bic < 0 and c.effect in planned:
+                words += f"; ambiguous: to decide, {plan_command(args, [c.effect])}"
         lines.append(f"  {k}. {c.effect:<{width}}  {change:<20}  {words}")
         if c.unidentifiable:
             lines.append(f"     {' ' * width}  unidentifiable here: {', '.join(c.unidentifiable)} "
-                         f"(rank {c.rank} of {c.n_model_parameters}, condition number {c.condition_number:.3g})")
+                         f"(rank {c.rank} of {c.n_model_parameters}, condition number {c.condition_number:.3g})"
+                         + (f"; to separate them: {plan_command(args, [c.effect])}" if c.effect in planned else ""))
     if diag.steps:
         lines.append("  stepwise: " + " → ".join(
             [_um(fit.rms)] + [f"+{st.effect} {_um(st.rms_after)}" for st in diag.steps])
@@ -108,7 +140,10 @@ def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str
     if diag.not_testable:
         lines.append("  not testable from these data:")
         for n in diag.not_testable:
-            lines.append(f"    {n.effect}: {n.reason}")
+            lines.append(f"    {n.effect}: {n.reason}"
+                         + (f"; to test it: {plan_command(args, [n.effect])}" if n.effect in planned else ""))
+    if len(planned) > 1:
+        lines.append(f"  to settle them all in one round: {plan_command(args, sorted(planned))}")
     lines += format_absolute(diag.absolute)
     if diag.verdict is not None:
         if diag.absolute is not None and diag.verdict in {c.effect for c in diag.absolute.steps}:
@@ -202,6 +237,8 @@ def run(args: argparse.Namespace) -> int:
                                    exclude_outliers=getattr(args, "exclude_outliers", False), prior=prior)
     if args.json:
         obj = diagnosis_json(static, runs)
+        left = open_effects(static) if static is not None else ()
+        obj["next_experiment"] = {"effects": list(left), "command": plan_command(args, left)} if left else None
         if prior is not None and "prior" in obj.get("registration", {}):
             obj["registration"]["prior"]["source"] = prior.source
         print(json.dumps(obj))

@@ -30,19 +30,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--tracker-position", metavar="X,Y,Z",
                      help="the tracker in base coordinates [m]: keep only poses whose markers it sees")
     use = parser.add_argument_group("where the robot works")
-    use.add_argument("--test-pose", required=True, metavar="Q1,...,Q6",
+    use.add_argument("--test-pose", metavar="Q1,...,Q6",
                      help="the working pose [rad] (negative first value: --test-pose=-0.3,...)")
     add_aliased(use, "--wrench", "--load", dest="load", metavar="FX,FY,FZ[,MX,MY,MZ]",
                      help="the process load on the load point, base axes [N, N*m]")
     exp = parser.add_argument_group("the experiment")
-    exp.add_argument("--poses", type=int, default=12, help="poses to measure (default 12)")
+    exp.add_argument("--poses", type=int, help="poses to measure (default 12; 6 with --discriminate)")
     exp.add_argument("--loads-per-pose", type=int, default=None,
                      help=f"loaded states per pose (default {DEFAULT_LOADS_PER_POSE}, as `sim static`; 1 with "
-                          "--directions down)")
+                          "--directions down; 2 with --discriminate)")
     exp.add_argument("--f-max", type=float, help="largest load force [N] (default: the size of the process force)")
     exp.add_argument("--directions", choices=("any", "down"), default="any",
                      help="load directions: any (weights and pulls, default) or down (hung weights only)")
-    exp.add_argument("--candidates", type=int, default=2000, help="candidate poses to choose from (default 2000)")
+    exp.add_argument("--candidates", type=int,
+                     help="candidate poses to choose from (default 2000; 150 with --discriminate)")
     exp.add_argument("--min-height", type=float, default=0.3,
                      help="lowest height of elbow, wrist, markers and load point [m] (default 0.3)")
     exp.add_argument("--max-height", type=float, default=3.0, help="highest load point [m] (default 3.0)")
@@ -75,6 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="load of the map (default: F_max split equally over +x, +y, -z)")
     out.add_argument("--force", action="store_true", help="overwrite --out and --map if they exist")
     out.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    from elastocal.commands.plan_discriminate import add_arguments as add_discriminate
+
+    add_discriminate(parser)
 
 
 def numbers(text: str, sizes: tuple[int, ...], flag: str) -> tuple[float, ...]:
@@ -148,6 +152,21 @@ def _friction(args: argparse.Namespace, robot=None):
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.discriminate is not None:
+        from elastocal.commands import plan_discriminate
+
+        args.poses = 6 if args.poses is None else args.poses
+        args.candidates = 150 if args.candidates is None else args.candidates
+        args.loads_per_pose = 2 if args.loads_per_pose is None else args.loads_per_pose
+        return plan_discriminate.run(args)
+    for flag in ("given", "static"):
+        if getattr(args, flag):
+            raise InputError("only with --discriminate", source="--" + flag)
+    if args.test_pose is None:
+        raise InputError("the working pose is required: --test-pose Q1,...,Q6 (or --discriminate EFFECT)",
+                         source="--test-pose")
+    args.poses = 12 if args.poses is None else args.poses
+    args.candidates = 2000 if args.candidates is None else args.candidates
     from elastocal.design.planning import plan_calibration
     from elastocal.design import search as dz
     from elastocal.formats.robot_toml import load_robot

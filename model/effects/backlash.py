@@ -36,6 +36,9 @@ NOISE_MARGIN = 3.0
 #: a joint shows its play only if some load state changes tanh(tau/band)/2 by at
 #: least this fraction of the play (one tenth of it)
 MIN_VISIBLE_FRACTION = 0.1
+#: the smallest play worth finding: 0.1 arcmin, a tenth of a precision gear's catalogue
+#: value, 30 µm at 1 m [rad]
+DESIGN_PLAY_RAD = np.radians(0.1 / 60.0)
 
 
 def take_up(tau: np.ndarray) -> np.ndarray:
@@ -119,6 +122,7 @@ def make(robot=None) -> Effect:
         describe=_describe,
         plausibility=_plausibility,
         sized=make,
+        design_size=lambda c: np.full(len(c), DESIGN_PLAY_RAD),
         static_model="each joint angle gains (b_j/2) tanh(tau_j / 20 N·m) besides the spring's c_j tau_j",
         run_model="at a direction reversal the motor turns through the play before the link follows; "
                   "it shows in tracked positions, not in currents",

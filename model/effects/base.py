@@ -206,6 +206,10 @@ class Effect:
     #: robot -> this effect sized for that robot's joints (module docstring); None: the
     #: parameters do not depend on the robot
     sized: Optional[Callable[[object], "Effect"]] = None
+    #: joint compliances c (N,) [rad/(N·m)] -> (p,) the smallest size of each parameter worth
+    #: finding: the size a discriminating experiment must show (design/discriminate.py); None:
+    #: the effect is no target of one (it can still be a rival)
+    design_size: Optional[Callable[[np.ndarray], np.ndarray]] = None
 
     def for_robot(self, robot) -> "Effect":
         """The effect with the parameters of ``robot``'s joints (itself when they do not depend on it)."""

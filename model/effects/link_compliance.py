@@ -216,6 +216,11 @@ def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) 
     return wrong_sign(names, values, stds, "a compliance")
 
 
+#: the smallest located compliance worth finding: 1e-7 rad/(N·m) turns a 1 kN·m moment
+#: into 0.1 mrad, 100 µm at 1 m (a cast link or a base on a floor plate: 1e-7 to 1e-6)
+DESIGN_COMPLIANCE = 1e-7
+
+
 def make(robot=None) -> Effect:
     """The effect for ``robot``'s links (a six-axis arm's without one)."""
     return Effect(
@@ -235,6 +240,7 @@ def make(robot=None) -> Effect:
         # a5 a5' + w4 w4'); they count only for what the joint springs and cl2x..cl3y leave
         priority=tuple(0 if name in _in_link_model(robot) else 1 for name in parameters(robot)),
         sized=make,
+        design_size=lambda c, n=len(parameters(robot)): np.full(n, DESIGN_COMPLIANCE),
         static_model="rotations about the two axes normal to the joint axis at the base and at the distal end of "
                      "each link, cl times the moment of the load change there; the data choose the components",
         run_model="not in the torque model: link springs change positions, not joint torques",

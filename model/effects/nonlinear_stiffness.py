@@ -30,6 +30,9 @@ from elastocal.model.effects.base import joint_names, joint_units
 #: a joint shows a torque-dependent stiffness when its torque change and the spread of
 #: the torque it carries over the loads exceed this many torque-noise std
 VISIBLE_NOISE = 10.0
+#: the torque at which the stiffness doubles, for the smallest nonlinearity worth finding
+#: (phi = c / T): gear makers' curves change slope within a few kN·m on arm gears [N·m]
+DESIGN_DOUBLING_NM = 3000.0
 #: torque noise assumed without repeated readings [N·m]
 DEFAULT_TORQUE_NOISE_NM = 1.0
 
@@ -131,6 +134,7 @@ def make(robot=None) -> Effect:
         describe=_describe,
         report_with_model=_report_with_model,
         sized=make,
+        design_size=lambda c: np.asarray(c, dtype=float) / DESIGN_DOUBLING_NM,
         static_model="each joint angle is c_j sign(tau) ln(1 + |tau|/T_j) T_j instead of c_j tau: stiffness "
                      "k_j (1 + |tau|/T_j)",
         run_model="not in the torque model: the spring law changes positions, not joint torques",
