@@ -1,0 +1,85 @@
+"""The next experiment over seeds (docs/plan.md, "The next experiment"): on simulated cells whose
+first round leaves a hidden effect open, one planned round of at most 6 poses, then `diagnose` on
+both rounds; the same with a random round of the same count (poses from the same candidates, load
+forces of the same size in random rig directions); and complete cells (no hidden effect).
+
+    python benchmarks/discriminate_acceptance.py [--seeds 20] [--effects link_compliance,backlash,...]
+
+Prints one table row per case: how often diagnose names the hidden effect (or, for "none", stays
+null) after the first round alone, after the planned round, after the random round.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+from elastocal.design.candidates import Workspace, load_directions, sample_candidates
+from elastocal.design.discriminate import given_from_diagnosis, plan_discrimination
+from elastocal.diagnose.static import diagnose_static
+from elastocal.formats.robot_toml import load_robot
+from elastocal.formats.tables import concat_static_tables
+from elastocal.sims.cell import CellTruth
+from elastocal.sims.static import StaticPlan, simulate_static
+
+ROBOT = pathlib.Path(__file__).resolve().parents[1] / "elastocal" / "robots" / "hh150.toml"
+#: the first round of each case: what leaves the effect open (too few poses; hung weights only)
+FIRST = {"link_compliance": StaticPlan(n_poses=3, n_loads=2),
+         "backlash": StaticPlan(n_poses=4, n_loads=2),
+         "nonlinear_stiffness": StaticPlan(n_poses=4, n_loads=1),
+         "none": StaticPlan(n_poses=4, n_loads=2)}
+TARGETS = ("link_compliance", "backlash", "nonlinear_stiffness")
+F_MAX_N = 110.0 * 9.81          # the rig's largest force: the simulated cell's heaviest weight
+N_POSES, LOADS_PER_POSE = 6, 2
+
+
+def _wrenches(forces: np.ndarray, pose_loads) -> list[np.ndarray]:
+    return [np.array([np.concatenate([forces[f], np.zeros(3)]) for f in fl]) for fl in pose_loads]
+
+
+def one_seed(robot, hidden: str, seed: int) -> dict:
+    truth = CellTruth().with_hidden(hidden)
+    first = simulate_static(robot, truth, seed=seed, plan=FIRST[hidden])
+    d1 = diagnose_static(robot, first)
+    targets = TARGETS if hidden == "none" else (hidden,)
+    workspace = Workspace(f_max_n=F_MAX_N)
+    design = plan_discrimination(robot, given_from_diagnosis(d1), targets, workspace, markers=robot.marker_names,
+                                 n_poses=N_POSES, loads_per_pose=LOADS_PER_POSE, seed=seed, n_random=0)
+    planned = simulate_static(robot, truth, seed=seed + 10_000, poses=design.q,
+                              wrenches=_wrenches(design.forces, design.pose_loads))
+    d2 = diagnose_static(robot, concat_static_tables([first, planned]))
+    rng = np.random.default_rng(seed + 20_000)
+    cands = sample_candidates(robot, len(design.q), rng, workspace, robot.marker_names)
+    dirs = F_MAX_N * load_directions(workspace.directions, robot.gravity)
+    pick = [rng.choice(len(dirs), LOADS_PER_POSE, replace=False) for _ in cands.q]
+    random_round = simulate_static(robot, truth, seed=seed + 10_000, poses=cands.q, wrenches=_wrenches(dirs, pick))
+    d3 = diagnose_static(robot, concat_static_tables([first, random_round]))
+    want = None if hidden == "none" else hidden
+    return {"first": d1.verdict == want, "planned": d2.verdict == want, "random": d3.verdict == want,
+            "poses": len(design.q), "time_s": design.time_s}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--effects", default="link_compliance,backlash,nonlinear_stiffness,none")
+    args = parser.parse_args(argv)
+    robot = load_robot(ROBOT)
+    print("| hidden effect | first round | + planned round (≤ 6 poses) | + random round (same count) | seeds |")
+    print("| --- | --- | --- | --- | --- |")
+    for hidden in args.effects.split(","):
+        started = time.monotonic()
+        rows = [one_seed(robot, hidden, s) for s in range(args.seeds)]
+        n = len(rows)
+        print(f"| {hidden} | {sum(r['first'] for r in rows)}/{n} | {sum(r['planned'] for r in rows)}/{n} | "
+              f"{sum(r['random'] for r in rows)}/{n} | {n} ({time.monotonic() - started:.0f} s) |")
+        sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
