@@ -35,13 +35,36 @@ def _pose_plot(fits: list[tuple[str, AbsoluteFit, str]], ident: str) -> str:
         ax.bar(x + (k - (len(fits) - 1) / 2) * width, rms, width, color=colour, alpha=0.85, label=title)
     floor = fits[-1][1].noise_floor
     if floor:
-        ax.axhline(floor * np.sqrt(3) * UM, color=FLOOR_COLOUR, ls="--", label="noise floor (per marker)")
-    ax.set_yscale("log")
+        ax.axhline(floor * np.sqrt(3) * UM, color=FLOOR_COLOUR, ls="--", label="noise floor (per marker, 3-D)")
+    _error_axis(ax, [np.array([p["rms"] for p in f.per_pose()]) * UM for _, f, _ in fits])
     ax.set_xticks(x, labels, fontsize=7)
     ax.set_xlabel("pose (unloaded reference)")
-    ax.set_ylabel("absolute error rms [µm]")
+    # each marker's 3-D distance, not a component: √3 times the per-component rms of the headline
+    ax.set_ylabel("rms per marker (3-D distance) [µm]")
     ax.legend(fontsize=7)
     return figure_svg(fig, ident)
+
+
+def _error_axis(ax, values: list[np.ndarray]) -> None:
+    """A linear axis from 0, or a log axis with decade ticks (1, 10, 100 µm ...) when the bars
+    span more than a decade (a geometry calibration: millimetres before, microns after); never
+    a log axis over less than a decade, whose ticks (8, 9, 10 µm) read as a linear scale."""
+    from matplotlib.ticker import LogLocator, ScalarFormatter
+
+    v = np.concatenate([np.ravel(a) for a in values])
+    v = v[np.isfinite(v) & (v > 0)]
+    if v.size and v.max() / v.min() > 10.0:
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(base=10.0, numticks=12))
+        ax.yaxis.set_minor_locator(LogLocator(base=10.0, subs=(), numticks=12))   # no unlabelled minor ticks
+        fmt = ScalarFormatter()
+        fmt.set_scientific(False)
+        ax.yaxis.set_major_formatter(fmt)
+        lo = 10.0 ** np.floor(np.log10(v.min()))
+        hi = 10.0 ** np.ceil(np.log10(v.max()))
+        ax.set_ylim(lo, hi)
+    else:
+        ax.set_ylim(0.0, (v.max() if v.size else 1.0) * 1.15)
 
 
 def _vector_plot(fits: list[tuple[str, AbsoluteFit, str]], ident: str) -> str:
@@ -72,7 +95,8 @@ def absolute_html(absolute) -> str:
     out = ["<h2>Absolute positions</h2>",
            f'<p class="note">After the best rigid registration of the tracker (it stands at '
            f"{', '.join(f'{v:.3f}' for v in base.registration.base_p_tracker)} m in base coordinates): "
-           f"{base.rms * UM:.1f} µm rms, max {base.max * UM:.0f} µm, noise floor "
+           f"{base.rms * UM:.1f} µm rms per component (x, y, z; the per-pose plot shows each marker's 3-D "
+           f"distance, √3 times larger), max {base.max * UM:.0f} µm, noise floor "
            f"{(base.noise_floor or float('nan')) * UM:.1f} µm"
            + (f"; with {html.escape(', '.join(s.effect for s in absolute.steps))}: {absolute.final.rms * UM:.1f} µm "
               f"rms, max {absolute.final.max * UM:.1f} µm" if absolute.steps else "") + ".</p>"]

@@ -45,19 +45,28 @@ def _styles(names: list[str]) -> list[tuple[str, str]]:
     (fc, fv, fl, cl...); parameters without a joint number take the colours after the six joints'."""
     import matplotlib
 
-    tab10 = matplotlib.colormaps["tab10"].colors
+    palette = list(matplotlib.colormaps["tab10"].colors) + list(matplotlib.colormaps["Dark2"].colors)
     families: dict[str, int] = {}
     spare = 6
+    used: set[tuple[int, str]] = set()
     out = []
     for name in names:
         m = re.match(r"^([A-Za-z_]+?)([1-6])([a-z]?)$", name)
         family = m.group(1) if m else name
         marker = _MARKERS[families.setdefault(family, len(families)) % len(_MARKERS)]
         if m:
-            colour = tab10[int(m.group(2)) - 1]
+            colour = int(m.group(2)) - 1
         else:
-            colour, spare = tab10[spare % 10], spare + 1
-        out.append((colour, marker))
+            colour, spare = spare, spare + 1
+        # no two series alike: a (colour, marker) pair taken already moves on to the next free colour
+        # (the markers repeat after len(_MARKERS) families, the colours after the palette's)
+        tries = 0
+        while (colour % len(palette), marker) in used and tries < len(palette) * len(_MARKERS):
+            colour, tries = colour + 1, tries + 1
+            if tries % len(palette) == 0:
+                marker = _MARKERS[(_MARKERS.index(marker) + 1) % len(_MARKERS)]
+        used.add((colour % len(palette), marker))
+        out.append((palette[colour % len(palette)], marker))
     return out
 
 
@@ -192,6 +201,30 @@ def drift_figure(drift: Drift):
             _parameter_panel(ax, drift, cols, tc, tk)
         ax.set_title(title, fontsize=10)
         _legend(ax)
+    _time_axis(axes[-1], np.concatenate([tc, tk]))
     axes[-1].set_xlabel("time (UTC)")
     fig.autofmt_xdate()
     return fig
+
+
+#: the least time span shown: one calibration (or a few on one day) gets a week around it,
+#: not matplotlib's empty years about a single date
+MIN_SPAN = np.timedelta64(7 * 24, "h")
+
+
+def _time_axis(ax, times: np.ndarray) -> None:
+    import matplotlib.dates as mdates
+
+    if not times.size:
+        return
+    lo, hi = times.min(), times.max()
+    if hi - lo < MIN_SPAN:
+        middle = lo + (hi - lo) // 2
+        lo, hi = middle - MIN_SPAN // 2, middle + MIN_SPAN // 2
+    else:
+        pad = (hi - lo) // 20
+        lo, hi = lo - pad, hi + pad
+    ax.set_xlim(lo, hi)
+    locator = mdates.AutoDateLocator(minticks=3, maxticks=8)
+    ax.xaxis.set_major_locator(locator)
+    ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))

@@ -171,6 +171,44 @@ def arrows(view: CellView, model: ModelView, magnify: float = MAGNIFY,
     return measured, predicted, np.stack([view.anchor, measured], axis=1), errors
 
 
+#: the longest error arrow the automatic magnification draws [m]: visible beside a 2 m robot
+ERROR_ARROW_M = 0.15
+
+
+def auto_magnify_errors(view: CellView) -> float:
+    """A round magnification (1, 2 or 5 times a power of ten) that draws the largest error of
+    the first model ERROR_ARROW_M long: errors of 10-50 µm are invisible at the deflections' ×100."""
+    largest = float(np.max(np.linalg.norm(view.models[0].residual, axis=1))) if len(view.measured) else 0.0
+    if not largest > 0:
+        return MAGNIFY
+    target = ERROR_ARROW_M / largest
+    exponent = np.floor(np.log10(target))
+    mantissa = max(m for m in (1.0, 2.0, 5.0) if m * 10 ** exponent <= target)
+    return float(mantissa * 10 ** exponent)
+
+
+def arrow_heads(segments: np.ndarray, fraction: float = 0.3) -> np.ndarray:
+    """Two barbs (2·S, 2, 3) at the tip of each segment (S, 2, 3): ``fraction`` of its length long,
+    30° off its axis, in the plane of the segment and the vertical (or x for a vertical one)."""
+    tail, tip = segments[:, 0], segments[:, 1]
+    axis = tip - tail
+    length = np.linalg.norm(axis, axis=1, keepdims=True)
+    u = axis / np.where(length > 0, length, 1.0)
+    ref = np.where(np.abs(u[:, 2:3]) > 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]]))
+    side = np.cross(u, ref)
+    side /= np.maximum(np.linalg.norm(side, axis=1, keepdims=True), 1e-12)
+    back = -u * np.cos(np.radians(30.0)) * fraction * length
+    out = np.sin(np.radians(30.0)) * fraction * length * side
+    left = np.stack([tip, tip + back + out], axis=1)
+    right = np.stack([tip, tip + back - out], axis=1)
+    return np.concatenate([left, right])
+
+
+def worst_pose(view: CellView) -> str:
+    """The pose the first model explains least (the highest residual rms): what the page shows first."""
+    return view.pose_ids[int(np.argmax(view.models[0].pose_rms))]
+
+
 def pose_summary(view: CellView, model: ModelView) -> Sequence[str]:
     """One line per pose: id, residual rms and its ratio to the pose's noise floor."""
     lines = []

@@ -196,3 +196,61 @@ def test_sim_plant_reports_progress(tmp_path, capsys):
     assert [line.split()[1] for line in lines] == ["0/4", "2/4", "4/4"] and "left" in lines[1]
     Progress(4, quiet=True)(1, "x")                  # --json: stdout's one object, nothing else said
     assert capsys.readouterr().err == ""
+
+
+def test_pictures_axes_labels_arrows_and_colours():
+    """The report's absolute-error axis, the view's arrows, the history's colours and time axis."""
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    from elastocal.report.absolute import _error_axis
+    from elastocal.report.drift_plot import _styles, _time_axis
+
+    ax = Figure().subplots()
+    _error_axis(ax, [np.array([8.4, 9.1, 9.8])])           # less than a decade: linear, from 0
+    assert ax.get_yscale() == "linear" and ax.get_ylim()[0] == 0.0
+    ax = Figure().subplots()
+    _error_axis(ax, [np.array([1200.0, 800.0]), np.array([6.0, 9.0])])   # a geometry calibration
+    assert ax.get_yscale() == "log" and ax.get_ylim() == (1.0, 10000.0)
+    ticks = [t for t in ax.get_yticks() if 1.0 <= t <= 1e4]
+    assert ticks == [1.0, 10.0, 100.0, 1000.0, 10000.0]
+    # every series of the history's panels its own (colour, marker)
+    names = [f"{k}{j}" for k in ("k", "fc", "fv", "fl", "da", "dd", "dalpha", "dq", "dbeta") for j in range(1, 7)]
+    names += [f"d{a}_R{m}" for a in "xyz" for m in (1, 2, 3)]
+    styles = _styles(names)
+    assert len({(str(c), m) for c, m in styles}) == len(names)
+    # one calibration: a week around it, not years
+    ax = Figure().subplots()
+    t = np.array([np.datetime64("2026-11-02T06:00", "ns")])
+    _time_axis(ax, t)
+    import matplotlib.dates as mdates
+
+    lo, hi = (mdates.num2date(v) for v in ax.get_xlim())
+    assert 6.9 < (hi - lo).total_seconds() / 86400 < 7.1
+
+
+def test_view_arrows_visible_with_heads_and_one_pose_first(tmp_path):
+    import numpy as np
+
+    from elastocal.commands.view import build_view
+    from elastocal.report.view import ERROR_ARROW_M, arrow_heads, auto_magnify_errors, worst_pose
+
+    assert main(["sim", "static", "--hidden", "link_compliance", "--seed", "1", "--poses", "6", "--out",
+                 str(tmp_path / "d")]) == 0
+    from elastocal.cli import build_parser
+
+    args = build_parser("view")[0].parse_args(["view", "--robot", str(tmp_path / "d" / "robot.toml"), "--static",
+                                               str(tmp_path / "d" / "static.csv")])
+    view = build_view(args)
+    e = auto_magnify_errors(view)
+    longest = e * np.max(np.linalg.norm(view.models[0].residual, axis=1))
+    assert 0.2 * ERROR_ARROW_M < longest <= ERROR_ARROW_M and e > 100.0   # ×100 drew them a few mm long
+    assert worst_pose(view) == view.pose_ids[int(np.argmax(view.models[0].pose_rms))]
+    seg = np.array([[[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], [[1.0, 1.0, 1.0], [1.0, 1.0, 1.2]]])
+    heads = arrow_heads(seg)
+    assert heads.shape == (4, 2, 3)
+    for k, s in enumerate(np.concatenate([seg, seg])):
+        np.testing.assert_allclose(heads[k, 0], s[1])                       # from the tip
+        barb, axis = heads[k, 1] - heads[k, 0], s[1] - s[0]
+        cos = -(barb @ axis) / (np.linalg.norm(barb) * np.linalg.norm(axis))
+        assert abs(cos - np.cos(np.radians(30.0))) < 1e-9                  # back along the arrow, 30° off

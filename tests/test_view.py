@@ -72,7 +72,7 @@ def test_view_in_headless_chromium_shows_the_robot_the_errors_and_the_toggle(dat
     # the hidden effect leaves the default model far above the floor at most poses, the added one at it
     assert np.nanmedian(before.pose_ratio) > 2.0 and np.nanmax(after.pose_ratio) < 2.0
     red, amber, green = (tuple(int(v) for v in c) for c in ratio_colours(np.array([5.0, 2.0, 1.0])))
-    page = ViewPage(view, port=0, magnify_errors=1000.0)
+    page = ViewPage(view, port=0, magnify_errors=1000.0, pose="all")     # every pose: pixels enough to count
     try:
         assert page.server.get_host() == "127.0.0.1"
         with playwright.sync_playwright() as pw:

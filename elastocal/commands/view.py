@@ -41,8 +41,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="port of the page on 127.0.0.1 (default 8080; 0 picks a free one)")
     parser.add_argument("--magnify", type=float, default=100.0,
                         help="magnification of the deflections (default 100; the page has a slider)")
-    parser.add_argument("--magnify-errors", type=float, default=100.0,
-                        help="magnification of the error vectors, measured - predicted (default 100)")
+    parser.add_argument("--magnify-errors", type=float, default=None,
+                        help="magnification of the error vectors, measured - predicted (default: a round "
+                             "number that draws the largest error 0.15 m long)")
+    parser.add_argument("--pose", default=None,
+                        help="the pose shown first: a pose id, or all (default: the pose the model explains "
+                             "least; the page's pose menu shows the others)")
 
 
 def build_view(args: argparse.Namespace):
@@ -84,8 +88,10 @@ def build_view(args: argparse.Namespace):
 class ViewPage:
     """The viser page of one :class:`CellView`; ``server`` is the running ViserServer."""
 
-    def __init__(self, view, *, port: int = 8080, magnify: float = 100.0, magnify_errors: float = 100.0,
-                 model_index: int | None = None) -> None:
+    def __init__(self, view, *, port: int = 8080, magnify: float = 100.0, magnify_errors: float | None = None,
+                 model_index: int | None = None, pose: str | None = None) -> None:
+        from elastocal.report.view import auto_magnify_errors, worst_pose
+
         try:
             import viser
         except ImportError:
@@ -100,8 +106,12 @@ class ViewPage:
         self._lock = threading.Lock()
         self.model_index = (0 if model_index is None else model_index) % len(view.models)
         self.magnify = float(magnify)
-        self.magnify_errors = float(magnify_errors)
-        self.pose = "all"
+        self.magnify_errors = float(auto_magnify_errors(view) if magnify_errors is None else magnify_errors)
+        # one pose first (the worst): twelve robots overlaid hide each other's arrows
+        self.pose = worst_pose(view) if pose is None else pose
+        if self.pose not in ("all", *view.pose_ids):
+            raise InputError(f"no pose {self.pose!r}; the data have {', '.join(view.pose_ids)} (or all)",
+                             source="--pose")
         self.geometry = "nominal"
         self._build_gui()
         self._draw()
@@ -117,9 +127,9 @@ class ViewPage:
         self.gui_model = gui.add_dropdown("model", options=titles, initial_value=titles[self.model_index])
         self.gui_magnify = gui.add_slider("deflections ×", min=10.0, max=2000.0, step=10.0,
                                           initial_value=self.magnify)
-        self.gui_errors = gui.add_slider("errors ×", min=10.0, max=5000.0, step=10.0,
+        self.gui_errors = gui.add_slider("errors ×", min=10.0, max=max(5000.0, 4 * self.magnify_errors), step=10.0,
                                          initial_value=self.magnify_errors)
-        self.gui_pose = gui.add_dropdown("pose", options=["all", *view.pose_ids], initial_value="all")
+        self.gui_pose = gui.add_dropdown("pose", options=["all", *view.pose_ids], initial_value=self.pose)
         self.gui_geometry = None
         if view.skeletons_calibrated is not None:
             self.gui_geometry = gui.add_dropdown("geometry", options=["nominal", "calibrated"],
@@ -163,7 +173,7 @@ class ViewPage:
 
     # ---------------------------------------------------------------- scene
     def _draw(self) -> None:
-        from elastocal.report.view import arrows, geometry_skeletons, pose_summary, ratio_colours
+        from elastocal.report.view import arrow_heads, arrows, geometry_skeletons, pose_summary, ratio_colours
 
         with self._lock:
             view, scene = self.view, self.server.scene
@@ -188,6 +198,9 @@ class ViewPage:
             scene.add_point_cloud("/markers/predicted", predicted[sel], colors=PREDICTED_RGB, point_size=0.03,
                                   point_shape="circle")
             scene.add_line_segments("/markers/errors", errors[sel], ERROR_RGB, thickness=0.012)
+            if sel.any():            # arrow heads: which way the measurement is off the model
+                scene.add_line_segments("/markers/error_heads", arrow_heads(errors[sel]), ERROR_RGB,
+                                        thickness=0.012)
             # the scales: 1 mm of deflection and 100 µm of error, magnified, beside the base
             bar = 1e-3 * self.magnify
             scene.add_line_segments("/scale/deflection", np.array([[[0.0, -0.8, 0.0], [bar, -0.8, 0.0]]]),
@@ -221,12 +234,13 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise InputError(f"{args.port} is not a port (0..65535)", source="--port")
     for flag, value in (("--magnify", args.magnify), ("--magnify-errors", args.magnify_errors)):
-        if not value > 0:
+        if value is not None and not value > 0:
             raise InputError(f"must be positive, got {value:g}", source=flag)
-    page = ViewPage(view, port=args.port, magnify=args.magnify, magnify_errors=args.magnify_errors)
+    page = ViewPage(view, port=args.port, magnify=args.magnify, magnify_errors=args.magnify_errors,
+                    pose=args.pose)
     info = {"url": page.url, "poses": len(view.pose_ids), "verdict": view.verdict,
             "models": [m.title for m in view.models], "magnify": args.magnify,
-            "magnify_errors": args.magnify_errors}
+            "magnify_errors": page.magnify_errors, "pose": page.pose}
     if args.json:
         print(json.dumps(info), flush=True)
     else:
