@@ -40,6 +40,7 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
     assert "absolute position error, nominal geometry" in text
     # plain words first, the numbers after, no jargon in the words
     found = text.index("What the demo found")
+    assert found < text.index("current-based:") and found < text.index("Errors before and after\n  ")
     words = text[found:text.index("The numbers", found)]
     assert "link_compliance" in words and "no joint spring can mimic" in words and "%" in words
     assert not any(j in words for j in ("ΔBIC", "rms", "TPDO", "exact form", "p ="))

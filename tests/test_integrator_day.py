@@ -254,3 +254,17 @@ def test_view_arrows_visible_with_heads_and_one_pose_first(tmp_path):
         barb, axis = heads[k, 1] - heads[k, 0], s[1] - s[0]
         cos = -(barb @ axis) / (np.linalg.norm(barb) * np.linalg.norm(axis))
         assert abs(cos - np.cos(np.radians(30.0))) < 1e-9                  # back along the arrow, 30° off
+
+
+def test_demo_lists_an_implausible_candidate_as_implausible():
+    from types import SimpleNamespace
+
+    from elastocal.commands.demo import candidate_line
+
+    drift = SimpleNamespace(effect="thermal_drift", rms_after=22e-6, delta_bic=-40.0, significant=True,
+                            evidence="a drift along time", implausible="a drift of 133 mm/h, faster than a room "
+                                                                        "or a tracker warms (at most 5 mm/h)")
+    line = candidate_line(3, drift, 24e-6)
+    assert "implausible: a drift of 133 mm/h" in line and "ΔBIC" not in line
+    plain = SimpleNamespace(**{**vars(drift), "implausible": None})
+    assert "ΔBIC -40" in candidate_line(3, plain, 24e-6)

@@ -16,7 +16,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import io
 import json
 import pathlib
 import tempfile
@@ -67,13 +69,35 @@ def _demo_folder(path: str) -> pathlib.Path:
 
 
 class _Say:
-    def __init__(self) -> None:
+    """The step headlines, in plain words, on the terminal as the demo goes (the tables of each
+    step are kept for after the findings: plain words first, numbers after)."""
+
+    def __init__(self, stream=None) -> None:
+        import sys
+
+        self.out = stream if stream is not None else sys.stdout
         self.t0 = time.perf_counter()
         self.step = 0
 
     def __call__(self, text: str) -> None:
+        import sys
+
         self.step += 1
-        print(f"\n[{self.step}] {text}  (t = {time.perf_counter() - self.t0:.0f} s)", flush=True)
+        print(f"\n[{self.step}] {text}  (t = {time.perf_counter() - self.t0:.0f} s)", file=self.out, flush=True)
+        if sys.stdout is not self.out:          # the step's tables kept for later: under its headline
+            print(f"\n[{self.step}] {text}")
+
+
+def candidate_line(k: int, c, rms_before: float) -> str:
+    """One candidate of the diagnosis as `diagnose` words it: an implausible fit (a drift of
+    metres an hour, a negative lost motion) is no ordinary candidate and says why."""
+    if c.implausible:
+        words = f"implausible: {c.implausible}"
+    elif c.significant:
+        words = f"ΔBIC {c.delta_bic:+.0f}   {c.evidence}"
+    else:
+        words = f"not significant (ΔBIC {c.delta_bic:+.0f})"
+    return f"  {k}. {c.effect:<18} {_um(rms_before)} → {_um(c.rms_after)}   {words}"
 
 
 def _um(x: float | None) -> str:
@@ -81,25 +105,8 @@ def _um(x: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from elastocal.acquisition.export import load_log
-    from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
-    from elastocal.acquisition.procedures import run_calibration
-    from elastocal.commands._cell import procedure_cell
-    from elastocal.commands._outputs import atomic, write_text_atomic
-    from elastocal.compensation.files import write_compensated_csv, write_krl, write_rapid
-    from elastocal.compensation.ik import yang_path
-    from elastocal.compensation.model import CompensationModel
-    from elastocal.compensation.trajectory import compensate_path
-    from elastocal.compensation.validate import YANG_WRENCH, validate_on_sim
     from elastocal.errors import InputError
-    from elastocal.formats.calibration import calibration_from_fit, write_calibration
-    from elastocal.identify.absolute import identify_absolute
-    from elastocal.diagnose.static import diagnose_static
-    from elastocal.report.html import render_report
-    from elastocal.identify.static import identify_static
-    from elastocal.sims.cell import HIDDEN_EFFECTS, CellTruth, SimCell
-    from elastocal.sims.serve import example_cell_config
-    from elastocal.sims.static import random_poses
+    from elastocal.sims.cell import HIDDEN_EFFECTS
 
     if args.hidden not in HIDDEN_EFFECTS or args.hidden == "static_friction":
         raise InputError(f"choose one of none, link_compliance, thermal_drift, backlash; got {args.hidden!r}",
@@ -111,6 +118,34 @@ def run(args: argparse.Namespace) -> int:
     out = _demo_folder(args.out) if args.out else pathlib.Path(tempfile.mkdtemp(prefix="elastocal-demo-"))
     (out / DEMO_MARK).write_text(MARK_TEXT, encoding="utf-8")
     say = _Say()
+    details = io.StringIO()         # each step's tables: printed after the plain-words findings
+    with contextlib.redirect_stdout(details):
+        found = _run_steps(args, out, say)
+    _print_findings(args, out, found, details.getvalue())
+    return 0
+
+
+def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
+    """Steps 1-6 (the module's docstring); their tables go to stdout (kept by the caller). One
+    function over 80 lines on purpose: it reads as the demo's story, step after step."""
+    from elastocal.acquisition.export import load_log
+    from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
+    from elastocal.acquisition.procedures import run_calibration
+    from elastocal.commands._cell import procedure_cell
+    from elastocal.commands._outputs import atomic, write_text_atomic
+    from elastocal.compensation.files import write_compensated_csv, write_krl, write_rapid
+    from elastocal.compensation.ik import yang_path
+    from elastocal.compensation.model import CompensationModel
+    from elastocal.compensation.trajectory import compensate_path
+    from elastocal.compensation.validate import YANG_WRENCH, validate_on_sim
+    from elastocal.formats.calibration import calibration_from_fit, write_calibration
+    from elastocal.identify.absolute import identify_absolute
+    from elastocal.diagnose.static import diagnose_static
+    from elastocal.report.html import render_report
+    from elastocal.identify.static import identify_static
+    from elastocal.sims.cell import CellTruth, SimCell
+    from elastocal.sims.serve import example_cell_config
+    from elastocal.sims.static import random_poses
 
     # 1. the simulated cell: built with its real geometry (kinematic errors), the tracker 3.7 m away and turned
     cell_hidden = "kinematic_errors" if args.hidden == "none" else f"{args.hidden},kinematic_errors"
@@ -163,8 +198,7 @@ def run(args: argparse.Namespace) -> int:
     say("Diagnosis of the current-based model:")
     print(f"  residual {_um(diag.fit.rms)} rms, noise floor {_um(diag.noise_floor)}")
     for i, c in enumerate(diag.candidates[:4], start=1):
-        sig = f"ΔBIC {c.delta_bic:+.0f}" if c.significant else "not significant"
-        print(f"  {i}. {c.effect:<18} {_um(diag.fit.rms)} → {_um(c.rms_after)}   {sig}   {c.evidence}")
+        print(candidate_line(i, c, diag.fit.rms))
     final = diag.final
     if diag.verdict and diag.verdict_candidate is not None:
         print(f"  verdict: {diag.verdict} — adding it: residual {_um(diag.fit.rms)} → {_um(final.rms)} "
@@ -229,11 +263,17 @@ def run(args: argparse.Namespace) -> int:
               "exact compensation leaves)")
     err = np.abs(k / truth.stiffness - 1) * 100
     print(f"\n  stiffness from currents, final model: worst error {err.max():.2f} % against the simulator's truth")
-    print(f"  files in {out}")
+    return {"diag": diag, "final": final, "err": err, "validation": validation, "absolute": absolute, "geo": geo,
+            "truth_k": truth_k, "log": log, "outcome": outcome}
 
-    # what it found: plain words first, then the stiffness against the truth
+
+def _print_findings(args: argparse.Namespace, out: pathlib.Path, found: dict, details: str) -> None:
+    """What it found in plain words, the stiffness against the truth, then every step's tables."""
+    from elastocal.commands._outputs import write_text_atomic
     from elastocal.commands._plain import demo_findings
 
+    diag, final, err, validation = found["diag"], found["final"], found["err"], found["validation"]
+    absolute, geo, truth_k, log, outcome = (found[k] for k in ("absolute", "geo", "truth_k", "log", "outcome"))
     cand = diag.verdict_candidate
     print("\nWhat the demo found")
     for sentence in demo_findings(hidden=args.hidden, verdict=diag.verdict,
@@ -246,6 +286,8 @@ def run(args: argparse.Namespace) -> int:
     final_k = {p.name: {"value": p.value, "std": p.std, "unit": p.unit}
                for p in final.parameters if p.name in truth_k}
     print(format_parameters(final_k, truth_k))
+    print("\nThe details, step by step" + details)
+    print(f"\n  files in {out}")
     print(f"  Words like noise floor, ΔBIC, exact form, TPDO/SYNC and the effect names: README.md, Glossary. "
           f"Look at it in 3-D: elastocal view {log}")
     write_text_atomic(out / "demo.json", json.dumps({
@@ -255,4 +297,3 @@ def run(args: argparse.Namespace) -> int:
         "noise_floor": final.noise_floor, "stiffness_error_percent": err.tolist(), "compensation": validation,
         "procedure": {"status": outcome.status, "steps": outcome.steps_done, "elapsed_s": outcome.duration_s},
     }, indent=2))
-    return 0
