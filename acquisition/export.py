@@ -185,9 +185,10 @@ def run_table_from_log(contents: LogContents, robot: Robot | None = None) -> Run
         n = len(t_rows)
         if n == 0:
             raise InputError(f"run {start['run']} has no drive samples", source=contents.path)
-        q = np.empty((n, 6))
-        dq = np.empty((n, 6))
-        cur = np.empty((n, 6))
+        nj = len(contents.drives)
+        q = np.empty((n, nj))
+        dq = np.empty((n, nj))
+        cur = np.empty((n, nj))
         for j, d in enumerate(contents.drives):
             if len(d.t_ns) == 0:
                 raise InputError(f"run {start['run']}: drive {j + 1} has no samples", source=contents.path)

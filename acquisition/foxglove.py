@@ -5,7 +5,7 @@ elastocal schemas; this module adds what Foxglove's 3-D and Log panels read
 (docs/log-format.md, "Foxglove"):
 
 * ``/cell/frames`` (``foxglove.FrameTransforms``): each joint's frame in the
-  previous one, ``base`` → ``measured/joint1`` … ``measured/joint6`` from the
+  previous one, ``base`` → ``measured/joint1`` … ``measured/jointN`` from the
   drives' positions (10 per second of log time, at grid instants every drive has
   reached, each joint at its latest sample by then), and ``base`` →
   ``commanded/joint1`` … from the commanded joint values of ``pose``,
@@ -102,9 +102,9 @@ class CellPublisher:
         self.write = write
         self.period_ns = int(period_ns)
         model = robot.model
-        self._joint_ids = [model.getJointId(f"joint{i}") for i in range(1, 7)]
+        self._joint_ids = [model.getJointId(f"joint{i}") for i in range(1, robot.n_joints + 1)]
         data = model.createData()
-        pin.framesForwardKinematics(model, data, robot.theta(np.zeros(6)))
+        pin.framesForwardKinematics(model, data, robot.theta(np.zeros(robot.n_joints)))
         # each link drawn in its joint's frame: from the joint's origin to the next joint's origin
         # (the last one to the flange); the next joint's placement does not depend on this joint's angle
         self._link_ends = [np.array(model.jointPlacements[j].translation) for j in self._joint_ids[1:]]
@@ -114,7 +114,7 @@ class CellPublisher:
         for name in robot.marker_names:
             frame = model.frames[robot.frame_id(name)].placement
             self._tool_points[name] = np.array(frame.translation)
-        self._pending: list[collections.deque] = [collections.deque() for _ in range(6)]
+        self._pending: list[collections.deque] = [collections.deque() for _ in range(robot.n_joints)]
         self._next_frame_ns: int | None = None
         self._tracker_last_ns: dict[str, int] = {}
         self._scene_written = False
@@ -126,7 +126,7 @@ class CellPublisher:
 
     # ---------------------------------------------------------------- frames
     def transforms(self, prefix: str, q: Sequence[float], unix_ns: int) -> dict:
-        """``foxglove.FrameTransforms`` of the six joint frames at motor-side ``q``."""
+        """``foxglove.FrameTransforms`` of the N joint frames at motor-side ``q``."""
         model = self.robot.model
         data = model.createData()
         pin.forwardKinematics(model, data, self.robot.theta(np.asarray(q, dtype=float)))
@@ -177,7 +177,7 @@ class CellPublisher:
                                         spheres=[_sphere((0.0, 0.0, 0.0), 0.16, joint_color)]))
         tool = [_sphere(p, 0.05, _LOAD_COLOR if name == LOAD_FRAME else _MARKER_COLOR)
                 for name, p in self._tool_points.items()]
-        entities.append(_entity(unix_ns, f"{MEASURED}/joint6", f"{MEASURED}/tool", spheres=tool))
+        entities.append(_entity(unix_ns, f"{MEASURED}/joint{self.robot.n_joints}", f"{MEASURED}/tool", spheres=tool))
         return {"deletions": [], "entities": entities}
 
     def publish_scene(self, unix_ns: int) -> None:
@@ -204,7 +204,7 @@ class CellPublisher:
         self._first(unix_ns)
         self.write(TOPIC_LOG, unix_ns, log_message(message, unix_ns))
         q = message.get("q")
-        if kind in ("pose", "hold_start", "run_start") and isinstance(q, list) and len(q) == 6:
+        if kind in ("pose", "hold_start", "run_start") and isinstance(q, list) and len(q) == self.robot.n_joints:
             self.commanded(q, unix_ns)
         if kind in ("pose", "run_start") and self._scene_written:
             self.publish_scene(unix_ns)

@@ -23,7 +23,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.formats.calibration import FORMAT, CalibratedParameter, Calibration, calibration_from_json
+from elastocal.formats.calibration import FORMAT, CalibratedParameter, Calibration, calibration_from_json, \
+    is_stiffness_name
 from elastocal.diagnose.check import VERDICTS
 
 SCHEMA_VERSION = 1
@@ -278,7 +279,7 @@ class History:
     def drift(self, names: Sequence[str] | None = None) -> Drift:
         """Parameter values over time: calibrated values with their std, and
         the values each check's data gave (static parameters only). ``names``
-        defaults to every parameter of any calibration, k1..k6 first."""
+        defaults to every parameter of any calibration, k1..kN first."""
         cals = self.calibrations()
         checks = self.checks()
         if names is None:
@@ -286,7 +287,7 @@ class History:
             for rec in cals:
                 for n in rec.calibration.names:
                     seen.setdefault(n, None)
-            stiff = [f"k{j}" for j in range(1, 7) if f"k{j}" in seen]
+            stiff = sorted((n for n in seen if is_stiffness_name(n)), key=lambda n: int(n[1:]))
             names = tuple(stiff + [n for n in seen if n not in stiff])
         names = tuple(names)
         units = []

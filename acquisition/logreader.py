@@ -337,7 +337,7 @@ class LogContents:
     plan: Document | None
     sessions: tuple[dict, ...]
     events: tuple[dict, ...]       # each with "t_ns"
-    drives: tuple[DriveSamples, ...]  # 6, joint 1..6
+    drives: tuple[DriveSamples, ...]  # one per joint, 1..N
     markers: dict[str, TrackerSamples]
     trailing_bytes: int = 0        # bytes after the MCAP closing magic (ignored)
 
@@ -386,6 +386,17 @@ def _check_messages(topic: str, times: list[int], values: list, source: str) -> 
                              source=source)
 
 
+def _described_joints(robot_text: str) -> int:
+    """How many ``[[joint]]`` tables a recorded robot.toml has (0 when it does not read)."""
+    import tomllib
+
+    try:
+        joints = tomllib.loads(robot_text).get("joint", [])
+    except tomllib.TOMLDecodeError:
+        return 0
+    return len(joints) if isinstance(joints, list) else 0
+
+
 def read_log(path: str | pathlib.Path) -> LogContents:
     """Gather a log's documents, events and samples (tolerates a truncated file).
     Only the topics of :data:`READ_TOPICS` are decoded; ``messages`` counts all."""
@@ -394,7 +405,7 @@ def read_log(path: str | pathlib.Path) -> LogContents:
     docs: dict[str, Document] = {}
     sessions: list[dict] = []
     events: list[dict] = []
-    drive_parts: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(lf.N_JOINTS)]
+    drive_parts: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(lf.MAX_JOINTS)]
     tracker_parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     drive_index = {t: j for j, t in enumerate(lf.DRIVE_TOPICS)}
     n_messages = 0
@@ -460,7 +471,12 @@ def read_log(path: str | pathlib.Path) -> LogContents:
         return t, vals
 
     drives_out = []
-    for parts in drive_parts:
+    # the log's joints: the robot's N (drives 1..N), or as many as have samples
+    n_joints = max((j + 1 for j, parts in enumerate(drive_parts) if parts), default=6)
+    robot_doc = docs.get("robot")
+    if robot_doc is not None:
+        n_joints = max(n_joints, _described_joints(robot_doc.text))
+    for parts in drive_parts[:n_joints]:
         t, vals = _sorted(parts, 3)
         drives_out.append(DriveSamples(t, vals[:, 0], vals[:, 1], vals[:, 2]))
     markers_out = {}

@@ -80,7 +80,7 @@ def write_log_from_tables(path: str | pathlib.Path, robot: Robot, *, static: Sta
                 rec.event("step_start", procedure="static", step_id=step_id)
                 for r in rows:
                     t = int(times[r])
-                    for j in range(6):
+                    for j in range(static.n_joints):
                         rec.drive_sample(j + 1, t, float(static.q[r, j]), 0.0, _opt(static.currents[r, j]))
                     rec.tracker_sample(t, str(static.marker[r]), static.xyz[r])
                     clock.t_ns = t + 500
@@ -120,7 +120,7 @@ def write_log_from_tables(path: str | pathlib.Path, robot: Robot, *, static: Sta
                           wrench=None if not np.all(np.isfinite(w)) else [float(v) for v in w])
                 for r, tn in zip(rows, times):
                     tn = int(tn)
-                    for j in range(6):
+                    for j in range(runs.n_joints):
                         rec.drive_sample(j + 1, tn, float(runs.q[r, j]), _opt(runs.dq[r, j]),
                                          _opt(runs.currents[r, j]))
                     if runs.marker[r]:

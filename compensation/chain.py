@@ -24,10 +24,14 @@ which is ``J_f^T W - g(theta)`` with Pinocchio's generalised gravity ``g``
 against Pinocchio's ``forwardKinematics``, ``computeFrameJacobian`` and
 ``computeGeneralizedGravity`` to 1e-12.
 
-Arrays are "structure of arrays": joint angles ``(6, n)``, vectors ``(3, n)``,
+A prismatic joint ``j`` (a track) moves its child along ``z_j`` by its coordinate and
+carries ``tau_j = z_j . [ f + (sum_i m_i) g ]``: the force and the weight along its axis.
+
+Arrays are "structure of arrays": joint coordinates ``(N, n)``, vectors ``(3, n)``,
 so every numpy operation runs over contiguous rows of ``n`` samples. Each
 joint's frame is turned so that its axis is the local z axis (a constant
-rotation folded into the placements), so every joint is a rotation about z.
+rotation folded into the placements), so every joint is a rotation about z or a
+translation along it.
 """
 
 from __future__ import annotations
@@ -38,7 +42,9 @@ import numpy as np
 import pinocchio as pin
 
 #: Pinocchio joint kinds the batched chain evaluates, with their axis (the unaligned one carries its own)
-_AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0), "JointModelRZ": (0.0, 0.0, 1.0)}
+_AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0), "JointModelRZ": (0.0, 0.0, 1.0),
+         "JointModelPX": (1.0, 0.0, 0.0), "JointModelPY": (0.0, 1.0, 0.0), "JointModelPZ": (0.0, 0.0, 1.0)}
+_UNALIGNED = ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned")
 
 #: rotation angle [rad] below which log6 takes the series of V^-1's coefficient (truncation
 #: below 1e-16 there; the closed form above it loses less than eps / angle^2)
@@ -109,36 +115,43 @@ class Angles:
 
 @dataclass(frozen=True, eq=False)
 class ChainState:
-    """The chain at ``n`` configurations: joint axes ``z`` and origins ``o`` (6, 3, n) in the base
-    frame, the last joint's rotations ``rot`` (3, 3, n) and the mass moments ``mc`` (6, 3, n),
-    ``sum over bodies i >= j of m_i c_i`` (zero without masses)."""
+    """The chain at ``n`` configurations: joint axes ``z`` and origins ``o`` (N, 3, n) in the base
+    frame, the last joint's rotations ``rot`` (3, 3, n) and the mass moments ``mc`` (N, 3, n),
+    ``sum over bodies i >= j of m_i c_i`` (zero without masses); ``end`` (3, n) the origin of the
+    last body (the last joint's origin, moved along its axis when it is prismatic)."""
 
     z: np.ndarray
     o: np.ndarray
     rot: np.ndarray
     mc: np.ndarray | None
+    end: np.ndarray
 
 
 class BatchedChain:
-    """A serial chain of revolute joints (the robot's Pinocchio model), evaluated over arrays of
-    configurations. Immutable after construction; every call allocates its own work arrays."""
+    """A serial chain of revolute and prismatic joints (the robot's Pinocchio model), evaluated over
+    arrays of configurations. Immutable after construction; every call allocates its own work arrays."""
 
     def __init__(self, model: pin.Model) -> None:
         self.nq = model.nq
         njoints = model.njoints - 1
         if njoints != model.nq or model.nv != model.nq:
-            raise ValueError("the batched chain needs one revolute joint per coordinate")
+            raise ValueError("the batched chain needs one joint per coordinate")
         turns = [np.eye(3)]
+        prismatic = []
         for i in range(1, njoints + 1):
             jm = model.joints[i]
             kind = jm.shortname()
-            if model.parents[i] != i - 1 or not (kind in _AXES or kind == "JointModelRevoluteUnaligned"):
-                raise ValueError(f"the batched chain needs a serial chain of revolute joints, joint {i} is {kind}")
+            if model.parents[i] != i - 1 or not (kind in _AXES or kind in _UNALIGNED):
+                raise ValueError(f"the batched chain needs a serial chain of revolute and prismatic joints, "
+                                 f"joint {i} is {kind}")
+            prismatic.append(kind.startswith("JointModelP"))
             axis = np.array(_AXES[kind] if kind in _AXES else jm.axis, dtype=float)
             turns.append(_to_z(axis / np.linalg.norm(axis)))
         # placements in the turned frames: R'_i = T_{i-1}^T R_i T_i, t'_i = T_{i-1}^T t_i
         rotations = [turns[i - 1].T @ model.jointPlacements[i].rotation @ turns[i] for i in range(1, njoints + 1)]
         self._rot_t = np.array([r.T for r in rotations])
+        #: which joints are prismatic (a translation along their z, no rotation)
+        self._prismatic = tuple(prismatic)
         self._perm = [_signed_permutation(r) for r in rotations]
         self._trans = np.array([turns[i - 1].T @ model.jointPlacements[i].translation for i in range(1, njoints + 1)])
         self._mass = np.array([model.inertias[i].mass for i in range(1, njoints + 1)])
@@ -162,12 +175,23 @@ class BatchedChain:
         mc = np.empty((last, 3, n)) if masses and self._has_mass else None
         rot = np.broadcast_to(np.eye(3)[:, :, None], (3, 3, n))
         tmp = np.empty((3, n))
+        child = None               # the origin of the previous body (its joint's, moved along a prismatic axis)
         for i in range(last):
             if i == 0:
                 o[0] = self._trans[0][:, None]
             else:
                 np.matmul(self._trans[i], rot, out=o[i])
-                o[i] += o[i - 1]
+                o[i] += o[i - 1] if child is None else child
+            if self._prismatic[i]:
+                # a translation along the turned z axis: the body keeps the placement's rotation
+                a = self._rot_t[i] @ rot
+                new = np.ascontiguousarray(a)
+                z[i] = a[:, 2]
+                child = o[i] + z[i] * ang.theta[i]
+                self._mass_moment(mc, i, new, child)
+                rot = new
+                continue
+            child = None
             c, s = ang.cos[i], ang.sin[i]
             new = np.empty((3, 3, n))
             perm = self._perm[i]
@@ -188,22 +212,27 @@ class BatchedChain:
             new[:, 1] -= tmp
             new[:, 2] = a2
             z[i] = a2
-            if mc is not None:
-                if self._mass[i] > 0.0:
-                    np.matmul(self._com[i], new, out=mc[i])
-                    mc[i] += o[i]
-                    mc[i] *= self._mass[i]
-                else:
-                    mc[i] = 0.0
+            self._mass_moment(mc, i, new, o[i])
             rot = new
         if mc is not None:
             for j in range(last - 2, -1, -1):
                 mc[j] += mc[j + 1]
-        return ChainState(z=z, o=o, rot=rot, mc=mc)
+        return ChainState(z=z, o=o, rot=rot, mc=mc, end=o[-1] if child is None else child)
+
+    def _mass_moment(self, mc: np.ndarray | None, i: int, rot: np.ndarray, origin: np.ndarray) -> None:
+        """``m_i c_i`` of body ``i`` (its rotation and origin in base axes) into ``mc[i]``."""
+        if mc is None:
+            return
+        if self._mass[i] > 0.0:
+            np.matmul(self._com[i], rot, out=mc[i])
+            mc[i] += origin
+            mc[i] *= self._mass[i]
+        else:
+            mc[i] = 0.0
 
     def position(self, state: ChainState, frame_id: int) -> np.ndarray:
         """Base-frame position (3, n) of frame ``frame_id`` (a frame on the last joint)."""
-        return state.o[-1] + np.matmul(self._frames[frame_id], state.rot)
+        return state.end + np.matmul(self._frames[frame_id], state.rot)
 
     def rotation(self, state: ChainState, frame_id: int) -> np.ndarray:
         """Base-frame orientation (3, 3, n) of frame ``frame_id`` (a frame on the last joint)."""
@@ -232,21 +261,35 @@ class BatchedChain:
                     tau += force[ax] * _cross_component(z, r, ax)
                 if np.any(moment[ax]):
                     tau += moment[ax] * z[:, ax]
+        for j in np.flatnonzero(self._prismatic):
+            # a prismatic joint carries the force and the weight of the bodies beyond it along its axis
+            tau[j] = 0.0
+            if state.mc is not None:
+                tau[j] += self._total_mass[j] * (self._gravity @ z[j])
+            if force is not None:
+                tau[j] += np.einsum("an,an->n", z[j], force)
         return tau
 
     def point_velocity(self, state: ChainState, frame_id: int, rate: np.ndarray) -> np.ndarray:
         """``J_p(theta) rate`` (3, n): the motion of frame ``frame_id``'s origin for joint motions
         ``rate`` (6, n) (a small deflection: the point's first-order displacement)."""
         r = self.position(state, frame_id)[None] - state.o
-        return _cross(state.z * rate[:, None, :], r).sum(axis=0)
+        moved = state.z * rate[:, None, :]
+        out = _cross(moved, r)
+        for j in np.flatnonzero(self._prismatic):
+            out[j] = moved[j]                 # a prismatic joint moves every point along its axis
+        return out.sum(axis=0)
 
     def jacobian(self, state: ChainState, frame_id: int) -> np.ndarray:
-        """LOCAL_WORLD_ALIGNED Jacobians (6, 6, n) of frame ``frame_id``: rows 0-2 the velocity of
+        """LOCAL_WORLD_ALIGNED Jacobians (6, N, n) of frame ``frame_id``: rows 0-2 the velocity of
         its origin in base axes, rows 3-5 the angular velocity."""
         p = self.position(state, frame_id)
         jac = np.empty((6, self.nq, p.shape[1]))
         jac[:3] = np.moveaxis(_cross(state.z, p[None] - state.o), 0, 1)
         jac[3:] = np.moveaxis(state.z, 0, 1)
+        for j in np.flatnonzero(self._prismatic):
+            jac[:3, j] = state.z[j]
+            jac[3:, j] = 0.0
         return jac
 
 

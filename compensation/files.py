@@ -1,13 +1,17 @@
 """Path files in, compensated trajectories out: CSV, KUKA KRL, ABB RAPID.
 
-Path CSV (docs/cli.md ``compensate``): ``t,q1..q6`` and optionally ``fx,fy,fz,mx,my,mz``
-per sample (SI units, radians, base-frame wrench on the load point).
+Path CSV (docs/cli.md ``compensate``): ``t,q1..qN`` (N the robot's joints) and optionally
+``fx,fy,fz,mx,my,mz`` per sample (SI units, radians, metres for a prismatic joint, base-frame
+wrench on the load point).
 
-Output CSV: the input columns, then the compensated commands ``qc1..qc6`` [rad]
+Output CSV: the input columns, then the compensated commands ``qc1..qcN`` [rad, m]
 and the predicted load-point deflection before compensation ``dx,dy,dz`` [m].
 
 KRL and RAPID programs are joint moves through the compensated commands, in
-degrees as those languages expect, one move per sample.
+degrees (millimetres for a prismatic joint) as those languages expect, one move per sample.
+A robot of more than six joints is a six-axis arm behind external axes (a track): the last
+six joints are the arm's axes (KRL A1..A6, RAPID robax), the joints before them its external
+axes (KRL E1.., RAPID extax).
 """
 
 from __future__ import annotations
@@ -30,6 +34,14 @@ W_COLS = ("fx", "fy", "fz", "mx", "my", "mz")
 QC_COLS = tuple(f"qc{j}" for j in range(1, 7))
 D_COLS = ("dx", "dy", "dz")
 PATH_COLUMNS = ("t",) + Q_COLS + W_COLS
+#: the arm's axes in a robot program; joints before them are external axes
+ARM_AXES = 6
+#: external axes a KRL E6AXIS / a RAPID extjoint holds
+MAX_EXTERNAL_AXES = 6
+
+
+def _cols(prefix: str, n: int) -> tuple[str, ...]:
+    return tuple(f"{prefix}{j}" for j in range(1, n + 1))
 
 
 def _number(value: str, source: str, row: int, col: str) -> float:
@@ -50,19 +62,23 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
     except StopIteration:
         raise InputError("the file is empty", source=source) from None
     check_header(header, source)
-    missing = [c for c in ("t",) + Q_COLS if c not in header]
+    from elastocal.formats.tables import table_joints
+
+    n_joints = table_joints(header, robot, source)
+    q_cols = _cols("q", n_joints)
+    missing = [c for c in ("t",) + q_cols if c not in header]
     if missing:
         raise InputError(f"missing column(s) {', '.join(missing)}", source=source, row=1)
-    unknown = [c for c in header if c not in PATH_COLUMNS]
+    unknown = [c for c in header if c not in ("t",) + q_cols + W_COLS]
     if unknown:
-        raise InputError(f"unknown column(s) {', '.join(unknown)}; a path has t,q1..q6 and optionally fx..mz",
-                         source=source, row=1)
+        raise InputError(f"unknown column(s) {', '.join(unknown)}; a path has t,q1..q{n_joints} and optionally "
+                         "fx..mz", source=source, row=1)
     w_present = [c in header for c in W_COLS]
     if any(w_present) and not all(w_present):
         raise InputError(f"the wrench needs all of {','.join(W_COLS)}", source=source, row=1)
     idx = {c: i for i, c in enumerate(header)}
     records = list(reader)
-    fast = _parse_plain(records, header, idx, robot, all(w_present))
+    fast = _parse_plain(records, header, idx, robot, all(w_present), q_cols)
     if fast is not None:
         return fast
     t, q, w, lines = [], [], [], []
@@ -74,12 +90,14 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
         row = [c.strip() for c in row]
         t.append(_number(row[idx["t"]], source, lineno, "t"))
         lines.append(lineno)
-        qv = [_number(row[idx[c]], source, lineno, c) for c in Q_COLS]
+        qv = [_number(row[idx[c]], source, lineno, c) for c in q_cols]
         for j, v in enumerate(qv):
             if robot is not None and not robot.lower[j] - 1e-9 <= v <= robot.upper[j] + 1e-9:
-                hint = "; degrees? angles are radians" if abs(v) > 2 * math.pi else ""
-                raise InputError(f"{v} rad is outside the joint limits [{robot.lower[j]:.4g}, "
-                                 f"{robot.upper[j]:.4g}]{hint}", source=source, row=lineno, column=Q_COLS[j])
+                unit = robot.joints[j].unit
+                hint = "; millimetres? a prismatic joint's q is in metres" if unit == "m" else \
+                    ("; degrees? angles are radians" if abs(v) > 2 * math.pi else "")
+                raise InputError(f"{v} {unit} is outside the joint limits [{robot.lower[j]:.4g}, "
+                                 f"{robot.upper[j]:.4g}]{hint}", source=source, row=lineno, column=q_cols[j])
         q.append(qv)
         if all(w_present):
             w.append([_number(row[idx[c]], source, lineno, c) for c in W_COLS])
@@ -91,7 +109,7 @@ def parse_path(text: str, robot: Robot | None = None, *, source: str = "<path.cs
 
 
 def _parse_plain(records: list[tuple[int, list[str]]], header: list[str], idx: dict[str, int], robot: Robot | None,
-                 with_wrench: bool) -> PlannedPath | None:
+                 with_wrench: bool, q_cols: tuple[str, ...] = Q_COLS) -> PlannedPath | None:
     """The path of a file without blank lines whose fields are all finite numbers within the
     joint limits, in time order, converted in one numpy pass (numpy parses a field as
     ``float()`` does); None for any other file, which the row-by-row reader reads or
@@ -105,7 +123,7 @@ def _parse_plain(records: list[tuple[int, list[str]]], header: list[str], idx: d
     if not np.all(np.isfinite(values)):
         return None
     t = values[:, idx["t"]]
-    q = values[:, [idx[c] for c in Q_COLS]]
+    q = values[:, [idx[c] for c in q_cols]]
     if robot is not None and np.any((q < robot.lower - 1e-9) | (q > robot.upper + 1e-9)):
         return None
     if np.any(t[1:] < t[:-1]):
@@ -129,18 +147,19 @@ def read_path(path: str | pathlib.Path, robot: Robot | None = None) -> PlannedPa
 
 
 def write_path(path: str | pathlib.Path, planned: PlannedPath) -> None:
-    """Write a path CSV (t, q1..q6 and the wrench when the path has one)."""
-    cols = ("t",) + Q_COLS + (W_COLS if planned.wrench is not None else ())
+    """Write a path CSV (t, q1..qN and the wrench when the path has one)."""
+    cols = ("t",) + _cols("q", np.asarray(planned.q).shape[1]) + (W_COLS if planned.wrench is not None else ())
     parts = [planned.t, planned.q] + ([planned.wrench] if planned.wrench is not None else [])
     values = np.column_stack([np.asarray(p, dtype=float).reshape(len(planned), -1) for p in parts])
     pathlib.Path(path).write_text(_csv_lines(cols, values), encoding="utf-8")
 
 
 def write_compensated_csv(path: str | pathlib.Path, t: np.ndarray, result: CompensatedPath) -> None:
-    """``t, q1..q6, fx..mz, qc1..qc6, dx, dy, dz``."""
+    """``t, q1..qN, fx..mz, qc1..qcN, dx, dy, dz``."""
     values = np.column_stack([np.asarray(t, dtype=float).reshape(-1, 1), result.q_planned, result.wrench,
                               result.q_command, result.tcp_deflection]).astype(float)
-    pathlib.Path(path).write_text(_csv_lines(("t",) + Q_COLS + W_COLS + QC_COLS + D_COLS, values),
+    n = result.q_planned.shape[1]
+    pathlib.Path(path).write_text(_csv_lines(("t",) + _cols("q", n) + W_COLS + _cols("qc", n) + D_COLS, values),
                                   encoding="utf-8")
 
 
@@ -158,23 +177,38 @@ def _deg_lines(template: str, rows: np.ndarray) -> list[str]:
     return [(template % tuple(row)).replace("-0.000000", "0.000000") for row in rows.tolist()]
 
 
+def _program_axes(result: CompensatedPath) -> tuple[np.ndarray, np.ndarray]:
+    """The commands in a robot program's units (degrees; millimetres for a prismatic joint), split
+    into the arm's axes (the last six joints) and the external axes before them."""
+    q = result.q_command
+    prismatic = np.array(result.prismatic or (False,) * q.shape[1], dtype=bool)
+    values = np.where(prismatic, q * 1e3, np.degrees(q))
+    n_ext = max(q.shape[1] - ARM_AXES, 0)
+    if n_ext > MAX_EXTERNAL_AXES:
+        raise InputError(f"{q.shape[1]} joints: a robot program holds six arm axes and at most "
+                         f"{MAX_EXTERNAL_AXES} external axes", argument="krl")
+    return values[:, n_ext:], values[:, :n_ext]
+
+
 def _header_lines(result: CompensatedPath, comment: str) -> list[str]:
+    units = "joint angles in degrees" + (", prismatic joints in mm" if any(result.prismatic) else "")
     return [f"{comment} elastocal compensated joint path: {len(result)} points, form {result.form}, "
             f"reference {result.reference}",
-            f"{comment} joint angles in degrees; compensation removes up to "
+            f"{comment} {units}; compensation removes up to "
             f"{1e3 * float(np.max(np.linalg.norm(result.tcp_deflection, axis=1))):.3f} mm of tool deflection"]
 
 
 def format_krl(name: str, t: np.ndarray, result: CompensatedPath) -> str:
     """A KUKA KRL program (.src): PTP joint moves (AXIS aggregates, degrees),
     approximated (C_PTP) except the last one."""
-    deg = np.degrees(result.q_command)
+    arm, ext = _program_axes(result)
     lines = ["&ACCESS RVP", f"DEF {name}( )"] + _header_lines(result, ";")
     duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
     lines += [f"; planned duration {duration:.3f} s: set the axis speed (BAS #VEL_PTP) to match",
               "  BAS(#INITMOV, 0)", "  $APO.CPTP = 1"]
-    axes = ", ".join(f"A{j + 1} %.6f" for j in range(deg.shape[1]))
-    moves = _deg_lines(f"  PTP {{AXIS: {axes}}} C_PTP", deg)
+    axes = ", ".join([f"A{j + 1} %.6f" for j in range(arm.shape[1])] + [f"E{j + 1} %.6f" for j in range(ext.shape[1])])
+    kind = "E6AXIS" if ext.shape[1] else "AXIS"
+    moves = _deg_lines(f"  PTP {{{kind}: {axes}}} C_PTP", np.hstack([arm, ext]))
     if moves:
         moves[-1] = moves[-1][:-len(" C_PTP")]              # the last move stops
     lines += moves
@@ -186,11 +220,11 @@ def format_rapid(name: str, t: np.ndarray, result: CompensatedPath) -> str:
     """An ABB RAPID module (.mod): MoveAbsJ through jointtargets (degrees), each
     move timed (``\\T``) by the path's sample times; the first move approaches
     at v100, the last one stops (fine)."""
-    deg = np.degrees(result.q_command)
+    arm, ext = _program_axes(result)
     lines = [f"MODULE {name}"] + ["  " + s for s in _header_lines(result, "!")] + ["  PROC main()"]
-    ext = "[9E9,9E9,9E9,9E9,9E9,9E9]"
-    target = "[[" + ",".join(["%.6f"] * deg.shape[1]) + "]," + ext + "]"
-    moves = _deg_lines(f"    MoveAbsJ {target}\\NoEOffs, ", deg)
+    extax = "[" + ",".join(["%.6f"] * ext.shape[1] + ["9E9"] * (MAX_EXTERNAL_AXES - ext.shape[1])) + "]"
+    target = "[[" + ",".join(["%.6f"] * arm.shape[1]) + "]," + extax + "]"
+    moves = _deg_lines(f"    MoveAbsJ {target}\\NoEOffs, ", np.hstack([arm, ext]))
     # the first move approaches at v100, the others take their sample interval (1 ms at least)
     dt = np.maximum(np.diff(np.asarray(t, dtype=float)), 1e-3)
     speeds = ["v100"] + [f"v1000\\T:={d:.4f}" for d in dt.tolist()]

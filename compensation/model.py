@@ -35,7 +35,7 @@ class CompensationModel:
     """Robot and calibrated parameters; immutable."""
 
     robot: Robot
-    stiffness: np.ndarray                          # (6,) k [N·m/rad]
+    stiffness: np.ndarray                          # (N,) k [N·m/rad; N/m for a prismatic joint]
     compensator: tuple[float, float] | None = None  # (C, l_c) or (K_c, s0)
     #: the drawing's robot when ``robot`` carries a geometric calibration (kinematic_errors):
     #: a path planned on the drawing means the pose the drawing gives (reference "nominal")
@@ -45,8 +45,10 @@ class CompensationModel:
 
     def __post_init__(self) -> None:
         k = np.asarray(self.stiffness, dtype=float).reshape(-1)
-        if k.shape != (6,) or not np.all(np.isfinite(k)) or np.any(k <= 0):
-            raise InputError("joint stiffness k1..k6 must be 6 positive finite values")
+        n = self.robot.n_joints
+        if k.shape != (n,) or not np.all(np.isfinite(k)) or np.any(k <= 0):
+            raise InputError(f"joint stiffness k1..k{n} must be {n} positive finite values (one per joint of "
+                             f"{self.robot.name!r})")
         object.__setattr__(self, "stiffness", k)
         if self.compensator is not None:
             if self.robot.compensator is None:
@@ -74,10 +76,10 @@ class CompensationModel:
         if cal.robot and cal.robot != robot.name:
             raise InputError(f"the calibration is for robot {cal.robot!r}, the description is {robot.name!r}",
                              source=source, column="robot")
-        missing = [f"k{j}" for j in range(1, 7) if not cal.has(f"k{j}")]
+        missing = [f"k{j}" for j in range(1, robot.n_joints + 1) if not cal.has(f"k{j}")]
         if missing:
             raise InputError(f"missing joint stiffness {', '.join(missing)}", source=source, column="parameters")
-        k = np.array(cal.stiffness())
+        k = np.array([cal.value(f"k{j}") for j in range(1, robot.n_joints + 1)])
         bad = np.flatnonzero(~(k > 0))
         if bad.size:
             raise InputError(f"stiffness must be positive, got {k[bad[0]]}", source=source,
@@ -160,7 +162,9 @@ class StaticKernel:
         self.fid = model.robot.frame_id(LOAD_FRAME)
         self.tool_fid = model.robot.frame_id(model.tool)
         self.offsets = model.robot.offsets
-        self.offset2 = float(model.robot.joints[1].offset)
+        #: the compensator's joint (0-based) and its offset
+        self.comp_index = model.robot.compensator.index if model.robot.compensator is not None else 0
+        self.comp_offset = float(model.robot.joints[self.comp_index].offset)
         self.c = model.compliance
         self.spec = model.robot.compensator
         self.gravity = model.uses_gravity
@@ -176,7 +180,8 @@ class StaticKernel:
         tau = self.chain.torque(st, force=None if wrench is None else wrench[:3],
                                 moment=None if wrench is None else wrench[3:], frame_id=self.fid)
         if passive and self.with_compensator:
-            tau[1] -= self.spec.torque(ang.theta[1] - self.offset2, self.m.compensator)
+            c = self.comp_index
+            tau[c] -= self.spec.torque(ang.theta[c] - self.comp_offset, self.m.compensator)
         return tau, st
 
     def _iterate(self, base: Angles, wrench: np.ndarray | None, theta: np.ndarray) -> np.ndarray:
@@ -264,7 +269,7 @@ class StaticKernel:
         load-point displacement ``J_p dtheta`` (n, 3) they make."""
         w = _soa(wrench)
         n = base.theta.shape[1]
-        dtheta = np.zeros((6, n))
+        dtheta = np.zeros((len(self.c), n))
         moved = np.zeros((3, n))
         if w is None and not (passive and self.gravity):
             return dtheta.T, moved.T
@@ -333,12 +338,17 @@ class StaticKernel:
             local = np.concatenate((np.einsum("kan,kjn->ajn", rot[:, :, keep], jac[:3]),
                                     np.einsum("kan,kjn->ajn", rot[:, :, keep], jac[3:])))
             mats = np.moveaxis(local, 2, 0)
-            det = np.linalg.det(mats)
+            # more joints than the pose has coordinates (an arm on a track): the least joint motion,
+            # J^T (J J^T)^-1 err; six: J^-1 err
+            redundant = mats.shape[2] > mats.shape[1]
+            square = mats @ np.swapaxes(mats, 1, 2) if redundant else mats
+            det = np.linalg.det(square)
             singular = ~(np.abs(det) > 1e-12)
             if np.any(singular):
                 failed.append(active[keep[singular]])
-                keep, mats = keep[~singular], mats[~singular]
-            step = np.linalg.solve(mats, np.moveaxis(err[:, keep], 1, 0)[:, :, None])[:, :, 0]
+                keep, mats, square = keep[~singular], mats[~singular], square[~singular]
+            step = np.linalg.solve(square, np.moveaxis(err[:, keep], 1, 0)[:, :, None])
+            step = (np.swapaxes(mats, 1, 2) @ step)[:, :, 0] if redundant else step[:, :, 0]
             theta[:, active[keep]] = th[:, keep] + step.T
             active = active[keep]
         return np.concatenate(failed + [active])

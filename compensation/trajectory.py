@@ -58,15 +58,17 @@ class CompensatedPath:
 
     form: str
     reference: str
-    q_planned: np.ndarray       # (n, 6) [rad]
+    q_planned: np.ndarray       # (n, N) [rad; m for a prismatic joint]
     wrench: np.ndarray          # (n, 6) process wrench on the load point [N, N·m]
-    q_command: np.ndarray       # (n, 6) compensated commands [rad]
-    theta_target: np.ndarray    # (n, 6) link angles the plan asks for [rad]
+    q_command: np.ndarray       # (n, N) compensated commands [rad; m]
+    theta_target: np.ndarray    # (n, N) link coordinates the plan asks for [rad; m]
     tcp_deflection: np.ndarray  # (n, 3) predicted load-point deflection before compensation [m]
+    #: which joints are prismatic (their coordinates in metres); () for six revolute joints
+    prismatic: tuple[bool, ...] = ()
 
     @property
     def dtheta(self) -> np.ndarray:
-        """Correction ``q_planned - q_command`` (n, 6) [rad]."""
+        """Correction ``q_planned - q_command`` (n, N) [rad; m]."""
         return self.q_planned - self.q_command
 
     def __len__(self) -> int:
@@ -81,16 +83,22 @@ def _check_inputs(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, f
         raise InputError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}",
                          argument="reference")
     q = np.asarray(q, dtype=float)
-    if q.ndim != 2 or q.shape[1] != 6:
-        raise ValueError("q must be (n, 6)")
+    n_joints = model.robot.n_joints
+    if q.ndim != 2 or q.shape[1] != n_joints:
+        raise ValueError(f"q must be (n, {n_joints})")
     w = np.asarray(wrench, dtype=float)
     if w.shape == (6,):
         w = np.tile(w, (len(q), 1))
-    if w.shape != q.shape:
+    if w.shape != (len(q), 6):
         raise ValueError("wrench must be (6,) or (n, 6)")
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(w))):
         raise InputError("path and wrench must be finite")
     return q, w
+
+
+def _prismatic(model: CompensationModel) -> tuple[bool, ...]:
+    flags = tuple(bool(p) for p in model.robot.prismatic)
+    return flags if any(flags) else ()
 
 
 def default_reference(model: CompensationModel) -> str:
@@ -116,7 +124,7 @@ def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray,
         theta_loaded = k.equilibrium(q, w, start=target + (q - cmd), base=base)
         deflection = k.positions(theta_loaded, base) - k.positions(target, base)
         return CompensatedPath(form=form, reference=reference, q_planned=q, wrench=w, q_command=cmd,
-                               theta_target=target, tcp_deflection=deflection)
+                               theta_target=target, tcp_deflection=deflection, prismatic=_prismatic(model))
     target = k.equilibrium(q, np.zeros_like(w), base=base) if reference == "unloaded" else plan
     if form == "first-order":
         # one pass at the planned angles: c ⊙ J^T W (unloaded) or c ⊙ tau(q, W) (rigid), and J_p dtheta
@@ -128,7 +136,7 @@ def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray,
         theta_loaded = k.equilibrium(q, w, start=target + (q - cmd), base=base)
         deflection = k.positions(theta_loaded, base) - at_target
     return CompensatedPath(form=form, reference=reference, q_planned=q, wrench=w, q_command=cmd,
-                           theta_target=target, tcp_deflection=deflection)
+                           theta_target=target, tcp_deflection=deflection, prismatic=_prismatic(model))
 
 
 def predicted_residual(model: CompensationModel, path: CompensatedPath) -> np.ndarray:

@@ -17,6 +17,7 @@ import pathlib
 from typing import Sequence
 
 from elastocal.errors import InputError
+from elastocal.formats.calibration import is_stiffness_name
 from elastocal.fleet.tasks import LogResult
 
 FORMATS = {".csv": "csv", ".parquet": "parquet"}
@@ -40,12 +41,12 @@ def table_format(path: str | pathlib.Path) -> str:
 
 
 def parameter_names(results: Sequence[LogResult]) -> list[str]:
-    """k1..k6 first, then every other parameter in the order the rows first name it."""
+    """k1..kN first, then every other parameter in the order the rows first name it."""
     seen: dict[str, None] = {}
     for r in results:
         for name, _, _ in r.parameters:
             seen.setdefault(name, None)
-    stiff = [f"k{j}" for j in range(1, 7) if f"k{j}" in seen]
+    stiff = sorted((n for n in seen if is_stiffness_name(n)), key=lambda n: int(n[1:]))
     return stiff + [n for n in seen if n not in stiff]
 
 

@@ -31,7 +31,23 @@ FORMAT = "elastocal.calibration/1"
 FRICTION_SIGN = "direction_of_motion"
 #: the torque a calibration was identified from: motor currents or the measured wrench
 TORQUES = ("current", "force")
+#: the joint stiffness of a six-axis arm; a robot of N joints has k1..kN (:func:`stiffness_names`)
 STIFFNESS_NAMES = tuple(f"k{j}" for j in range(1, 7))
+
+
+def stiffness_names(n_joints: int) -> tuple[str, ...]:
+    return tuple(f"k{j}" for j in range(1, n_joints + 1))
+
+
+def is_stiffness_name(name: str) -> bool:
+    """``k1``, ``k2``, ...: a joint's stiffness."""
+    return len(name) > 1 and name[0] == "k" and name[1:].isdigit() and name[1] != "0"
+
+
+def prismatic_unit(revolute: str) -> str:
+    """The unit a per-joint parameter has on a prismatic joint, from its revolute unit: newtons
+    for newton-metres, metres for radians (N*m/rad -> N/m, rad/(N*m) -> m/N, N*m*s/rad -> N*s/m)."""
+    return revolute.replace("N*m", "N").replace("rad", "m")
 
 
 def file_sha256(path: str | pathlib.Path) -> str:
@@ -167,8 +183,13 @@ class Calibration:
             raise InputError(f"the calibration has no parameter {name!r}", source=self.source or None)
         return p.value
 
+    @property
+    def n_stiffness(self) -> int:
+        """How many joint stiffnesses (k1..kN) the calibration holds."""
+        return sum(1 for p in self.parameters if is_stiffness_name(p.name))
+
     def stiffness(self) -> list[float]:
-        return [self.value(k) for k in STIFFNESS_NAMES]
+        return [self.value(k) for k in stiffness_names(self.n_stiffness)]
 
     def undetermined(self) -> tuple[str, ...]:
         """Names of the parameters marked not determined (identify/evidence.py)."""
@@ -228,7 +249,7 @@ def parameter_unit(name: str) -> str | None:
     from elastocal.model.effects import ALL_EFFECTS, get_effect
     from elastocal.model.compensator import HYDRO_UNITS, SPRING_UNITS
 
-    if name in tuple(f"k{j}" for j in range(1, 7)):
+    if is_stiffness_name(name):
         return "N*m/rad"
     if name in HYDRO_UNITS or name in SPRING_UNITS:
         return {**HYDRO_UNITS, **SPRING_UNITS}[name]
@@ -237,9 +258,13 @@ def parameter_unit(name: str) -> str | None:
         return "rad"
     if kind != name and kind in ("da", "dd") or name.startswith(("dx_", "dy_", "dz_")):
         return "m"
+    joint_prefix = name.rstrip("0123456789")
     for effect in ALL_EFFECTS:
         e = get_effect(effect)
         if name in e.parameters:
+            return e.units[e.parameters.index(name)]
+        if joint_prefix != name and f"{joint_prefix}1" in e.parameters and name[len(joint_prefix)] != "0":
+            return e.units[e.parameters.index(f"{joint_prefix}1")]     # joint 7 and beyond: as joint 1
             return e.units[e.parameters.index(name)]
     return None
 
@@ -296,6 +321,14 @@ def _parameter(name: str, p: object, src: str) -> CalibratedParameter:
         raise InputError(f"a standard deviation is >= 0, got {std!r}", source=src, column=f"{where}.std")
     unit = p.get("unit")
     target = parameter_unit(name)
+    if unit is not None and target is not None and isinstance(unit, str) and name[-1].isdigit():
+        # a per-joint parameter of a prismatic joint (k7 in N/m): its own unit
+        alternative = prismatic_unit(target)
+        try:
+            if alternative != target and parse_unit(unit)[1] == parse_unit(alternative)[1]:
+                target = alternative
+        except UnitError:
+            pass
     if unit is not None:
         if not isinstance(unit, str):
             raise InputError(f"expected a unit text, got {unit!r}", source=src, column=f"{where}.unit")
@@ -308,8 +341,8 @@ def _parameter(name: str, p: object, src: str) -> CalibratedParameter:
             value *= factor
             std = None if std is None else std * factor
             unit = target
-    if target == "N*m/rad" and not STIFFNESS_RANGE[0] <= abs(value) <= STIFFNESS_RANGE[1]:
-        raise InputError(f"{value:g} N*m/rad is not a plausible joint stiffness (|k| between "
+    if target in ("N*m/rad", "N/m") and not STIFFNESS_RANGE[0] <= abs(value) <= STIFFNESS_RANGE[1]:
+        raise InputError(f"{value:g} {target} is not a plausible joint stiffness (|k| between "
                          f"{STIFFNESS_RANGE[0]:g} and {STIFFNESS_RANGE[1]:g})", source=src, column=f"{where}.value")
     if not abs(value) <= MAX_VALUE:
         raise InputError(f"{value:g} is not a plausible value", source=src, column=f"{where}.value")
@@ -386,11 +419,12 @@ def calibration_from_json(doc: object, source: str) -> Calibration:
                          f"got {sign!r}", source=src, column="friction_sign")
     if sign is None and any(is_friction(p.name) for p in parameters):
         parameters = _old_friction_sign(parameters)
-    if any(k in params for k in STIFFNESS_NAMES):   # run data alone give none; static data give all six
-        for k in STIFFNESS_NAMES:
+    given = [int(k[1:]) for k in params if is_stiffness_name(k)]
+    if given:   # run data alone give none; static data give one per joint, k1..kN
+        for k in stiffness_names(max(given)):
             if k not in params:
-                raise InputError(f"missing {k}: a calibration with joint stiffness holds k1..k6", source=src,
-                                 column=f"parameters.{k}")
+                raise InputError(f"missing {k}: a calibration with joint stiffness holds k1..k{max(given)}",
+                                 source=src, column=f"parameters.{k}")
     torque = doc.get("torque", "current")
     if torque not in TORQUES:
         raise InputError(f"expected one of {', '.join(TORQUES)}, got {torque!r}", source=src, column="torque")

@@ -38,22 +38,24 @@ TRACKER_ENVIRONMENT = {
     "adm_refraction_index": "refraction index the absolute distance meter used (optional)",
 }
 DRIVE_TOPIC_PREFIX = "/drive/"
-N_JOINTS = 6
+#: the most joints a log holds drives for: ``/drive/1`` .. ``/drive/N``, N the robot's (any serial chain)
+MAX_JOINTS = 64
 
 
 def drive_topic(joint: int) -> str:
-    """Topic of the samples of drive ``joint`` (1-based): ``/drive/1`` .. ``/drive/6``."""
-    if not 1 <= joint <= N_JOINTS:
-        raise ValueError(f"joint must be 1..{N_JOINTS}, got {joint}")
+    """Topic of the samples of drive ``joint`` (1-based): ``/drive/1`` .. ``/drive/N``."""
+    if not 1 <= joint <= MAX_JOINTS:
+        raise ValueError(f"joint must be 1..{MAX_JOINTS}, got {joint}")
     return f"{DRIVE_TOPIC_PREFIX}{joint}"
 
 
-DRIVE_TOPICS = tuple(drive_topic(j) for j in range(1, N_JOINTS + 1))
+DRIVE_TOPICS = tuple(drive_topic(j) for j in range(1, MAX_JOINTS + 1))
 
 _NUMBER_OR_NULL = {"type": ["number", "null"]}
 _MONOTONIC = {"type": "integer", "description": "acquisition time on the recording host's monotonic clock [ns]; "
                                                "log_time is this plus the session's offset to Unix time"}
-_VEC6 = {"type": "array", "items": {"type": "number"}, "minItems": 6, "maxItems": 6}
+#: one value per joint (q1..qN)
+_JOINT_VECTOR = {"type": "array", "items": {"type": "number"}, "minItems": 1, "maxItems": MAX_JOINTS}
 
 #: schema name -> JSON Schema (draft 2020-12)
 SCHEMAS: dict[str, dict] = {
@@ -92,7 +94,7 @@ SCHEMAS: dict[str, dict] = {
         "description": "One raw sample of one joint drive; log_time is its acquisition time [ns].",
         "type": "object",
         "properties": {
-            "joint": {"type": "integer", "minimum": 1, "maximum": N_JOINTS},
+            "joint": {"type": "integer", "minimum": 1, "maximum": MAX_JOINTS},
             "position_rad": {"type": "number", "description": "joint coordinate q (motor side) [rad]"},
             "velocity_rad_s": {**_NUMBER_OR_NULL, "description": "joint speed dq [rad/s]"},
             "current_a": {**_NUMBER_OR_NULL,
@@ -131,7 +133,7 @@ SCHEMAS: dict[str, dict] = {
             "steps": {"type": "integer", "description": "number of steps of the procedure"},
             "pose": {"type": "string"},
             "load": {"type": "string", "description": "load state id; '0' is unloaded"},
-            "q": {**_VEC6, "description": "commanded joint coordinates [rad]"},
+            "q": {**_JOINT_VECTOR, "description": "commanded joint coordinates q1..qN [rad, m]"},
             "wrench": {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 6, "maxItems": 6,
                        "description": "nominal external wrench on the load point, base axes [N, N*m]"},
             "mass_kg": {"type": ["number", "null"]},

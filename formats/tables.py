@@ -26,16 +26,39 @@ from elastocal.errors import InputError
 from elastocal.formats.textfiles import read_text_file
 from elastocal.model.robot import Robot
 
-Q_COLS = tuple(f"q{j}" for j in range(1, 7))
-DQ_COLS = tuple(f"dq{j}" for j in range(1, 7))
-I_COLS = tuple(f"i{j}" for j in range(1, 7))
+
+
+def joint_columns(prefix: str, n_joints: int) -> tuple[str, ...]:
+    """``prefix1..prefixN``: the columns of one joint vector, base to tip (docs/formats.md
+    "Columns follow N")."""
+    return tuple(f"{prefix}{j}" for j in range(1, n_joints + 1))
+
+
+#: the columns of the six-joint robot (the HH-150); other robots: :func:`joint_columns`
+Q_COLS = joint_columns("q", 6)
+DQ_COLS = joint_columns("dq", 6)
+I_COLS = joint_columns("i", 6)
 W_COLS = ("fx", "fy", "fz", "mx", "my", "mz")
 XYZ_COLS = ("x", "y", "z")
-STATIC_COLUMNS = ("pose", "load", "t") + Q_COLS + W_COLS + I_COLS + ("marker",) + XYZ_COLS
+
+
+def static_columns(n_joints: int = 6) -> tuple[str, ...]:
+    """The static table's columns for a robot of ``n_joints`` joints."""
+    return (("pose", "load", "t") + joint_columns("q", n_joints) + W_COLS + joint_columns("i", n_joints)
+            + ("marker",) + XYZ_COLS)
+
+
+def run_columns(n_joints: int = 6) -> tuple[str, ...]:
+    """The run table's columns for a robot of ``n_joints`` joints."""
+    return (("run", "direction", "load", "t") + joint_columns("q", n_joints) + joint_columns("dq", n_joints)
+            + joint_columns("i", n_joints) + W_COLS + ("marker",) + XYZ_COLS)
+
+
+STATIC_COLUMNS = static_columns(6)
 #: optional columns of the static table (docs/formats.md §2): the tracker's per-point expanded
 #: uncertainty U95 [m] (weights the fit) and the air it measured through [°C, hPa, %]
 STATIC_OPTIONAL_COLUMNS = ("u95", "temperature_c", "pressure_hpa", "humidity_pct")
-RUN_COLUMNS = ("run", "direction", "load", "t") + Q_COLS + DQ_COLS + I_COLS + W_COLS + ("marker",) + XYZ_COLS
+RUN_COLUMNS = run_columns(6)
 
 #: a marker coordinate beyond this is taken as millimetres [m]
 MAX_POSITION_M = 20.0
@@ -64,9 +87,9 @@ class StaticTable:
     pose: np.ndarray      # (n,) str
     load: np.ndarray      # (n,) str; "0" is the unloaded reference
     t: np.ndarray         # (n,) s, NaN when empty
-    q: np.ndarray         # (n, 6) rad
+    q: np.ndarray         # (n, N) rad, m for a prismatic joint
     wrench: np.ndarray    # (n, 6) N, N·m; NaN when unknown
-    currents: np.ndarray  # (n, 6) A; NaN when empty
+    currents: np.ndarray  # (n, N) A; NaN when empty
     marker: np.ndarray    # (n,) str
     xyz: np.ndarray       # (n, 3) m
     line: np.ndarray      # (n,) line number in the file (header = 1)
@@ -75,6 +98,10 @@ class StaticTable:
 
     def __len__(self) -> int:
         return len(self.pose)
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.q.shape[1])
 
     def optional(self, name: str) -> np.ndarray | None:
         """The optional column ``name`` (NaN where empty), None when the table has none."""
@@ -108,9 +135,9 @@ class RunTable:
     direction: np.ndarray  # (n,) str: UV, VU, + or -
     load: np.ndarray       # (n,) str
     t: np.ndarray          # (n,) s
-    q: np.ndarray          # (n, 6) rad
-    dq: np.ndarray         # (n, 6) rad/s, NaN when empty
-    currents: np.ndarray   # (n, 6) A, NaN when empty
+    q: np.ndarray          # (n, N) rad (m for a prismatic joint)
+    dq: np.ndarray         # (n, N) rad/s (m/s), NaN when empty
+    currents: np.ndarray   # (n, N) A, NaN when empty
     wrench: np.ndarray     # (n, 6), NaN when empty
     marker: np.ndarray     # (n,) str, "" when empty
     xyz: np.ndarray        # (n, 3) m, NaN when empty
@@ -118,6 +145,10 @@ class RunTable:
 
     def __len__(self) -> int:
         return len(self.run)
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.q.shape[1])
 
     def subset(self, mask: np.ndarray) -> "RunTable":
         return RunTable(self.source, self.run[mask], self.direction[mask], self.load[mask], self.t[mask],
@@ -160,10 +191,28 @@ def check_header(header: list[str], source: str) -> None:
         seen.add(name)
 
 
+def table_joints(header: Iterable[str], robot: Robot | None, source: str) -> int:
+    """N of a table: the robot's, when given, and the header's ``q1..qN`` must match it; else the
+    header's. A mismatch is refused in one line naming both (docs/formats.md "Columns follow N")."""
+    import re
+
+    numbers = sorted(int(m.group(1)) for h in header if (m := re.fullmatch(r"q([1-9][0-9]*)", h.strip())))
+    n = robot.n_joints if robot is not None else (numbers[-1] if numbers else 6)
+    if numbers and numbers != list(range(1, n + 1)):
+        have = ",".join(f"q{j}" for j in numbers) if len(numbers) < 4 else f"q1..q{numbers[-1]}"
+        want = f"{n} joints (q1..q{n})"
+        whose = f"the robot {robot.name!r} has {want}" if robot is not None else f"expected {want}"
+        missing = [j for j in range(1, n + 1) if j not in numbers]
+        column = f"q{missing[0]}" if missing else f"q{n + 1}"
+        raise InputError(f"the table's joint columns are {have}; {whose}", source=source, row=1, column=column)
+    return n
+
+
 class _Rows:
     """CSV rows with the helpers that name file, line and column in errors."""
 
-    def __init__(self, text: str, source: str, required: Iterable[str], known: Iterable[str]) -> None:
+    def __init__(self, text: str, source: str, required, known, robot: Robot | None = None) -> None:
+        """``required`` and ``known``: the columns, or functions of the table's N that give them."""
         self.source = source
         reader = csv_records(text, source)
         try:
@@ -172,6 +221,10 @@ class _Rows:
             raise InputError("the file is empty", source=source) from None
         self.header = [h.strip() for h in header]
         check_header(self.header, source)
+        self.n_joints = table_joints(self.header, robot, source)
+        self.q_cols, self.dq_cols, self.i_cols = (joint_columns(p, self.n_joints) for p in ("q", "dq", "i"))
+        required = required(self.n_joints) if callable(required) else required
+        known = known(self.n_joints) if callable(known) else known
         missing = [c for c in required if c not in self.header]
         if missing:
             raise InputError(f"missing column(s) {', '.join(missing)}", source=source, row=1)
@@ -243,15 +296,17 @@ def _read_text(path: str | pathlib.Path) -> tuple[str, str]:
 
 def _check_joint_units(source: str, lineno: int, q: list[float], robot: Robot | None) -> None:
     for j, value in enumerate(q):
-        col = Q_COLS[j]
+        col = f"q{j + 1}"
         if robot is not None:
             lo, hi = robot.joints[j].lower, robot.joints[j].upper
             margin = 1e-3
             if not lo - margin <= value <= hi + margin:
-                hint = ""
-                if lo <= math.radians(value) <= hi and abs(value) > 2 * math.pi:
+                unit, hint = robot.joints[j].unit, ""
+                if unit == "m" and lo <= value / 1000.0 <= hi:
+                    hint = "; millimetres? a prismatic joint's q is in metres"
+                elif unit != "m" and lo <= math.radians(value) <= hi and abs(value) > 2 * math.pi:
                     hint = "; degrees? angles in files are radians"
-                raise InputError(f"{value} rad is outside the joint limits [{lo:.4g}, {hi:.4g}]{hint}",
+                raise InputError(f"{value} {unit} is outside the joint limits [{lo:.4g}, {hi:.4g}]{hint}",
                                  source=source, row=lineno, column=col)
         elif abs(value) > 2 * math.pi:
             raise InputError(f"{value} is larger than 2*pi; degrees? angles in files are radians",
@@ -280,7 +335,8 @@ def _check_wrench(source: str, lineno: int, wrench: list[float]) -> None:
 
 
 def _check_currents(source: str, lineno: int, currents: list[float]) -> None:
-    for col, value in zip(I_COLS, currents):
+    for j, value in enumerate(currents, start=1):
+        col = f"i{j}"
         if abs(value) > MAX_CURRENT_A:
             raise InputError(f"{value} A is not a plausible motor current; currents are amperes",
                              source=source, row=lineno, column=col)
@@ -309,6 +365,7 @@ def _fast_static_table(rows: _Rows, robot: Robot | None, extra_cols: list[str]) 
     the first bad row exactly as it always did. Every check of :func:`_parse_static_rows` is
     screened here with the same comparisons, so what this returns is what that returns."""
     cols = rows.columns()
+    Q_COLS, I_COLS = rows.q_cols, rows.i_cols
     n = len(rows.rows)
     text = {}
     for c in ("pose", "load", "marker"):
@@ -354,7 +411,8 @@ def _fast_static_table(rows: _Rows, robot: Robot | None, extra_cols: list[str]) 
 def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "<static.csv>") -> StaticTable:
     """Read and validate a static table (docs/formats.md §2): in whole-column operations when
     every row passes the checks (the usual case), else row by row to the first bad one."""
-    rows = _Rows(text, source, required=STATIC_COLUMNS, known=STATIC_COLUMNS + STATIC_OPTIONAL_COLUMNS)
+    rows = _Rows(text, source, required=static_columns,
+                 known=lambda n: static_columns(n) + STATIC_OPTIONAL_COLUMNS, robot=robot)
     extra_cols = [c for c in STATIC_OPTIONAL_COLUMNS if c in rows.index]
     table = _fast_static_table(rows, robot, extra_cols)
     if table is None:
@@ -366,6 +424,7 @@ def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "
 def _parse_static_rows(rows: _Rows, robot: Robot | None, extra_cols: list[str]) -> StaticTable:
     """The per-row reader: the first row that fails a check raises, naming its line and column."""
     source = rows.source
+    Q_COLS, I_COLS = rows.q_cols, rows.i_cols
     extra: dict[str, list[float]] = {c: [] for c in extra_cols}
     markers = set(robot.marker_names) if robot is not None else None
     pose, load, t, q, w, cur, marker, xyz, line = [], [], [], [], [], [], [], [], []
@@ -454,7 +513,7 @@ def _check_static_structure(table: StaticTable) -> None:
         bad = np.flatnonzero(np.any(np.abs(q - q[0]) > 1e-6, axis=1))
         if bad.size:
             lineno = int(table.line[rows][bad[0]])
-            col = Q_COLS[int(np.argmax(np.abs(q[bad[0]] - q[0]) > 1e-6))]
+            col = f"q{1 + int(np.argmax(np.abs(q[bad[0]] - q[0]) > 1e-6))}"
             raise InputError(f"pose {p} changes its joint coordinates between rows; one pose, one configuration",
                              source=src, row=lineno, column=col)
         for m in dict.fromkeys(table.marker[rows]):
@@ -482,7 +541,7 @@ def read_static_table(path: str | pathlib.Path, robot: Robot | None = None) -> S
 
 
 def _joints_within(q: np.ndarray, robot: Robot | None) -> bool:
-    """Whether every angle of ``q`` (n, 6) passes :func:`_check_joint_units`."""
+    """Whether every angle of ``q`` (n, N) passes :func:`_check_joint_units`."""
     if robot is None:
         return not np.any(np.abs(q) > 2 * math.pi)
     lo = np.array([j.lower for j in robot.joints]) - 1e-3
@@ -494,6 +553,7 @@ def _fast_run_table(rows: _Rows, robot: Robot | None) -> RunTable | None:
     """The run table in whole-column operations, or None when any row may fail a check of
     :func:`_parse_run_rows` (which then names the first bad row), as for the static table."""
     cols = rows.columns()
+    Q_COLS, DQ_COLS, I_COLS = rows.q_cols, rows.dq_cols, rows.i_cols
     n = len(rows.rows)
     text = {}
     for c in ("run", "direction", "load", "marker"):
@@ -543,9 +603,9 @@ def _fast_run_table(rows: _Rows, robot: Robot | None) -> RunTable | None:
 def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<runs.csv>") -> RunTable:
     """Read and validate a run table (docs/formats.md §3): in whole-column operations when every
     row passes the checks, else row by row to the first bad one; then the checks per run."""
-    required = ("run", "direction", "load", "t") + Q_COLS
-    rows = _Rows(text, source, required=required, known=RUN_COLUMNS)
-    rows.check_groups([(DQ_COLS, "the joint speed vector"), (I_COLS, "the current vector"), (W_COLS, "the wrench"),
+    rows = _Rows(text, source, required=lambda n: ("run", "direction", "load", "t") + joint_columns("q", n),
+                 known=run_columns, robot=robot)
+    rows.check_groups([(rows.dq_cols, "the joint speed vector"), (rows.i_cols, "the current vector"), (W_COLS, "the wrench"),
                        (("marker",) + XYZ_COLS, "a followed marker")])
     table = _fast_run_table(rows, robot)
     if table is None:
@@ -568,6 +628,7 @@ def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<ru
 def _parse_run_rows(rows: _Rows, robot: Robot | None) -> RunTable:
     """The per-row reader of run tables: the first row that fails a check raises, naming its line."""
     source = rows.source
+    Q_COLS, DQ_COLS, I_COLS = rows.q_cols, rows.dq_cols, rows.i_cols
     markers = set(robot.marker_names) if robot is not None else None
     run, direction, load, t, q, dq, cur, w, marker, xyz, line = ([] for _ in range(11))
     for lineno, row in rows.rows:
@@ -632,7 +693,7 @@ def _check_speeds_against_motion(table: RunTable) -> None:
         if len(idx) < 3:
             continue
         tt = table.t[idx]
-        for j, col in enumerate(DQ_COLS):
+        for j, col in enumerate(joint_columns("dq", table.n_joints)):
             dq = table.dq[idx, j]
             if not np.all(np.isfinite(dq)):
                 continue
@@ -667,7 +728,7 @@ def _fmt(x: float) -> str:
 def format_static_table(table: StaticTable) -> str:
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(STATIC_COLUMNS + tuple(k for k, _ in table.extra))
+    writer.writerow(static_columns(table.n_joints) + tuple(k for k, _ in table.extra))
     for n in range(len(table)):
         writer.writerow([table.pose[n], table.load[n], _fmt(table.t[n])]
                         + [_fmt(v) for v in table.q[n]] + [_fmt(v) for v in table.wrench[n]]
@@ -683,7 +744,7 @@ def write_static_table(path: str | pathlib.Path, table: StaticTable) -> None:
 def format_run_table(table: RunTable) -> str:
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(RUN_COLUMNS)
+    writer.writerow(run_columns(table.n_joints))
     for n in range(len(table)):
         writer.writerow([table.run[n], table.direction[n], table.load[n], _fmt(table.t[n])]
                         + [_fmt(v) for v in table.q[n]] + [_fmt(v) for v in table.dq[n]]
@@ -730,6 +791,7 @@ def check_table_values(table: StaticTable | RunTable, robot: Robot | None = None
     src = table.source
     markers = set(robot.marker_names) if robot is not None else None
     static = isinstance(table, StaticTable)
+    Q_COLS, DQ_COLS, I_COLS = (joint_columns(p, table.n_joints) for p in ("q", "dq", "i"))
     for n in _suspect_rows(table, robot):
         lineno = int(table.line[n])
         groups = [(Q_COLS, table.q[n]), (("t",), [table.t[n]]), (W_COLS, table.wrench[n]),
@@ -764,12 +826,14 @@ def static_table_from_arrays(*, pose, load, q, marker, xyz, t=None, wrench=None,
     """Build a validated StaticTable from arrays, e.g. from a simulation or a log: the values
     pass the checks of :func:`parse_static_table` (joint limits of ``robot`` when given)."""
     n = len(pose)
-    nan6 = np.full((n, 6), np.nan)
+    q = np.asarray(q, dtype=float)
+    nj = robot.n_joints if robot is not None else (q.shape[1] if q.ndim == 2 else 6)
+    nan6 = np.full((n, nj), np.nan)
     table = StaticTable(source, np.asarray(pose, dtype=str), np.asarray(load, dtype=str),
                         np.full(n, np.nan) if t is None else np.asarray(t, dtype=float),
-                        np.asarray(q, dtype=float).reshape(n, 6),
-                        nan6 if wrench is None else np.asarray(wrench, dtype=float).reshape(n, 6),
-                        nan6.copy() if currents is None else np.asarray(currents, dtype=float).reshape(n, 6),
+                        q.reshape(n, nj),
+                        np.full((n, 6), np.nan) if wrench is None else np.asarray(wrench, dtype=float).reshape(n, 6),
+                        nan6.copy() if currents is None else np.asarray(currents, dtype=float).reshape(n, nj),
                         np.asarray(marker, dtype=str), np.asarray(xyz, dtype=float).reshape(n, 3),
                         np.arange(2, n + 2),
                         tuple((k, np.asarray(extra[k], dtype=float)) for k in STATIC_OPTIONAL_COLUMNS
@@ -785,12 +849,14 @@ def run_table_from_arrays(*, run, direction, load, t, q, dq=None, currents=None,
     checks of :func:`parse_run_table` (joint limits of ``robot`` when given), the speeds
     agree with the motion."""
     n = len(run)
-    nan6 = np.full((n, 6), np.nan)
+    q = np.asarray(q, dtype=float)
+    nj = robot.n_joints if robot is not None else (q.shape[1] if q.ndim == 2 else 6)
+    nan6 = np.full((n, nj), np.nan)
     table = RunTable(source, np.asarray(run, dtype=str), np.asarray(direction, dtype=str),
-                    np.asarray(load, dtype=str), np.asarray(t, dtype=float), np.asarray(q, dtype=float).reshape(n, 6),
-                    nan6 if dq is None else np.asarray(dq, dtype=float).reshape(n, 6),
-                    nan6.copy() if currents is None else np.asarray(currents, dtype=float).reshape(n, 6),
-                    nan6.copy() if wrench is None else np.asarray(wrench, dtype=float).reshape(n, 6),
+                    np.asarray(load, dtype=str), np.asarray(t, dtype=float), q.reshape(n, nj),
+                    nan6 if dq is None else np.asarray(dq, dtype=float).reshape(n, nj),
+                    nan6.copy() if currents is None else np.asarray(currents, dtype=float).reshape(n, nj),
+                    np.full((n, 6), np.nan) if wrench is None else np.asarray(wrench, dtype=float).reshape(n, 6),
                     np.full(n, "", dtype=str) if marker is None else np.asarray(marker, dtype=str),
                     np.full((n, 3), np.nan) if xyz is None else np.asarray(xyz, dtype=float).reshape(n, 3),
                     np.arange(2, n + 2))

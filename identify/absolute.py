@@ -273,7 +273,8 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
             pi = int(ds.state_pose[s])
             if pi not in jac_pose:
                 _, j10 = _kinematics(robot, robot.theta_links(robot.theta(ds.q[pi])), frames, data)
-                jac_pose[pi] = np.einsum("ij,mjk->mik", rot, j10[:, :, robot.actuated_in_link_model]).reshape(3 * nm, 6)
+                jac_pose[pi] = np.einsum("ij,mjk->mik", rot, j10[:, :, robot.actuated_in_link_model]).reshape(
+                    3 * nm, robot.n_joints)
             g = jac_pose[pi] * (compliance * robot.torque_constants)
             cov += (g * (sig_i ** 2 / ds.state_n_currents[s])) @ g.T
         covs[s] = cov
@@ -320,7 +321,7 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     work = robot.create_data()        # the static fit's and the absolute bases' buffers
     fit = identify_static(robot, ds0, model=static_model, torque=torque, form=form, work=work)
     ds = fit.dataset
-    effects = fit.effects or tuple(get_effect(n) for n in static_model)   # as fitted (selected components)
+    effects = fit.effects or tuple(get_effect(n, robot) for n in static_model)   # as fitted (selected components)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     pr = _Problem(robot, ds, effects, torque, form, "complementary_stiffness" in static_model, frames, work)
     tau = _torques(pr, None)
@@ -334,7 +335,7 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     st0 = _Setup(robot, ds, bases, frames, (), np.eye(3), np.zeros(3), (), (), y)
     base_p, _ = _model(st0, fit.beta, np.zeros(3), np.zeros(3), np.zeros(0), jacobian=False)
     start = kabsch(base_p.reshape(-1, 3), y.reshape(-1, 3), ds0.abs_n.reshape(-1)) or reg
-    chols, whitens, known = _noise(robot, ds, torque, fit.beta[:6], start.rotation, frames)
+    chols, whitens, known = _noise(robot, ds, torque, fit.beta[:robot.n_joints], start.rotation, frames)
     st = _Setup(robot, ds, bases, frames, kin_names, start.rotation, start.translation, whitens, chols, y,
                 kin.columns(kin_names, ds.markers))
     x_full = np.concatenate([fit.beta, np.zeros(6), np.zeros(len(kin_names))])
@@ -495,7 +496,7 @@ def _elastic_mask(fit: StaticFit, effects) -> np.ndarray:
     """Which static-model parameters the deflection fit identified."""
     mask = []
     for eff in effects:
-        outs = [f"k{j}" for j in range(1, 7)] if eff.name == "joint_stiffness" else list(eff.parameters)
+        outs = [f"k{c[1:]}" for c in eff.parameters] if eff.name == "joint_stiffness" else list(eff.parameters)
         mask += [o not in fit.unidentifiable for o in outs]
     return np.array(mask, dtype=bool)
 
@@ -513,7 +514,7 @@ def _report(fit: StaticFit, effects, beta: np.ndarray, std: np.ndarray,
             continue
         values, deriv = eff.reported(np.where(mask[sl], beta[sl], 1.0))
         units = eff.report_units or eff.units
-        outs = [f"k{j}" for j in range(1, 7)] if eff.name == "joint_stiffness" else list(eff.parameters)
+        outs = [f"k{c[1:]}" for c in eff.parameters] if eff.name == "joint_stiffness" else list(eff.parameters)
         for i in range(k):
             if not mask[sl][i]:
                 unident.append(outs[i])

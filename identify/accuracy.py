@@ -133,11 +133,11 @@ def predicted_base_positions(robot: Robot, calibration: Calibration, ds: StaticD
     model = tuple(m for m in ("joint_stiffness", *calibration.model)
                   if m not in ABSOLUTE_EFFECTS and m not in SESSION_EFFECTS)
     model = tuple(dict.fromkeys(m for m in model if "static" in get_effect(m).seen_in))
-    effects = tuple(get_effect(n) for n in model)
+    effects = tuple(get_effect(n, robot) for n in model)
     beta = []
     for eff in effects:
         if eff.name == "joint_stiffness":
-            for j in range(1, 7):
+            for j in range(1, robot.n_joints + 1):
                 k = _value(calibration, f"k{j}")
                 if k is None or not k > 0:
                     raise InputError(f"the calibration holds no positive k{j}", argument="calibration")
@@ -160,7 +160,7 @@ def _noise_floor(robot: Robot, calibration: Calibration, ds: StaticDataset, rota
 
     if ds.sigma_tracker is None:
         return None
-    compliance = np.array([1.0 / (_value(calibration, f"k{j}") or np.inf) for j in range(1, 7)])
+    compliance = np.array([1.0 / (_value(calibration, f"k{j}") or np.inf) for j in range(1, robot.n_joints + 1)])
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     chols, _, _ = _noise(calibrated_robot(robot, calibration), ds, calibration.torque, compliance, rotation, frames)
     return float(np.sqrt(sum(np.sum(c ** 2) for c in chols) / ds.abs_xyz.size))

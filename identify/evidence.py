@@ -34,12 +34,12 @@ import numpy as np
 from scipy import stats
 
 from elastocal.errors import InputError
+from elastocal.formats.calibration import is_stiffness_name
 
 #: false-refusal level of the load check: data with no load change pass it with this probability
 LOADS_ALPHA = 0.01
 #: a compliance this many standard deviations above zero is determined (k's std below 50 %)
 DETERMINED_SIGMAS = 2.0
-STIFFNESS_NAMES = tuple(f"k{j}" for j in range(1, 7))
 
 
 @dataclass(frozen=True)
@@ -121,7 +121,7 @@ def mark_stiffness(parameters: dict) -> dict:
     ``"determined": false`` and its ``"note"`` (optional fields; the others unchanged)."""
     out = {}
     for name, p in parameters.items():
-        if name in STIFFNESS_NAMES:
+        if is_stiffness_name(name):
             why = stiffness_problem(float(p["value"]), float(p.get("std") or 0.0))
             if why is not None:
                 p = {**p, "determined": False, "note": why}

@@ -67,12 +67,12 @@ class StaticDataset:
 
     source: str
     pose_ids: tuple[str, ...]
-    q: np.ndarray                 # (P, 6)
+    q: np.ndarray                 # (P, N)
     markers: tuple[str, ...]
     state_pose: np.ndarray        # (S,) index into pose_ids
     state_load: np.ndarray        # (S,) str
     state_ref: np.ndarray         # (S,) index of the pose's reference state
-    state_currents: np.ndarray    # (S, 6) mean currents [A], NaN when absent
+    state_currents: np.ndarray    # (S, N) mean currents [A], NaN when absent
     state_n_currents: np.ndarray  # (S,) distinct drive readings averaged (docs/formats.md §2)
     state_wrench: np.ndarray      # (S, 6) [N, N·m], NaN when unknown; 0 for references without one
     defl_state: np.ndarray        # (D,)
@@ -84,7 +84,7 @@ class StaticDataset:
     defl_dt: np.ndarray           # (D,) mean time loaded minus mean time reference [s], NaN if unknown
     defl_t: np.ndarray            # (D,) mean time of the loaded readings [s], NaN if unknown
     sigma_tracker: float | None   # repeatability per coordinate [m]
-    sigma_current: np.ndarray | None  # (6,) repeatability per joint [A]
+    sigma_current: np.ndarray | None  # (N,) repeatability per joint [A]
     #: tracker readings far off their repeats (identify/outliers.py): left out of
     #: sigma_tracker; in the means unless the table was refitted without them
     outliers: tuple = ()
@@ -188,7 +188,7 @@ def build_dataset(table: StaticTable) -> StaticDataset:
     noisy = state_finite & (ncur > 1)
     rows_i = keep & noisy[state]
     per_state = group_sum(state[rows_i], (currents[rows_i] - cur[state[rows_i]]) ** 2, n_states)[noisy]
-    dev_sq_i = _in_order(per_state, np.zeros(6))
+    dev_sq_i = _in_order(per_state, np.zeros(table.n_joints))
     dof_i = int(np.sum(ncur[noisy] - 1))
 
     wrench = table.wrench[first_row].copy()
@@ -374,7 +374,7 @@ class _Problem:
 
     @cached_property
     def nominal_theta(self) -> np.ndarray:
-        """(S, 6) link-side angles of every state's commanded pose (``robot.theta``)."""
+        """(S, N) link-side angles of every state's commanded pose (``robot.theta``)."""
         return self.ds.q[self.ds.state_pose] + self.robot.offsets
 
     @cached_property
@@ -429,7 +429,7 @@ def _link_configurations(robot: Robot, theta: np.ndarray, link_angles: np.ndarra
 
 
 def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
-    """Absolute gear torque (S, 6) of each state."""
+    """Absolute gear torque (S, N) of each state."""
     robot, ds = pr.robot, pr.ds
     if pr.torque == "current":
         return ds.state_currents * robot.torque_constants
@@ -440,8 +440,9 @@ def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
     model, data = robot.model, pr.data.rigid
     fid = model.getFrameId(LOAD_FRAME)
     world = pin.LOCAL_WORLD_ALIGNED
-    offset2 = robot.joints[1].offset
-    out = np.empty((ds.n_states, 6))
+    c = robot.compensator.index if comp is not None else 0
+    offset_c = robot.joints[c].offset
+    out = np.empty((ds.n_states, robot.n_joints))
     for s in range(ds.n_states):
         th = theta[s]
         tau = np.zeros(model.nv)
@@ -451,7 +452,7 @@ def _torques(pr: _Problem, theta_states: np.ndarray | None) -> np.ndarray:
         if robot.has_masses:
             tau -= pin.computeGeneralizedGravity(model, data, th)
         if comp is not None:
-            tau[1] -= float(robot.compensator.torque(th[1] - offset2, comp))
+            tau[c] -= float(robot.compensator.torque(th[c] - offset_c, comp))
         out[s] = tau
     return out
 
@@ -464,7 +465,11 @@ def _context(pr: _Problem, tau: np.ndarray, estimate: np.ndarray | None = None) 
     jac = pr.load_jacobians[ds.state_pose]
     j_act_t = np.swapaxes(jac[:, :, robot.actuated_in_link_model], 1, 2)
     j_spr_t = np.swapaxes(jac[:, :, robot.springs_in_link_model], 1, 2)
-    if pr.torque == "current":
+    if pr.torque == "current" and robot.n_joints != 6:
+        # N joint torques of one 6-component wrench: least squares (N > 6), the least wrench (N < 6)
+        delta_wrench = np.stack([np.linalg.lstsq(j_act_t[s], delta_tau[s], rcond=None)[0]
+                                 for s in range(ds.n_states)])
+    elif pr.torque == "current":
         try:
             delta_wrench = np.linalg.solve(j_act_t, delta_tau[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:       # a singular pose: least squares for that one
@@ -499,8 +504,9 @@ def _bases(pr: _Problem, ctx: StaticContext) -> tuple[np.ndarray, np.ndarray, np
         if p == 0:
             continue
         b = eff.static_basis(ctx) if eff.static_basis is not None else StaticBasis()
-        thetas.append(b.theta if b.theta is not None else np.zeros((ds.n_states, 6, p)))
-        links.append(b.links if b.links is not None else np.zeros((ds.n_states, 4, p)))
+        thetas.append(b.theta if b.theta is not None else np.zeros((ds.n_states, pr.robot.n_joints, p)))
+        links.append(b.links if b.links is not None
+                     else np.zeros((ds.n_states, len(pr.robot.link_spring_names), p)))
         adds.append(b.add if b.add is not None else np.zeros((ds.n_deflections, 3, p)))
     return np.concatenate(thetas, axis=2), np.concatenate(links, axis=2), np.concatenate(adds, axis=2)
 
@@ -590,7 +596,7 @@ def _absolute_base(pr: _Problem, beta: np.ndarray, ctx: StaticContext) -> np.nda
 def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
                   sensitivity: np.ndarray | None = None) -> list[tuple[np.ndarray, np.ndarray]] | None:
     """Per-pose (row indices, covariance) of the deflection noise, or None
-    when the data hold no repeated readings. ``sensitivity`` (S, 6): d dtheta /
+    when the data hold no repeated readings. ``sensitivity`` (S, N): d dtheta /
     d tau of each state (default: the joint compliances).
 
     Tracker noise: a deflection's own readings and those of its reference, which the
@@ -605,10 +611,11 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
     if sig_i is not None:
         # d dtheta / d tau for each state: the joint-stiffness part of the basis,
         # plus what torque-dependent effects (backlash) add
-        c = np.tile(beta[:6], (ds.n_states, 1)) if sensitivity is None else sensitivity
-        jac0 = pr.nominal_kinematics[1][:, :, :, robot.actuated_in_link_model]     # (P, M, 3, 6)
+        nj = robot.n_joints
+        c = np.tile(beta[:nj], (ds.n_states, 1)) if sensitivity is None else sensitivity
+        jac0 = pr.nominal_kinematics[1][:, :, :, robot.actuated_in_link_model]     # (P, M, 3, N)
         rank, n_states_of = pr.state_rank
-        var_i = (robot.torque_constants * sig_i) ** 2 / ds.state_n_currents[:, None]   # (S, 6)
+        var_i = (robot.torque_constants * sig_i) ** 2 / ds.state_n_currents[:, None]   # (S, N)
         order = np.argsort(ds.state_pose, kind="stable")
     if ds.defl_u95_var is not None:          # the readings' own U95 (docs/import.md)
         v_ref, v_own = ds.defl_u95_var_ref, ds.defl_u95_var
@@ -635,14 +642,14 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
         cov = cov.reshape(g_n, 3 * n, 3 * n)
         if sig_i is not None:
             pis = np.array(poses)
-            jm = jac0[pis[:, None], mk]                                   # (G, n, 3, 6)
-            g = np.zeros((g_n, n, 3, k, 6))
+            jm = jac0[pis[:, None], mk]                                   # (G, n, 3, N)
+            g = np.zeros((g_n, n, 3, k, nj))
             at_g, at_d = np.arange(g_n)[:, None], np.arange(n)[None, :]
             g[at_g, at_d, :, rank[ds.defl_state[dl]], :] = jm * c[ds.defl_state[dl]][:, :, None, :]
             g[at_g, at_d, :, rank[ds.defl_ref[dl]], :] = -(jm * c[ds.defl_ref[dl]][:, :, None, :])
-            g = g.reshape(g_n, 3 * n, 6 * k)
+            g = g.reshape(g_n, 3 * n, nj * k)
             states = order[state_start[pis][:, None] + np.arange(k)]      # (G, k)
-            var = var_i[states].reshape(g_n, 6 * k)
+            var = var_i[states].reshape(g_n, nj * k)
             cov += (g * var[:, None, :]) @ np.swapaxes(g, 1, 2)
         rows = (3 * dl[:, :, None] + np.arange(3)).reshape(g_n, -1)
         for j, pi in enumerate(poses):
@@ -806,7 +813,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
             return first
         return identify_static(robot, refined, model=model, torque=torque, form=form, max_iter=max_iter, tol=tol, work=work)
     if torque == "current" and not ds.has_currents:
-        raise InputError(("current-based identification needs the currents i1..i6 in every row; use ",
+        raise InputError(("current-based identification needs the currents i1..iN in every row; use ",
                           Arg("torque", "force")), source=ds.source)
     if torque == "force" and not ds.has_wrench:
         raise InputError("force-based identification needs the wrench fx..mz of every loaded state",
@@ -814,7 +821,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     check_loads_changed(ds)          # loads that changed nothing determine nothing (identify/evidence.py)
     given = {m.name: m for m in model if isinstance(m, Effect)}   # effects restricted to some parameters
     names = tuple(dict.fromkeys(["joint_stiffness", *(m if isinstance(m, str) else m.name for m in model)]))
-    effects = tuple(given.get(n) or get_effect(n) for n in names)
+    effects = tuple(given.get(n) or get_effect(n, robot) for n in names)
     selections = []
     for k, eff in enumerate(effects):
         if eff.selectable and eff.selected_from is None:
@@ -899,7 +906,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         return beta, iterations
 
     def noise_blocks(beta: np.ndarray):
-        sensitivity = np.tile(beta[:6], (ds.n_states, 1))
+        sensitivity = np.tile(beta[:robot.n_joints], (ds.n_states, 1))
         offset = 0
         for eff in effects:
             k = len(eff.parameters)
@@ -992,7 +999,7 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         if eff.report_with_model is not None:
             values, own_std = eff.report_with_model(beta_names, beta, cov, sl)
         units = eff.report_units or eff.units
-        names_out = [f"k{j}" for j in range(1, 7)] if eff.name == "joint_stiffness" else list(eff.reported_names)
+        names_out = [f"k{c[1:]}" for c in eff.parameters] if eff.name == "joint_stiffness" else list(eff.reported_names)
         for i in range(k):
             if not mask[sl][i]:
                 unident.append(names_out[i])

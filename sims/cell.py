@@ -30,6 +30,9 @@ from elastocal.identify.kinematics import corrected_robot
 
 #: HH-150 joint stiffness, Yang Table 6 (current-based) [N·m/rad]
 HH150_STIFFNESS = (0.559e6, 1.435e6, 1.829e6, 0.184e6, 0.171e6, 0.070e6)
+#: a linear track's carriage: rack, pinion and gearbox seen at the carriage [N/m] (the order of
+#: magnitude of catalogue tracks for 150-kg arms; the simulator's choice, not a measured value)
+TRACK_STIFFNESS = 2.0e7
 #: effects the simulator can hide in a dataset (``--hidden``)
 HIDDEN_EFFECTS = ("none", "link_compliance", "thermal_drift", "static_friction", "backlash",
                   "kinematic_errors", "tracker_frame", "base_tilt", "nonlinear_stiffness")
@@ -82,9 +85,22 @@ def _arr(value, n: int, name: str) -> np.ndarray:
     return out
 
 
+def joint_values(prismatic: Sequence[bool], revolute: Sequence[float], prismatic_value: float) -> np.ndarray:
+    """One value per joint of a chain: the six-axis arm's values in order for its revolute
+    joints (the last one repeated beyond six), ``prismatic_value`` for a prismatic joint."""
+    out, r = [], 0
+    for p in prismatic:
+        out.append(prismatic_value if p else revolute[min(r, len(revolute) - 1)])
+        r += not p
+    return np.array(out, dtype=float)
+
+
 @dataclass(frozen=True, eq=False)
 class CellTruth:
-    """The true parameters of a simulated cell (SI units)."""
+    """The true parameters of a simulated cell (SI units; a prismatic joint's in N/m, N, m).
+
+    Per-joint arrays have one value per joint of the robot (:meth:`for_robot`); left empty,
+    they are zero (inf for ``hardening_torque``)."""
 
     stiffness: np.ndarray = field(default_factory=lambda: np.array(HH150_STIFFNESS))
     #: compensator parameters (C, l_c) or (K_c, s0); None when the robot has none
@@ -94,20 +110,20 @@ class CellTruth:
     #: tracker drift [m/s]
     drift_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     #: static friction torque that can absorb a load change, per joint [N·m]
-    static_friction: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    static_friction: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: backlash (total lost motion) per joint [rad]; smoothed over backlash_torque_nm
-    backlash: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    backlash: np.ndarray = field(default_factory=lambda: np.zeros(0))
     backlash_torque_nm: float = 20.0
     #: compliance of the base about its x and y axes [rad/(N·m)]: the whole robot
     #: tilts about the base origin under the overturning moment (load and link weights)
     base_tilt: np.ndarray = field(default_factory=lambda: np.zeros(2))
     #: torque-dependent gear stiffness dtau/dtheta = k (1 + |tau| / T) per joint [N·m];
     #: inf (the default) for a linear spring
-    hardening_torque: np.ndarray = field(default_factory=lambda: np.full(6, np.inf))
+    hardening_torque: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: Coulomb, viscous and load-dependent friction during motion
-    coulomb: np.ndarray = field(default_factory=lambda: np.zeros(6))
-    viscous: np.ndarray = field(default_factory=lambda: np.zeros(6))
-    load_friction: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    coulomb: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    viscous: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    load_friction: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: measurement noise (one standard deviation per reading)
     tracker_noise_m: float = 10e-6
     current_noise_a: float = 0.02
@@ -117,11 +133,35 @@ class CellTruth:
     #: where the tracker stands: p_tracker = tracker_rotation @ p_base + tracker_translation
     tracker_rotation: np.ndarray = field(default_factory=lambda: DEFAULT_TRACKER[0].copy())
     tracker_translation: np.ndarray = field(default_factory=lambda: DEFAULT_TRACKER[1].copy())
+    #: which joints are prismatic (their values in N/m, N, m); () for the six revolute joints
+    prismatic: tuple[bool, ...] = ()
+
+    @classmethod
+    def for_robot(cls, robot: Robot, **changes) -> "CellTruth":
+        """The simulated cell of ``robot``: the HH-150's stiffness (Yang Table 6) on its revolute
+        joints in order, :data:`TRACK_STIFFNESS` on a prismatic one; ``changes`` as the fields."""
+        prismatic = tuple(bool(p) for p in robot.prismatic)
+        if "stiffness" not in changes:
+            changes["stiffness"] = joint_values(prismatic, HH150_STIFFNESS, TRACK_STIFFNESS)
+        return cls(prismatic=prismatic, **changes)
+
+    def per_joint(self, revolute: Sequence[float], prismatic_value: float) -> np.ndarray:
+        """One value per joint of this cell (:func:`joint_values`)."""
+        return joint_values(self.prismatic, revolute, prismatic_value)
 
     def __post_init__(self) -> None:
-        for name, n in (("stiffness", 6), ("link_compliance", 4), ("drift_velocity", 3),
-                        ("static_friction", 6), ("backlash", 6), ("coulomb", 6), ("viscous", 6),
-                        ("load_friction", 6), ("base_tilt", 2)):
+        n_joints = np.asarray(self.stiffness).size
+        prismatic = tuple(bool(p) for p in self.prismatic) or (False,) * n_joints
+        if len(prismatic) != n_joints:
+            raise ValueError(f"prismatic: expected {n_joints} flags, got {len(prismatic)}")
+        object.__setattr__(self, "prismatic", prismatic)
+        for name in ("static_friction", "backlash", "coulomb", "viscous", "load_friction", "hardening_torque"):
+            if np.asarray(getattr(self, name)).size == 0:
+                fill = np.inf if name == "hardening_torque" else 0.0
+                object.__setattr__(self, name, np.full(n_joints, fill))
+        for name, n in (("stiffness", n_joints), ("link_compliance", 4), ("drift_velocity", 3),
+                        ("static_friction", n_joints), ("backlash", n_joints), ("coulomb", n_joints),
+                        ("viscous", n_joints), ("load_friction", n_joints), ("base_tilt", 2)):
             object.__setattr__(self, name, _arr(getattr(self, name), n, name))
         object.__setattr__(self, "tracker_translation", _arr(self.tracker_translation, 3, "tracker_translation"))
         rot = np.asarray(self.tracker_rotation, dtype=float)
@@ -129,8 +169,8 @@ class CellTruth:
             raise ValueError("tracker_rotation must be a rotation matrix")
         object.__setattr__(self, "tracker_rotation", rot)
         hard = np.asarray(self.hardening_torque, dtype=float).reshape(-1)
-        if hard.shape != (6,) or np.any(np.isnan(hard)) or np.any(hard <= 0):
-            raise ValueError("hardening_torque: expected 6 positive values (inf for a linear spring)")
+        if hard.shape != (n_joints,) or np.any(np.isnan(hard)) or np.any(hard <= 0):
+            raise ValueError(f"hardening_torque: expected {n_joints} positive values (inf for a linear spring)")
         object.__setattr__(self, "hardening_torque", hard)
         if np.any(self.stiffness <= 0):
             raise ValueError("stiffness must be positive")
@@ -150,9 +190,9 @@ class CellTruth:
         if effect == "thermal_drift":
             return replace(self, drift_velocity=np.array([0.6e-7, -0.4e-7, 0.8e-7]))
         if effect == "static_friction":
-            return replace(self, static_friction=np.array([60.0, 250.0, 200.0, 25.0, 20.0, 12.0]))
+            return replace(self, static_friction=self.per_joint([60.0, 250.0, 200.0, 25.0, 20.0, 12.0], 150.0))
         if effect == "backlash":
-            return replace(self, backlash=np.array([6e-5, 5e-5, 5e-5, 1.2e-4, 1.2e-4, 1.5e-4]))
+            return replace(self, backlash=self.per_joint([6e-5, 5e-5, 5e-5, 1.2e-4, 1.2e-4, 1.5e-4], 2e-5))
         if effect == "kinematic_errors":
             return replace(self, kinematic_errors=KINEMATIC_ERRORS)
         if effect == "tracker_frame":
@@ -162,14 +202,15 @@ class CellTruth:
             return replace(self, base_tilt=np.array([5.0e-8, 4.0e-8]))
         if effect == "nonlinear_stiffness":
             # stiffness that doubles at these torques: hardening gears (catalogue curves)
-            return replace(self, hardening_torque=np.array([4000.0, 15000.0, 8000.0, 1500.0, 1200.0, 500.0]))
+            return replace(self, hardening_torque=self.per_joint([4000.0, 15000.0, 8000.0, 1500.0, 1200.0, 500.0],
+                                                                 3000.0))
         raise ValueError(f"unknown hidden effect {effect!r}; one of {', '.join(HIDDEN_EFFECTS)}")
 
     def parameters(self, robot: Robot) -> dict[str, dict[str, float | str]]:
         """True parameters under the names of docs/formats.md §4 (truth.json)."""
         out: dict[str, dict[str, float | str]] = {}
-        for j, k in enumerate(self.stiffness, start=1):
-            out[f"k{j}"] = {"value": float(k), "unit": "N*m/rad"}
+        for j, (k, p) in enumerate(zip(self.stiffness, self.prismatic), start=1):
+            out[f"k{j}"] = {"value": float(k), "unit": "N/m" if p else "N*m/rad"}
         if robot.compensator is not None and self.compensator is not None:
             units = robot.compensator.parameter_units
             for name, value in zip(robot.compensator.parameter_names, self.compensator):
@@ -181,22 +222,22 @@ class CellTruth:
             for name, v in zip(("cl0x", "cl0y"), self.base_tilt):
                 out[name] = {"value": float(v), "unit": "rad/(N*m)"}
         if np.any(np.isfinite(self.hardening_torque)):
-            for j, v in enumerate(self.hardening_torque, start=1):
-                out[f"T{j}"] = {"value": float(v) if np.isfinite(v) else None, "unit": "N*m"}
+            for j, (v, p) in enumerate(zip(self.hardening_torque, self.prismatic), start=1):
+                out[f"T{j}"] = {"value": float(v) if np.isfinite(v) else None, "unit": "N" if p else "N*m"}
         if np.any(self.drift_velocity):
             for name, v in zip(("vx", "vy", "vz"), self.drift_velocity):
                 out[name] = {"value": float(v), "unit": "m/s"}
         if np.any(self.backlash):
-            for j, v in enumerate(self.backlash, start=1):
-                out[f"b{j}"] = {"value": float(v), "unit": "rad"}
+            for j, (v, p) in enumerate(zip(self.backlash, self.prismatic), start=1):
+                out[f"b{j}"] = {"value": float(v), "unit": "m" if p else "rad"}
         if np.any(self.static_friction):
-            for j, v in enumerate(self.static_friction, start=1):
-                out[f"fs{j}"] = {"value": float(v), "unit": "N*m"}
-        for prefix, arr, unit in (("fc", self.coulomb, "N*m"), ("fv", self.viscous, "N*m*s/rad"),
-                                  ("fl", self.load_friction, "1")):
+            for j, (v, p) in enumerate(zip(self.static_friction, self.prismatic), start=1):
+                out[f"fs{j}"] = {"value": float(v), "unit": "N" if p else "N*m"}
+        for prefix, arr, units in (("fc", self.coulomb, ("N*m", "N")), ("fv", self.viscous, ("N*m*s/rad", "N*s/m")),
+                                   ("fl", self.load_friction, ("1", "1"))):
             if np.any(arr):
-                for j, v in enumerate(arr, start=1):
-                    out[f"{prefix}{j}"] = {"value": float(v), "unit": unit}
+                for j, (v, p) in enumerate(zip(arr, self.prismatic), start=1):
+                    out[f"{prefix}{j}"] = {"value": float(v), "unit": units[p]}
         from elastocal.identify.kinematics import unit_of
 
         for name, v in self.kinematic_errors:
@@ -218,8 +259,8 @@ def _rotation_vector(rot: np.ndarray) -> np.ndarray:
 class Equilibrium:
     """A static equilibrium of the simulated robot (noise-free)."""
 
-    q: np.ndarray                  # commanded joint coordinates [rad]
-    theta: np.ndarray              # link-side DH angles of the 6 joints [rad]
+    q: np.ndarray                  # commanded joint coordinates [rad, m]
+    theta: np.ndarray              # link-side coordinates of the N joints [rad, m]
     link_angles: np.ndarray        # rotations of the 4 link springs [rad]
     gear_torque: np.ndarray        # torque each gear (and motor) carries [N·m]; xi i = gear_torque
     wrench: np.ndarray             # external wrench on the load point, base axes
@@ -249,6 +290,9 @@ class SimCell:
         self.truth = truth if truth is not None else CellTruth()
         if robot.compensator is None:
             self.truth = replace(self.truth, compensator=None)
+        if self.truth.stiffness.size != robot.n_joints:
+            raise ValueError(f"the cell's truth has {self.truth.stiffness.size} joints, the robot "
+                             f"{robot.name!r} {robot.n_joints}: CellTruth.for_robot(robot)")
         #: the robot as built: the drawing's table with the truth's kinematic errors
         #: (the physics runs on it; ``robot`` is the description users have)
         errors = tuple((n, v) for n, v in self.truth.kinematic_errors
@@ -257,9 +301,7 @@ class SimCell:
 
     # --------------------------------------------------------------- statics
     def _full_load(self, theta10: np.ndarray, wrench: np.ndarray) -> np.ndarray:
-        r = self.physical
-        q2 = theta10[r.actuated_in_link_model[1]] - r.joints[1].offset
-        return r.load_torque(theta10, wrench, self.truth.compensator, links=True, q_compensator=q2)
+        return self.physical.load_torque(theta10, wrench, self.truth.compensator, links=True)
 
     def equilibrium(self, q: Sequence[float], wrench: Sequence[float] | None = None, *,
                     reference: Equilibrium | None = None, tol_rad: float = 1e-13,
@@ -276,7 +318,7 @@ class SimCell:
         q = np.asarray(q, dtype=float)
         w = np.zeros(6) if wrench is None else np.asarray(wrench, dtype=float)
         theta0 = r.theta(q)
-        absorbed = np.zeros(6)
+        absorbed = np.zeros(r.n_joints)
 
         def solve(fixed_absorbed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             th10 = r.theta_links(theta0)
@@ -361,7 +403,7 @@ class SimCell:
         return self.to_tracker(p + rng.normal(0.0, self.truth.tracker_noise_m, size=p.shape))
 
     def read_currents(self, eq: Equilibrium, rng: np.random.Generator) -> np.ndarray:
-        return self.currents(eq) + rng.normal(0.0, self.truth.current_noise_a, size=6)
+        return self.currents(eq) + rng.normal(0.0, self.truth.current_noise_a, size=self.robot.n_joints)
 
     # -------------------------------------------------------------- motion
     def motion_currents(self, q: np.ndarray, dq: np.ndarray, wrench: np.ndarray | None = None) -> np.ndarray:

@@ -13,9 +13,21 @@ from elastocal.sims.cell import CellTruth, SimCell
 
 G = 9.81
 #: joint ranges the random poses are drawn from: the working region in front of
-#: the robot, wrist away from its singularity [rad]
+#: the six-axis arm, wrist away from its singularity [rad]
 WORK_LOW = np.array([-1.0, -0.35, -1.0, -1.6, 0.5, -1.6])
 WORK_HIGH = np.array([1.0, 1.0, 0.35, 1.6, 1.9, 1.6])
+#: joints before the six-axis arm (a track, a turntable) move over this middle part of their range
+AUXILIARY_RANGE = 0.8
+
+
+def work_region(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) of the random poses: the six-axis arm's working region on the last six joints,
+    the middle :data:`AUXILIARY_RANGE` of the limits on the joints before them (a track)."""
+    n_aux = max(robot.n_joints - len(WORK_LOW), 0)
+    mid, half = (robot.upper + robot.lower) / 2, (robot.upper - robot.lower) / 2 * AUXILIARY_RANGE
+    lo = np.r_[mid[:n_aux] - half[:n_aux], WORK_LOW[len(WORK_LOW) - (robot.n_joints - n_aux):]]
+    hi = np.r_[mid[:n_aux] + half[:n_aux], WORK_HIGH[len(WORK_HIGH) - (robot.n_joints - n_aux):]]
+    return np.maximum(lo, robot.lower), np.minimum(hi, robot.upper)
 
 
 @dataclass(frozen=True)
@@ -41,13 +53,13 @@ class StaticPlan:
 def random_poses(robot: Robot, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` reachable poses in the working region: load point above 0.3 m, wrist
     away from its singularity, within the joint limits."""
-    lo = np.maximum(WORK_LOW, robot.lower)
-    hi = np.minimum(WORK_HIGH, robot.upper)
+    lo, hi = work_region(robot)
+    wrist = robot.n_joints - 2          # the wrist bend of the six-axis arm: either side
     poses = []
     while len(poses) < n:
         q = rng.uniform(lo, hi)
         if rng.random() < 0.5:
-            q[4] = -q[4]
+            q[wrist] = -q[wrist]
         z = robot.positions(robot.theta(q), [LOAD_FRAME])[0, 2]
         if z < 0.3:
             continue
@@ -94,7 +106,7 @@ def simulate_static(robot: Robot, truth: CellTruth, *, seed: int, plan: StaticPl
         w_states = load_wrenches(plan.n_loads, rng) if wrenches is None else np.asarray(wrenches[p - 1])
         t += plan.move_s
         reference = cell.equilibrium(q)
-        states = [("0", np.zeros(6), reference)]
+        states = [("0", np.zeros(6), reference)]     # the wrench: six components on any robot
         for k, w in enumerate(w_states, start=1):
             states.append((str(k), w, cell.equilibrium(q, w, reference=reference)))
         for index, (load, w, eq) in enumerate(states):

@@ -72,7 +72,7 @@ def calibrated_truth(robot, cal, default):
 
     from elastocal.identify.kinematics import parameter_names
 
-    changes: dict = {"stiffness": np.array(cal.stiffness())}
+    changes: dict = {"stiffness": np.array([cal.value(f"k{j}") for j in range(1, robot.n_joints + 1)])}
     holds = ["joint_stiffness"]
     spec = robot.compensator
     if spec is not None and all(cal.has(n) for n in spec.parameter_names):
@@ -82,12 +82,13 @@ def calibrated_truth(robot, cal, default):
         changes["kinematic_errors"] = tuple((n, cal.value(n)) for n in parameter_names(robot, robot.marker_names)
                                             if cal.has(n))
         holds.append("kinematic_errors")
-    springs = ("cl2x", "cl2y", "cl3x", "cl3y")
+    springs = robot.link_spring_names
     if "link_compliance" in cal.model and all(cal.has(n) for n in springs):
         changes["link_compliance"] = np.array([cal.value(n) for n in springs])
         holds.append("link_compliance")
-    if "backlash" in cal.model and all(cal.has(f"b{j}") for j in range(1, 7)):
-        changes["backlash"] = np.array([cal.value(f"b{j}") for j in range(1, 7)])
+    plays = [f"b{j}" for j in range(1, robot.n_joints + 1)]
+    if "backlash" in cal.model and all(cal.has(n) for n in plays):
+        changes["backlash"] = np.array([cal.value(n) for n in plays])
         holds.append("backlash")
     return dataclasses.replace(default, **changes), tuple(holds)
 
@@ -155,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
     outside = (result.q_command < robot.lower) | (result.q_command > robot.upper)
     if np.any(outside):
         i, j = (int(v) for v in np.argwhere(outside)[0])
-        raise InputError(f"the compensated q{j + 1} = {result.q_command[i, j]:.5f} rad leaves the joint limits",
+        raise InputError(f"the compensated q{j + 1} = {result.q_command[i, j]:.5f} {robot.joints[j].unit} leaves "
+                         "the joint limits",
                          source=args.path, row=i + 2, column=f"q{j + 1}")
     with outputs:
         write_compensated_csv(outputs.temp(args.out), planned.t, result)
@@ -189,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
         if robot.compensator is not None and robot.compensator.kind != "hydropneumatic":
             raise InputError("--validate simulates the HH-150 cell (hydro-pneumatic compensator); this robot's "
                              "compensator is a spring", source="--validate")
-        truth, holds = calibrated_truth(robot, cal, CellTruth())
+        truth, holds = calibrated_truth(robot, cal, CellTruth.for_robot(robot))
         cell = SimCell(robot, truth)
         check = validate_on_sim(cell, model, PlannedPath(t=planned.t, q=planned.q), wrench, reference=reference)
         obj["validation"] = check.summary()
@@ -203,7 +205,8 @@ def run(args: argparse.Namespace) -> int:
           f"rms {obj['deflection']['rms'] * mm:.3f} mm")
     print(f"  predicted after compensation:                  max {obj['residual']['max'] * mm:.4f} mm")
     print("  largest correction: " + ", ".join(
-        f"{k} {math.degrees(v):.4f} deg" for k, v in obj["dtheta_max"].items()))
+        f"{k} {v * 1e3:.4f} mm" if robot.joints[j].unit == "m" else f"{k} {math.degrees(v):.4f} deg"
+        for j, (k, v) in enumerate(obj["dtheta_max"].items())))
     if not model.uses_gravity:
         print("  (the robot description has no link masses: gravity and compensator left out of the model)")
     print(f"wrote {args.out}" + (f", {args.krl}" if args.krl else "") + (f", {args.rapid}" if args.rapid else ""))

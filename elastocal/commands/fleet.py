@@ -90,7 +90,10 @@ def _history(args: argparse.Namespace) -> int:
              "checks": c.checks, "checks_failed": c.checks_failed, "last_check": c.last_check,
              "last_verdict": c.last_verdict, "error": c.error or None} for c in cells]})))
         return 0
-    stiff = [f"k{j}" for j in range(1, 7)]
+    from elastocal.formats.calibration import is_stiffness_name
+
+    n_joints = max([6] + [int(n[1:]) for c in cells for n, *_ in c.drift if is_stiffness_name(n)])
+    stiff = [f"k{j}" for j in range(1, n_joints + 1)]
     width = max([len(c.cell) for c in cells] + [4])
     lines = [f"plant: {len(cells)} cell(s); drift = latest (last calibration or later check) against the first "
              f"calibration; n/d: not determined by the calibrations' data (std > "

@@ -140,12 +140,13 @@ def _show(args: argparse.Namespace, db: pathlib.Path) -> int:
         return 0
     lines = [f"history {db}: {len(cals)} calibration(s), {len(checks)} check(s)"]
     if cals:
-        lines.append("calibrations (stiffness in 1e6 N*m/rad)")
+        n_joints = max([6] + [r.calibration.n_stiffness for r in cals])
+        lines.append("calibrations (stiffness in 1e6 N*m/rad, 1e6 N/m for a prismatic joint)")
         lines.append(f"  {'id':>3}  {'recorded (UTC)':<20}  {'robot':<10} "
-                     + " ".join(f"{f'k{j}':>7}" for j in range(1, 7)) + f"  {'rms':>8}  log")
+                     + " ".join(f"{f'k{j}':>7}" for j in range(1, n_joints + 1)) + f"  {'rms':>8}  log")
         for r in cals:
             ks = " ".join(f"{_k(r, f'k{j}') / 1e6:7.4f}" if _k(r, f"k{j}") is not None else f"{'-':>7}"
-                          for j in range(1, 7))
+                          for j in range(1, n_joints + 1))
             rms = r.calibration.residual.rms
             rms_s = f"{rms * 1e6:6.1f}µm" if rms is not None and rms < 1.0 else "-"
             lines.append(f"  {r.id:>3}  {r.time:<20}  {r.robot[:10]:<10} {ks}  {rms_s:>8}  "

@@ -237,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
 
         from elastocal.sims.static import StaticPlan, add_outliers, simulate_static
 
-        truth = CellTruth().with_hidden(args.hidden)
+        truth = CellTruth.for_robot(robot).with_hidden(args.hidden)
         plan = StaticPlan(n_poses=args.poses, n_loads=args.loads, repeats=args.repeats,
                           shared_currents=args.shared_currents)
         table = simulate_static(robot, truth, seed=args.seed, plan=plan)
@@ -250,7 +250,7 @@ def run(args: argparse.Namespace) -> int:
         from elastocal.formats.tables import read_run_table
         from elastocal.sims.runs import described_robot, hide_in_runs, simulate_runs, write_runs_csv
 
-        truth = hide_in_runs(CellTruth(), args.hidden)
+        truth = hide_in_runs(CellTruth.for_robot(robot), args.hidden)
         table = simulate_runs(robot, truth, seed=args.seed, source=str(out / "runs.csv"))
         params = truth.parameters(robot)
         robot = described_robot(robot, args.hidden)     # what the user's robot.toml says

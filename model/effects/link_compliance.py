@@ -91,7 +91,8 @@ def _frames_at(robot, theta: np.ndarray, pdata) -> tuple[np.ndarray, np.ndarray,
     origins = np.zeros((robot.n_joints, 3))
     axes = np.zeros((robot.n_joints, 2, 3))
     for l in locations(robot):
-        axis_world = pdata.J[3:, l]               # the axis of joint l+1 in base axes
+        # the axis of joint l+1 in base axes: its rotation axis, a prismatic joint's direction of travel
+        axis_world = pdata.J[:3, l] if robot.prismatic[l] else pdata.J[3:, l]
         frame = pin.SE3.Identity() if l == 0 else pdata.oMi[l] * model.jointPlacements[l + 1]
         axis_local = frame.rotation.T @ axis_world
         u, v = _normal_axes(axis_local / np.linalg.norm(axis_local))

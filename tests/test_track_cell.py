@@ -1,0 +1,211 @@
+"""The simulated seven-joint cell: the HH-150 on a floor track (elastocal/robots/hh150_track.toml,
+a prismatic joint and the six-axis arm) through the README's workflows, and six no longer
+special anywhere on the way: tables with q1..q7, the MCAP log, identify, diagnose, validate,
+compensate (CSV, KRL, RAPID) and the report.
+
+Each check is against the simulator's truth or first principles (Pinocchio's kinematics),
+within the uncertainty the fit reports; the statistics over 100 seeds are the heavy test.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from elastocal.compensation.chain import Angles, BatchedChain
+from elastocal.errors import InputError
+from elastocal.formats.calibration import read_calibration
+from elastocal.formats.robot_toml import bundled_robot
+from elastocal.formats.tables import parse_static_table, read_static_table
+from elastocal.identify.absolute import identify_absolute
+from elastocal.identify.static import build_dataset
+from elastocal.model.robot import LOAD_FRAME
+from elastocal.sims.cell import CellTruth
+from elastocal.sims.static import StaticPlan, simulate_static
+
+ROBOT = bundled_robot("hh150_track")
+K_NAMES = [f"k{j}" for j in range(1, 8)]
+FRAME_NAMES = ["rx", "ry", "rz", "tx", "ty", "tz"]
+
+
+def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "elastocal", *args], capture_output=True, text=True, cwd=cwd,
+                          timeout=600)
+
+
+@pytest.fixture(scope="module")
+def sim_static(tmp_path_factory):
+    """``elastocal sim static --robot <the bundled track robot>``: robot.toml, static.csv, log.mcap, truth.json."""
+    out = tmp_path_factory.mktemp("track")
+    robot_path = out / "track.toml"
+    robot_path.write_text(ROBOT.to_toml(), encoding="utf-8")
+    done = _cli("sim", "static", "--robot", str(robot_path), "--out", str(out / "sim"), "--seed", "3")
+    assert done.returncode == 0, done.stderr
+    return out / "sim"
+
+
+def test_the_bundled_track_robot_has_seven_joints_the_first_prismatic():
+    assert ROBOT.n_joints == 7 and bool(ROBOT.prismatic[0]) and not np.any(ROBOT.prismatic[1:])
+    assert ROBOT.compensator.joint == 3               # the arm's joint 2, behind the carriage
+    truth = CellTruth.for_robot(ROBOT)
+    assert truth.parameters(ROBOT)["k1"]["unit"] == "N/m"
+    assert truth.parameters(ROBOT)["k2"]["value"] == CellTruth().stiffness[0]
+
+
+def test_the_static_table_has_columns_for_seven_joints(sim_static):
+    header = (sim_static / "static.csv").read_text(encoding="utf-8").splitlines()[0].split(",")
+    assert [c for c in header if c.startswith("q")] == [f"q{j}" for j in range(1, 8)]
+    assert [c for c in header if c.startswith("i")] == [f"i{j}" for j in range(1, 8)]
+    table = read_static_table(sim_static / "static.csv", ROBOT)
+    assert table.q.shape[1] == 7 and table.currents.shape[1] == 7
+    # the carriage moves over the track: poses spread over metres of it
+    assert np.ptp(table.q[:, 0]) > 1.0
+
+
+def test_a_table_of_another_n_is_refused_in_one_line_naming_both(sim_static):
+    text = (sim_static / "static.csv").read_text(encoding="utf-8")
+    six = bundled_robot()
+    with pytest.raises(InputError, match=r"q1\.\.q7.*'HH-150' has 6 joints") as err:
+        parse_static_table(text, six, source="static.csv")
+    assert "\n" not in str(err.value)
+
+
+def test_identify_recovers_the_stiffness_of_every_joint_within_its_std(sim_static):
+    done = _cli("identify", "--robot", str(sim_static / "robot.toml"), "--static", str(sim_static / "static.csv"),
+                "--model", "joint_stiffness,tracker_frame", "--json")
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout)["parameters"]
+    truth = json.loads((sim_static / "truth.json").read_text())["parameters"]
+    for name in K_NAMES + FRAME_NAMES:
+        assert got[name]["unit"] == truth[name]["unit"]
+        z = (got[name]["value"] - truth[name]["value"]) / got[name]["std"]
+        assert abs(z) < 4.0, (name, got[name], truth[name])
+
+
+def test_the_log_holds_seven_drives_and_identifies_as_the_table(sim_static):
+    from elastocal.acquisition.logreader import read_log
+
+    contents = read_log(sim_static / "log.mcap")
+    assert len(contents.drives) == 7 and all(len(d.t_ns) for d in contents.drives)
+    from_log = _cli("identify", str(sim_static / "log.mcap"), "--json")
+    from_csv = _cli("identify", "--robot", str(sim_static / "robot.toml"), "--static", str(sim_static / "static.csv"),
+                    "--json")
+    assert from_log.returncode == 0 and from_csv.returncode == 0, from_log.stderr + from_csv.stderr
+    a, b = json.loads(from_log.stdout)["parameters"], json.loads(from_csv.stdout)["parameters"]
+    for name in K_NAMES:
+        assert abs(a[name]["value"] - b[name]["value"]) <= 0.01 * a[name]["std"]
+
+
+def test_diagnose_names_the_hidden_link_compliance_on_the_track_cell(tmp_path):
+    out = tmp_path / "lc"
+    robot_path = tmp_path / "track.toml"
+    robot_path.write_text(ROBOT.to_toml(), encoding="utf-8")
+    done = _cli("sim", "static", "--robot", str(robot_path), "--hidden", "link_compliance", "--out", str(out),
+                "--seed", "4", "--poses", "16")
+    assert done.returncode == 0, done.stderr
+    diag = _cli("diagnose", "--robot", str(out / "robot.toml"), "--static", str(out / "static.csv"), "--json")
+    assert diag.returncode == 0, diag.stderr
+    obj = json.loads(diag.stdout)
+    assert obj["verdict"] == "link_compliance", obj["verdict"]
+
+
+def test_validate_on_unseen_poses_is_within_a_quarter_above_the_floor(sim_static, tmp_path):
+    cal = tmp_path / "cal.json"
+    done = _cli("identify", "--robot", str(sim_static / "robot.toml"), "--static", str(sim_static / "static.csv"),
+                "--model", "joint_stiffness,tracker_frame", "--out", str(cal))
+    assert done.returncode == 0, done.stderr
+    assert read_calibration(cal).find("k1").unit == "N/m"
+    other = tmp_path / "other"
+    assert _cli("sim", "static", "--robot", str(sim_static / "robot.toml"), "--out", str(other),
+                "--seed", "11").returncode == 0
+    done = _cli("validate", "--robot", str(sim_static / "robot.toml"), "--calibration", str(cal), "--static",
+                str(other / "static.csv"), "--keep-frame", "--json")
+    assert done.returncode == 0, done.stderr
+    obj = json.loads(done.stdout)
+    calibrated = obj["absolute"]["calibrated"]
+    assert calibrated["rms"] <= 1.25 * obj["absolute"]["noise_floor"], obj["absolute"]
+
+
+def test_the_batched_chain_is_pinocchio_on_a_prismatic_joint():
+    """Compensation's batched kinematics and statics against Pinocchio's on the track robot."""
+    rng = np.random.default_rng(7)
+    q = np.column_stack([rng.uniform(ROBOT.lower * 0.5, ROBOT.upper * 0.5) for _ in range(6)])
+    chain = BatchedChain(ROBOT.model)
+    state = chain.state(Angles.of(q), masses=True)
+    fid = ROBOT.frame_id(LOAD_FRAME)
+    force, moment = rng.normal(size=(3, 6)) * 500.0, rng.normal(size=(3, 6)) * 50.0
+    tau = chain.torque(state, force=force, moment=moment, frame_id=fid)
+    jac = chain.jacobian(state, fid)
+    for k in range(q.shape[1]):
+        wrench = np.r_[force[:, k], moment[:, k]]
+        np.testing.assert_allclose(tau[:, k], ROBOT.load_torque(q[:, k], wrench), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(chain.position(state, fid)[:, k], ROBOT.positions(q[:, k], [LOAD_FRAME])[0],
+                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(jac[:, :, k], ROBOT.jacobians(q[:, k], [LOAD_FRAME])[0], rtol=0, atol=1e-12)
+
+
+def test_compensate_writes_seven_joints_and_the_track_as_an_external_axis_in_mm(sim_static, tmp_path):
+    cal = tmp_path / "cal.json"
+    assert _cli("identify", "--robot", str(sim_static / "robot.toml"), "--static", str(sim_static / "static.csv"),
+                "--out", str(cal)).returncode == 0
+    q0 = np.array([2.0, 0.1, 0.3, -0.3, 0.2, 0.9, 0.1])
+    lines = ["t," + ",".join(f"q{j}" for j in range(1, 8)) + ",fx,fy,fz,mx,my,mz"]
+    for i in range(40):
+        q = q0 + np.r_[0.01 * i, 0.002 * i, np.zeros(5)]
+        lines.append(",".join(repr(float(v)) for v in [0.1 * i, *q, 0.0, 800.0, -1500.0, 0.0, 0.0, 0.0]))
+    path = tmp_path / "path.csv"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    done = _cli("compensate", "--robot", str(sim_static / "robot.toml"), "--calibration", str(cal), "--path",
+                str(path), "--out", str(tmp_path / "out.csv"), "--krl", str(tmp_path / "p.src"), "--rapid",
+                str(tmp_path / "p.mod"), "--validate", "--json")
+    assert done.returncode == 0, done.stderr
+    obj = json.loads(done.stdout)
+    header = (tmp_path / "out.csv").read_text(encoding="utf-8").splitlines()[0].split(",")
+    assert header[-10:-3] == [f"qc{j}" for j in range(1, 8)]
+    out = np.loadtxt(tmp_path / "out.csv", delimiter=",", skiprows=1)
+    qc1 = out[:, header.index("qc1")]
+    krl = (tmp_path / "p.src").read_text(encoding="utf-8")
+    move = next(line for line in krl.splitlines() if "PTP {E6AXIS" in line)
+    assert f"E1 {qc1[0] * 1e3:.6f}" in move and "A6" in move and "A7" not in move
+    rapid = (tmp_path / "p.mod").read_text(encoding="utf-8")
+    assert f"],[{qc1[0] * 1e3:.6f},9E9" in rapid
+    # the simulated cell (the same robot, the simulator's truth): compensation removes the deflection
+    check = obj["validation"]
+    assert check["uncompensated"]["max"] > 1e-3
+    assert check["exact"]["max"] < 0.05 * check["uncompensated"]["max"]
+
+
+def test_report_and_plan_of_the_track_robot(sim_static, tmp_path):
+    done = _cli("report", "--robot", str(sim_static / "robot.toml"), "--static", str(sim_static / "static.csv"),
+                "--out", str(tmp_path / "r.html"))
+    assert done.returncode == 0, done.stderr
+    html = (tmp_path / "r.html").read_text(encoding="utf-8")
+    assert "k7" in html and "N/m" in html
+
+
+# ------------------------------------------------------------------ statistics over seeds
+N_SEEDS = 100
+
+
+@pytest.mark.heavy
+def test_stiffness_and_registration_intervals_cover_the_truth_over_seeds():
+    """100 seeds of the default experiment on the track cell: the 95 % intervals of k1..k7 and of
+    the registration rx..tz cover the truth 95 +- 4 % of the time (pooled over the 13
+    parameters; each parameter alone within 3 binomial sigma of 95 % at 100 seeds)."""
+    truth = CellTruth.for_robot(ROBOT)
+    tp = truth.parameters(ROBOT)
+    names = K_NAMES + FRAME_NAMES
+    z = []
+    for seed in range(N_SEEDS):
+        ds = build_dataset(simulate_static(ROBOT, truth, seed=20_000 + seed, plan=StaticPlan()))
+        fit = identify_absolute(ROBOT, ds, model=("joint_stiffness", "tracker_frame"))
+        got = {p.name: p for p in fit.parameters}
+        z.append([(got[n].value - tp[n]["value"]) / got[n].std for n in names])
+    covered = np.abs(np.array(z)) < 1.959964
+    pooled, each = covered.mean(), covered.mean(axis=0)
+    assert abs(pooled - 0.95) <= 0.04, (pooled, dict(zip(names, each)))
+    assert np.all(each >= 0.95 - 3 * np.sqrt(0.95 * 0.05 / N_SEEDS)), dict(zip(names, each))
