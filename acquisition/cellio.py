@@ -240,8 +240,9 @@ class VirtualCellIO(CellIO):
             q = self._q_at(t)
             dq = self._dq_at(t) + self.timing.ring_speed_rad_s * self._ring(t)
             currents, _ = self._state(t, ())
-            noise = self._rng.normal(0.0, truth.current_noise_a, 6)
-            for j in range(6):
+            n_joints = len(q)
+            noise = self._rng.normal(0.0, truth.current_noise_a, n_joints)
+            for j in range(n_joints):
                 drives.append(DriveSample(t_ns=t, joint=j + 1, position_rad=float(q[j]), velocity_rad_s=float(dq[j]),
                                           current_a=float(currents[j] + noise[j]), status=0x0237))
             self._next_drive_ns += drive_period

@@ -64,9 +64,9 @@ class DriverCellIO(CellIO):
         self.config = config
         self.clock = time.monotonic_ns
         self._drives = sorted(drives, key=lambda d: d.joint)
-        if [d.joint for d in self._drives] != list(range(1, 7)):
-            raise InputError("the cell needs one [[drive]] for each of joints 1..6", source=config.source,
-                             column="drive")
+        if [d.joint for d in self._drives] != list(range(1, robot.n_joints + 1)):
+            raise InputError(f"the cell needs one [[drive]] for each of joints 1..{robot.n_joints} of "
+                             f"{robot.name!r}", source=config.source, column="drive")
         self._tracker = tracker
         self.reads_tracker = tracker is not None
         self._controller = controller

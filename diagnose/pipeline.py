@@ -8,6 +8,7 @@ log analysed alone and in a fleet gives the same numbers.
 from __future__ import annotations
 
 from elastocal.errors import InputError
+from elastocal.formats.calibration import is_stiffness_name
 from elastocal.model.effects import ALL_EFFECTS, get_effect
 
 
@@ -48,9 +49,9 @@ def identify_data(robot, static, runs, model: tuple[str, ...], torque: str, form
         from elastocal.identify import runs as run_ident
 
         if run_model:    # the sweeps placed with the static fit's stiffness
-            k = [p.value for p in fit.parameters if p.name in {f"k{j}" for j in range(1, 7)}]
+            k = [p.value for p in fit.parameters if is_stiffness_name(p.name)]
             result = run_ident.identify_runs(robot, runs, model=("joint_stiffness", *run_model),
-                                             stiffness=k if len(k) == 6 else None)
+                                             stiffness=k if len(k) == robot.n_joints else None)
             rj = result.to_json()
             obj["parameters"].update(rj["parameters"])
             obj["torque_residual"] = rj["residual"]

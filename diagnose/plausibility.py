@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from elastocal.formats.calibration import is_stiffness_name
+
 
 
 #: scaled condition number above which a fit counts as near-singular
 MAX_CONDITION = 1e8
 def implausible_reason(effect, fit, params) -> str | None:
     """Why the candidate fit ``fit`` of ``effect`` (its added ``params``) is implausible, or None."""
-    ks = [p for p in fit.parameters if p.name in {f"k{j}" for j in range(1, 7)}]
+    ks = [p for p in fit.parameters if is_stiffness_name(p.name)]
     neg = [p.name for p in ks if not p.value > 0]
     if neg:
         return f"the fit makes the joint stiffness {', '.join(neg)} negative"

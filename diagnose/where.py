@@ -153,7 +153,7 @@ def _bins(values: np.ndarray, n_bins: int, unit: str, fmt: str) -> tuple[np.ndar
 
 def where_it_fails(robot: Robot, fit: StaticFit, *, n_bins: int = 6, noise: bool = True) -> Where:
     """Residual summaries of a static fit by pose, marker, load state, joint
-    angle (each of q1..q6), load size and time; with ``noise`` (and repeated
+    angle (each of q1..qN), load size and time; with ``noise`` (and repeated
     readings), what noise alone leaves in each group."""
     ds = fit.dataset
     pose = ds.state_pose[ds.defl_state]
@@ -181,8 +181,8 @@ def where_it_fails(robot: Robot, fit: StaticFit, *, n_bins: int = 6, noise: bool
     ]
     loads = tuple(dict.fromkeys(ds.state_load[ds.defl_state]))
     groups.append(summary("load", np.array([loads.index(x) for x in ds.state_load[ds.defl_state]]), loads))
-    for j in range(6):
-        idx, labels = _bins(q[:, j], n_bins, "rad", ".2f")
+    for j in range(q.shape[1]):
+        idx, labels = _bins(q[:, j], n_bins, robot.joints[j].unit, ".2f" if robot.joints[j].unit == "rad" else ".3f")
         groups.append(summary(f"q{j + 1}", idx, labels))
     idx, labels = _bins(load_size, n_bins, load_unit, ".0f")
     groups.append(summary("load_size", idx, labels))

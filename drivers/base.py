@@ -351,8 +351,8 @@ class CellController(Device):
     def move_joints(self, q: Sequence[float], *, timeout_s: float | None = None) -> ControllerStatus:
         """Request joint targets ``q`` [rad]; return when in position."""
         q = tuple(float(v) for v in q)
-        if len(q) != 6 or not all(math.isfinite(v) for v in q):
-            raise InputError(f"controller: joint targets need 6 finite values, got {q}")
+        if not q or not all(math.isfinite(v) for v in q):
+            raise InputError(f"controller: joint targets need one finite value per joint, got {q}")
         return self._handshake(COMMAND_MOVE_JOINTS, {"target": q}, STATUS_IN_POSITION, timeout_s)
 
     def run(self, path: int, direction: str, *, speed_rad_s: float | None = None,

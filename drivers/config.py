@@ -50,7 +50,10 @@ try:  # Python 3.11+
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
+#: the joints of the default robot (the HH-150); a cell's drives are joints 1..N of its robot
 N_JOINTS = 6
+#: the most joints a cell's drives may number (the log's limit)
+MAX_JOINTS = 64
 
 
 # ---------------------------------------------------------------- devices
@@ -210,11 +213,14 @@ def _check_against_robot(config: CellConfig, robot) -> None:
     for i, p in enumerate(config.controller.paths, start=1):
         taught += [(f"controller.path[{i}].u", p.u), (f"controller.path[{i}].v", p.v)]
     for key, q in taught:
+        if len(q) != robot.n_joints:
+            raise InputError(f"{len(q)} joint values; the robot {robot.name!r} has {robot.n_joints} joints",
+                             source=src, column=key)
         for j, v in enumerate(q):
             lo, hi = robot.joints[j].lower, robot.joints[j].upper
             if not lo - 1e-9 <= v <= hi + 1e-9:
-                raise InputError(f"q{j + 1} = {v:g} rad is outside the joint limits [{lo:.4g}, {hi:.4g}] of "
-                                 f"{robot.name}", source=src, column=key)
+                raise InputError(f"q{j + 1} = {v:g} {robot.joints[j].unit} is outside the joint limits "
+                                 f"[{lo:.4g}, {hi:.4g}] of {robot.name}", source=src, column=key)
 
 
 # ---------------------------------------------------------------- parsing
@@ -231,7 +237,7 @@ def _rate(table: Mapping, default: float, *, source: str, where: str) -> float:
 
 
 def _joint_angles(table: Mapping, key: str, *, source: str, where: str) -> tuple[float, ...]:
-    """Six joint coordinates [rad]; more than a turn is refused as degrees."""
+    """Joint coordinates q1..qN [rad]; more than a turn is refused as degrees."""
     q = _vec(table, key, None, source=source, where=where)
     for j, v in enumerate(q):
         if abs(v) > 2 * math.pi + 1e-9:
@@ -261,7 +267,9 @@ def _int(table: Mapping, key: str, default: int, *, source: str, where: str, low
 
 
 def _vec(table: Mapping, key: str, default: tuple[float, ...] | None, *, source: str, where: str,
-         n: int = N_JOINTS, nonneg: bool = False) -> tuple[float, ...]:
+         n: int | None = None, nonneg: bool = False) -> tuple[float, ...]:
+    """A per-joint list: ``n`` numbers, or any number of them (one per joint of the robot, which
+    the simulated cell checks) when ``n`` is None."""
     if key not in table:
         if default is None:
             raise InputError("missing required key", source=source, column=f"{where}.{key}")
@@ -270,9 +278,12 @@ def _vec(table: Mapping, key: str, default: tuple[float, ...] | None, *, source:
     try:
         out = tuple(float(x) for x in v if not isinstance(x, bool))
     except (TypeError, ValueError):
-        raise InputError(f"expected a list of {n} numbers, got {v!r}", source=source, column=f"{where}.{key}") from None
-    if len(out) != n or len(out) != len(v) or not all(math.isfinite(x) for x in out):
-        raise InputError(f"expected {n} finite numbers, got {v!r}", source=source, column=f"{where}.{key}")
+        raise InputError(f"expected a list of {n or 'per-joint'} numbers, got {v!r}", source=source,
+                         column=f"{where}.{key}") from None
+    if (len(out) != (n or len(out)) or not out or len(out) != len(v)
+            or not all(math.isfinite(x) for x in out)):
+        raise InputError(f"expected {n or 'one per joint:'} finite numbers, got {v!r}", source=source,
+                         column=f"{where}.{key}")
     if nonneg and any(x < 0 for x in out):
         raise InputError("values must be >= 0", source=source, column=f"{where}.{key}")
     return out
@@ -285,8 +296,9 @@ def _drive(t: Mapping, i: int, *, source: str) -> DriveConfig:
     check_known_keys(t, ("joint", "url", "registers", "rate_hz", "timeout_s", "retries", "max_current_a"),
                 source=source, where=where)
     joint = t.get("joint")
-    if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= N_JOINTS:
-        raise InputError(f"joint must be 1..{N_JOINTS}, got {joint!r}", source=source, column=f"{where}.joint")
+    if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= MAX_JOINTS:
+        raise InputError(f"joint must be 1..N (the robot's joints), got {joint!r}", source=source,
+                         column=f"{where}.joint")
     if "url" not in t:
         raise InputError("missing required key", source=source, column=f"{where}.url")
     url = parse_device_url(t["url"], allowed=DRIVE_SCHEMES, source=f"{source}, {where}.url", kind="drive")
@@ -378,11 +390,11 @@ def _controller(t: Mapping, *, source: str) -> ControllerConfig:
                              source=source, column=f"controller.registers.{name}")
         quantity, writable, count = CONTROLLER_REGISTERS[name]
         spec = _register(name, spec_table, source=source, where="controller.registers", default_access="read",
-                         default_count=count)
+                         default_count=count or N_JOINTS)
         if spec.quantity != quantity:
             raise InputError(f"unit {spec.unit!r} is not a unit of {quantity.replace('_', ' ')}",
                              source=source, column=f"controller.registers.{name}")
-        if spec.count != count:
+        if count is not None and spec.count != count:
             raise InputError(f"{name} holds {count} value(s), got count = {spec.count}", source=source,
                              column=f"controller.registers.{name}")
         if not writable and spec.access == "write":

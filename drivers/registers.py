@@ -33,12 +33,13 @@ DRIVE_REGISTER_QUANTITY = {"current": "current", "position": "angle", "velocity"
 
 #: registers of the cell-controller handshake (docs/cell-config.md)
 CONTROLLER_REGISTERS = {
-    # name: (quantity, may elastocal write it, count); every register is read unless the config
-    # declares it `access = "write"` (the app writes only what a person declared writable)
+    # name: (quantity, may elastocal write it, count: None for one per joint of the robot); every
+    # register is read unless the config declares it `access = "write"` (the app writes only what a
+    # person declared writable)
     "command": ("count", True, 1), "sequence": ("count", True, 1), "pose": ("count", True, 1),
-    "path": ("count", True, 1), "speed": ("angular_velocity", True, 1), "target": ("angle", True, 6),
+    "path": ("count", True, 1), "speed": ("angular_velocity", True, 1), "target": ("angle", True, None),
     "ack": ("count", False, 1), "status": ("count", False, 1), "error": ("count", False, 1),
-    "q": ("angle", False, 6),
+    "q": ("angle", False, None),
 }
 
 

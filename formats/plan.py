@@ -159,9 +159,12 @@ class Plan:
     def validate_for(self, robot: Robot) -> None:
         """Check the plan against a robot: joint limits and marker names."""
         def check_q(q: Sequence[float], where: str) -> None:
+            if len(q) != robot.n_joints:
+                raise InputError(f"{len(q)} joint values; the robot {robot.name!r} has {robot.n_joints} joints",
+                                 source=self.source, column=where)
             for j, (v, lo, hi) in enumerate(zip(q, robot.lower, robot.upper), start=1):
                 if not lo <= v <= hi:
-                    raise InputError(f"q{j} = {v} rad is outside the joint limits [{lo:.4g}, {hi:.4g}] of "
+                    raise InputError(f"q{j} = {v} {robot.joints[j - 1].unit} is outside the joint limits [{lo:.4g}, {hi:.4g}] of "
                                      f"{robot.name}", source=self.source, column=where)
 
         def check_marker(m: str | None, where: str) -> None:
@@ -252,7 +255,9 @@ class _Table:
         return tuple(float(x) for x in v)
 
     def joint_vector(self, name: str) -> tuple[float, ...]:
-        q = self.vector(name, 6)
+        """q1..qN (the plan is checked against the robot's N in :meth:`Plan.validate_for`)."""
+        v = self.data.get(name)
+        q = self.vector(name, len(v) if isinstance(v, list) and v else 6)
         for j, v in enumerate(q, start=1):
             if abs(v) > 2 * math.pi:
                 raise self.fail(name, f"q{j} = {v} is larger than 2*pi; degrees? angles are radians")

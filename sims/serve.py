@@ -48,16 +48,21 @@ LOOPBACK = ("127.0.0.1", "localhost")
 SIM_CAN_INTERFACES = ("virtual", CAN_LOOPBACK)
 
 
-def example_cell_path() -> pathlib.Path:
-    """The packaged simulated cell (``sims/data/sim_cell.toml``)."""
-    return pathlib.Path(str(resources.files("elastocal.sims") / "data" / "sim_cell.toml"))
+#: the packaged simulated cells, by the bundled robot they hold
+EXAMPLE_CELLS = {"hh150": "sim_cell.toml", "hh150_track": "sim_cell_track.toml"}
 
 
-def example_cell_config(*, can_channel: str | None = None, **sim_overrides) -> CellConfig:
-    """The packaged simulated cell; ``can_channel`` renames its virtual CAN
+def example_cell_path(robot: str = "hh150") -> pathlib.Path:
+    """The packaged simulated cell of a bundled robot (``sims/data/sim_cell.toml`` for the
+    HH-150, ``sim_cell_track.toml`` for the HH-150 on a track)."""
+    return pathlib.Path(str(resources.files("elastocal.sims") / "data" / EXAMPLE_CELLS[robot]))
+
+
+def example_cell_config(*, can_channel: str | None = None, robot: str = "hh150", **sim_overrides) -> CellConfig:
+    """The packaged simulated cell (of the bundled ``robot``); ``can_channel`` renames its virtual CAN
     channel (so several simulated cells can run in one process) and
     ``sim_overrides`` replace fields of its ``[sim]`` section."""
-    path = example_cell_path()
+    path = example_cell_path(robot)
     config = parse_cell_config(read_text_file(path), source=str(path), base_dir=path.parent)
     if can_channel is not None:
         config = replace(config, drives=tuple(replace(d, url=d.url.with_path(can_channel)) if d.url.scheme == "canopen"

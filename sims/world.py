@@ -72,7 +72,7 @@ class _Segment:
     @property
     def dq(self) -> np.ndarray:
         if self.duration_s <= 0:
-            return np.zeros(6)
+            return np.zeros(len(self.q0))
         return (self.q1 - self.q0) / self.duration_s
 
     def s_at(self, t_ns: int) -> float:
@@ -90,7 +90,6 @@ def _read_only(a: np.ndarray) -> np.ndarray:
     return a
 
 
-_ZEROS6 = _read_only(np.zeros(6))
 
 
 def _interp_rows(grid: np.ndarray, values: np.ndarray, s: float) -> np.ndarray:
@@ -121,6 +120,7 @@ class SimWorld:
         self._planning = False
         q = self._check_q(start_q, "start_q")
         self._wrench = np.zeros(6)
+        self._zero_speed = _read_only(np.zeros(self.robot.n_joints))
         self._segments: tuple[_Segment, ...] = ()
         self._reference = cell.equilibrium(q, self._wrench)
         self._set_rest(q, self._reference)
@@ -128,9 +128,13 @@ class SimWorld:
     @classmethod
     def from_config(cls, robot, sim, markers: Sequence[str] | None = None) -> "SimWorld":
         """A world for :class:`elastocal.sims.config.SimConfig` ``sim``."""
-        truth = CellTruth(coulomb=np.array(sim.coulomb_nm), viscous=np.array(sim.viscous_nm_s_rad),
-                          load_friction=np.array(sim.load_friction), tracker_noise_m=sim.tracker_noise_m,
-                          current_noise_a=sim.current_noise_a)
+        for key in ("start_q", "coulomb_nm", "viscous_nm_s_rad", "load_friction", "gear_ratios"):
+            if len(getattr(sim, key)) != robot.n_joints:
+                raise InputError(f"{len(getattr(sim, key))} values; the robot {robot.name!r} has {robot.n_joints} "
+                                 "joints, one each", column=f"sim.{key}")
+        truth = CellTruth.for_robot(robot, coulomb=np.array(sim.coulomb_nm), viscous=np.array(sim.viscous_nm_s_rad),
+                                    load_friction=np.array(sim.load_friction), tracker_noise_m=sim.tracker_noise_m,
+                                    current_noise_a=sim.current_noise_a)
         try:
             truth = truth.with_hidden(sim.hidden)
         except ValueError as exc:
@@ -149,8 +153,9 @@ class SimWorld:
     # --------------------------------------------------------- commands
     def _check_q(self, q: Sequence[float], name: str) -> np.ndarray:
         q = np.asarray(q, dtype=float).reshape(-1)
-        if q.shape != (6,) or not np.all(np.isfinite(q)):
-            raise InputError(f"{name}: expected 6 finite joint values, got {q}")
+        n = self.robot.n_joints
+        if q.shape != (n,) or not np.all(np.isfinite(q)):
+            raise InputError(f"{name}: expected {n} finite joint values, got {q}")
         if np.any(q < self.robot.lower) or np.any(q > self.robot.upper):
             raise InputError(f"{name}: {np.round(q, 4).tolist()} is outside the joint limits")
         return q
@@ -160,7 +165,7 @@ class SimWorld:
         duration = dist / speed
         n = int(min(max(math.ceil(dist / PLAN_STEP_RAD) + 1, 2), PLAN_MAX_POINTS))
         s_grid = np.linspace(0.0, 1.0, n)
-        dq = (q1 - q0) / duration if duration > 0 else np.zeros(6)
+        dq = (q1 - q0) / duration if duration > 0 else np.zeros(len(q0))
         thetas, links, gears, currents = [], [], [], []
         for s in s_grid:
             q = q0 + (q1 - q0) * s
@@ -311,12 +316,12 @@ class SimWorld:
                     t = seg.t0_ns
                 else:
                     # SimCell.read_currents(self._rest_eq, rng), with the noise-free currents computed once
-                    noise = self._rng.normal(0.0, self.cell.truth.current_noise_a, size=6)
-                    return WorldSample(t, self._rest_q_ro, _ZEROS6, self._rest_currents + noise, False)
+                    noise = self._rng.normal(0.0, self.cell.truth.current_noise_a, size=self.robot.n_joints)
+                    return WorldSample(t, self._rest_q_ro, self._zero_speed, self._rest_currents + noise, False)
             s = seg.s_at(t)
             q = seg.q0 + (seg.q1 - seg.q0) * s
             i = _interp_rows(seg.s_grid, seg.currents, s)
-            noise = self._rng.normal(0.0, self.cell.truth.current_noise_a, size=6)
+            noise = self._rng.normal(0.0, self.cell.truth.current_noise_a, size=self.robot.n_joints)
             return WorldSample(t, q, seg.dq, i + noise, True)
 
     def equilibrium_at(self, t_ns: int | None = None) -> Equilibrium:
@@ -334,7 +339,7 @@ class SimWorld:
             return Equilibrium(q=q, theta=_interp_rows(seg.s_grid, seg.theta, s),
                                link_angles=_interp_rows(seg.s_grid, seg.link_angles, s),
                                gear_torque=_interp_rows(seg.s_grid, seg.gear_torque, s),
-                               wrench=seg.wrench, friction_torque=np.zeros(6))
+                               wrench=seg.wrench, friction_torque=np.zeros(self.robot.n_joints))
 
     def read_tracker(self, marker: str, t_ns: int | None = None) -> np.ndarray:
         """A tracker reading of ``marker`` at ``t_ns`` [m], in the tracker's frame (``CellTruth.tracker_rotation``)."""

@@ -69,7 +69,7 @@ def test_schemas_registered_once_and_channels_are_json(tmp_path):
             assert doc["type"] == "object" and doc["title"] == s.name
         topics = {c.topic: c for c in summary.channels.values()}
         assert set(topics) == {lf.TOPIC_SESSION, lf.TOPIC_ROBOT, lf.TOPIC_CELL, lf.TOPIC_PLAN, lf.TOPIC_EVENT,
-                               lf.TOPIC_TRACKER, *lf.DRIVE_TOPICS, *lf.FOXGLOVE_TOPIC_SCHEMAS}
+                               lf.TOPIC_TRACKER, *(lf.drive_topic(j) for j in range(1, 7)), *lf.FOXGLOVE_TOPIC_SCHEMAS}
         assert all(c.message_encoding == "json" for c in topics.values())
         counts = summary.statistics.channel_message_counts
         raw = sum(n for cid, n in counts.items() if summary.channels[cid].topic not in lf.FOXGLOVE_TOPIC_SCHEMAS)

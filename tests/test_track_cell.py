@@ -209,3 +209,24 @@ def test_stiffness_and_registration_intervals_cover_the_truth_over_seeds():
     pooled, each = covered.mean(), covered.mean(axis=0)
     assert abs(pooled - 0.95) <= 0.04, (pooled, dict(zip(names, each)))
     assert np.all(each >= 0.95 - 3 * np.sqrt(0.95 * 0.05 / N_SEEDS)), dict(zip(names, each))
+
+
+@pytest.mark.heavy
+@pytest.mark.slow
+def test_the_demo_chain_runs_on_the_track_cell(tmp_path):
+    """`elastocal demo --robot hh150_track`: seven simulated drives on the CAN bus, the guided procedure
+    through the real drivers, identification from the log, diagnosis, the absolute calibration and the
+    compensated path on the simulated cell."""
+    out = tmp_path / "demo"
+    done = _cli("demo", "--robot", "hh150_track", "--poses", "8", "--seed", "2", "--out", str(out))
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads((out / "demo.json").read_text())
+    assert summary["procedure"]["status"] == "completed" and summary["procedure"]["steps"] == 8
+    assert len(summary["stiffness_error_percent"]) == 7
+    assert summary["verdict"] == "link_compliance"
+    assert summary["rms_after"] <= 1.3 * summary["noise_floor"]
+    assert summary["absolute"]["rms_after"] <= 1.3 * summary["absolute"]["noise_floor"]
+    comp = summary["compensation"]
+    assert comp["exact"]["max"] < 0.05 * comp["uncompensated"]["max"]
+    krl = (out / "compensated.src").read_text(encoding="utf-8")
+    assert "E6AXIS" in krl and " E1 " in krl

@@ -21,8 +21,10 @@ def demo_findings(*, hidden: str, verdict: str | None, explanation: str | None, 
                   absolute: tuple[float, float] | None = None) -> list[str]:
     """What the demo found, as sentences a newcomer reads without the glossary."""
     worst = float(np.max(stiffness_error_percent))
-    out = [f"The robot bends under load like six springs at its joints. elastocal measured how stiff each "
-           f"spring is from the motor currents and the tracker alone, and got all six within {worst:.1f} % of "
+    n = len(stiffness_error_percent)
+    count = {6: "six", 7: "seven", 8: "eight"}.get(n, str(n))
+    out = [f"The robot bends under load like {count} springs at its joints. elastocal measured how stiff each "
+           f"spring is from the motor currents and the tracker alone, and got all {count} within {worst:.1f} % of "
            f"the values the simulator was built with."]
     if floor is not None and verdict is not None:
         out.append(f"The springs alone do not explain everything: they leave {_um(rms_before)} of error where the "

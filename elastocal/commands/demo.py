@@ -44,6 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "thermal_drift, backlash (default link_compliance)")
     parser.add_argument("--poses", type=int, default=DEMO_POSES, help=f"poses of the static procedure "
                                                                       f"(default {DEMO_POSES})")
+    parser.add_argument("--robot", default="hh150", choices=DEMO_ROBOTS,
+                        help="the simulated cell: hh150 (the six-axis arm, default) or hh150_track (the arm on "
+                             "a floor track, seven joints)")
+
+
+#: the bundled robots whose simulated cell ships (sims/data)
+DEMO_ROBOTS = ("hh150", "hh150_track")
 
 
 #: the file that marks a folder as the demo's own (a second run into it replaces the demo's files)
@@ -149,15 +156,15 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
 
     # 1. the simulated cell: built with its real geometry (kinematic errors), the tracker 3.7 m away and turned
     cell_hidden = "kinematic_errors" if args.hidden == "none" else f"{args.hidden},kinematic_errors"
-    config = example_cell_config(can_channel=f"demo-{args.seed}", seed=args.seed, hidden=cell_hidden,
-                                 move_speed_rad_s=2.0)
+    config = example_cell_config(can_channel=f"demo-{args.seed}", robot=args.robot, seed=args.seed,
+                                 hidden=cell_hidden, move_speed_rad_s=2.0)
     # a static procedure needs no 1 kHz current stream: 200 Hz keeps the demo light on 2 cores
     config = dataclasses.replace(config, drives=tuple(dataclasses.replace(d, rate_hz=DEMO_DRIVE_RATE_HZ)
                                                       for d in config.drives))
     robot = config.load_robot()
-    truth = CellTruth().with_hidden(cell_hidden)
+    truth = CellTruth.for_robot(robot).with_hidden(cell_hidden)
     write_text_atomic(out / "cell.toml", config.to_toml())
-    say(f"Simulated cell '{config.name}': a {robot.name} robot whose six servo drives report their motor "
+    say(f"Simulated cell '{config.name}': a {robot.name} robot whose {robot.n_joints} servo drives report their motor "
         f"currents {DEMO_DRIVE_RATE_HZ:.0f} times a second (CANopen, TPDO on SYNC), a laser tracker that measures "
         f"3 markers on the tool, and the cell controller (Modbus). Hidden in its physics, for elastocal to find: "
         f"{args.hidden}; and the robot as built differs from its drawing by 0.02-0.05 deg and 0.1-0.5 mm, "
@@ -183,7 +190,8 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     # 3. identification from the log alone
     robot_log, static, _ = load_log(log)
     truth_params = truth.parameters(robot)
-    truth_k = {f"k{j}": truth_params[f"k{j}"] for j in range(1, 7)}
+    k_names = [f"k{j}" for j in range(1, robot.n_joints + 1)]
+    truth_k = {k: truth_params[k] for k in k_names}
     fits = {}
     for torque in ("current", "force"):
         fits[torque] = identify_static(robot_log, static, torque=torque)
@@ -230,7 +238,7 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
 
     # 5. compensated trajectory on the simulated cell
     comp = robot.compensator.nominal_parameters() if robot.compensator is not None else None
-    k = final.values([f"k{j}" for j in range(1, 7)])
+    k = final.values(k_names)
     model = CompensationModel(robot=robot, stiffness=k, compensator=None if comp is None else tuple(comp))
     path = yang_path(robot)
     wrench = np.tile(np.asarray(YANG_WRENCH, dtype=float), (len(path), 1))

@@ -31,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help=f"effect the simulated cell has and the default model lacks: none (default), {effects}")
         add_seed(p)
         p.add_argument("--out", required=True, help="output directory")
-        p.add_argument("--robot", help="robot.toml to simulate (default: the bundled HH-150)")
+        p.add_argument("--robot", help="robot.toml to simulate, or a bundled robot by name: hh150 (the default), "
+                                       "hh150_track (the HH-150 on a floor track, seven joints)")
         p.add_argument("--force", action="store_true", help="overwrite the files of an earlier dataset in --out")
         add_json(p)
         if name == "runs":
@@ -151,9 +152,15 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _robot(args):
-    from elastocal.formats.robot_toml import bundled_robot, load_robot
+    from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path, load_robot
 
-    return load_robot(args.robot) if args.robot else bundled_robot()
+    import pathlib
+
+    if not args.robot:
+        return bundled_robot()
+    if not pathlib.Path(args.robot).exists() and bundled_robot_path(args.robot).exists():
+        return bundled_robot(args.robot)        # a bundled robot by name: hh150, hh150_track
+    return load_robot(args.robot)
 
 
 def _path(args: argparse.Namespace) -> int:

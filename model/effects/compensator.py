@@ -23,8 +23,10 @@ _GAP_SCAN_M = np.geomspace(1e-3, 5.0, 400)
 
 
 def _refusal(ctx: StaticContext) -> str:
-    return ("static differences do not separate the compensator from k2; identify C, l_c "
-            "(or K_c, s0) from a joint-2 sweep in the run table")
+    spec = ctx.robot.compensator if ctx.robot is not None else None
+    j = spec.joint if spec is not None else 2           # the joint the compensator names
+    return (f"static differences do not separate the compensator from k{j}; identify C, l_c "
+            f"(or K_c, s0) from a joint-{j} sweep in the run table")
 
 
 def _start(spec, q2: np.ndarray):
