@@ -202,6 +202,10 @@ class CellConfig:
 def _check_against_robot(config: CellConfig, robot) -> None:
     """The tracker follows markers the robot has; taught poses and path ends lie within its joint limits."""
     src = config.source
+    for i, d in enumerate(config.drives, start=1):
+        if d.joint > robot.n_joints:
+            raise InputError(f"joint {d.joint}: the robot {robot.name!r} has joints 1..{robot.n_joints}", source=src,
+                             column=f"drive[{i}].joint")
     if config.tracker is not None:
         for m in config.tracker.markers:
             if m not in robot.marker_names:

@@ -64,6 +64,21 @@ def test_packaged_simulated_cell_round_trips():
     assert load_cell_config(example_cell_path()).drives == c.drives
 
 
+def test_the_packaged_track_cell_has_a_drive_per_joint_and_other_ns_are_refused():
+    """The seven-joint cell (the HH-150 on a track): seven drives, seven-value poses; a drive or a
+    taught pose that does not fit the robot's N is refused naming its key."""
+    c = example_cell_config(robot="hh150_track")
+    assert [d.joint for d in c.drives] == list(range(1, 8)) and c.load_robot().n_joints == 7
+    assert len(c.controller.pose(1)) == 7 and sim_config(c).start_q[0] == 3.0
+    six = dataclasses.replace(c, robot="hh150")
+    with pytest.raises(InputError, match=r"joint 7: the robot 'HH-150' has joints 1\.\.6") as err:
+        six.load_robot()
+    assert err.value.column == "drive[7].joint"
+    six = dataclasses.replace(six, drives=c.drives[:6])
+    with pytest.raises(InputError, match=r"7 joint values; the robot 'HH-150' has 6 joints"):
+        six.load_robot()
+
+
 def test_relative_paths_resolve_next_to_the_file(tmp_path):
     robot = tmp_path / "robots" / "r.toml"
     robot.parent.mkdir()
@@ -76,7 +91,7 @@ def test_relative_paths_resolve_next_to_the_file(tmp_path):
 
 
 @pytest.mark.parametrize("extra,column,message", [
-    ('[[drive]]\njoint = 7\nurl = "canopen://virtual/c?node=1"', "drive[1].joint", "joint must be 1..6"),
+    ('[[drive]]\njoint = 0\nurl = "canopen://virtual/c?node=1"', "drive[1].joint", "joint must be 1..N"),
     ('[[drive]]\njoint = 1\nurl = "tracker+tcp://127.0.0.1:1"', None, "cannot be used here"),
     ('[[drive]]\njoint = 1\nurl = "canopen://virtual/c?node=1"\n[[drive]]\njoint = 1\n'
      'url = "canopen://virtual/c?node=2"', "drive", "joints repeat"),
@@ -107,7 +122,7 @@ def test_config_errors_name_the_file_and_key(extra, column, message):
 
 @pytest.mark.parametrize("extra,column,message", [
     ('[sim]\nhidden = "gremlins"', "sim.hidden", "hidden must be one of"),
-    ('[sim]\nstart_q = [0, 0]', "sim.start_q", "expected 6 finite numbers"),
+    ('[sim]\nstart_q = []', "sim.start_q", "expected one per joint: finite numbers"),
     ('[sim]\nseeed = 1', "sim.seeed", "unknown key seeed \\(did you mean seed\\?\\)"),
 ])
 def test_sim_section_errors_name_the_file_and_key(extra, column, message):

@@ -115,7 +115,7 @@ def test_recorder_refuses_to_overwrite_and_rejects_unknown_topics(tmp_path):
         with pytest.raises(InputError, match="unknown topic"):
             rec.copy("/camera", 1, 1, b"{}")
         with pytest.raises(ValueError):
-            rec.drive_sample(7, 1, 0.0, 0.0, 0.0)
+            rec.drive_sample(65, 1, 0.0, 0.0, 0.0)     # beyond the log's joints
 
 
 @pytest.mark.heavy
