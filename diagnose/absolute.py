@@ -40,7 +40,9 @@ VERDICT_DELTA_BIC = -10.0
 #: what each absolute candidate is fitted with (the registration is always in). Thermal drift
 #: is a candidate here too: it moves every reading with time, and over a whole experiment
 #: (hours) the absolute positions see far more of it than a deflection does (seconds apart)
-CANDIDATE_MODELS = {"kinematic_errors": ("kinematic_errors", "tracker_frame"), "thermal_drift": ("thermal_drift",)}
+CANDIDATE_MODELS = {"kinematic_errors": ("kinematic_errors", "tracker_frame"), "thermal_drift": ("thermal_drift",),
+                    # on a table without loads (diagnose/absolute_only.py): the twist under the robot's own weight
+                    "joint_stiffness": ("joint_stiffness",)}
 TRACKER_FRAME_NOTE = ("the registration is part of every absolute comparison (fitted with the elastic model on the "
                       "absolute positions); it is never missing")
 

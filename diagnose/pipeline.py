@@ -69,6 +69,13 @@ def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: str, form
 
     static_diag = None
     runs_diag = None
+    if static is not None and runs is None and static.absolute_only:     # a table without loads
+        from elastocal.diagnose.absolute_only import diagnose_absolute_only
+        from elastocal.identify.outliers import without_outliers
+        from elastocal.identify.static import build_dataset
+
+        table, excluded = without_outliers(static) if exclude_outliers else (static, ())
+        return diagnose_absolute_only(robot, build_dataset(table), model, tracker_prior=tracker_prior), None
     if static is not None:
         static_model = model
         if runs is not None:  # run-data effects of the model are the runs' business
@@ -98,6 +105,10 @@ def diagnosis_json(static, runs) -> dict:
     candidate says which data tested it (``data``: static or runs), significant
     ones first by delta_bic, and the verdict is the first when it is its own
     data's verdict — so null still means "no missing effect found" in either."""
+    from elastocal.diagnose.absolute_only import AbsoluteOnlyDiagnosis
+
+    if isinstance(static, AbsoluteOnlyDiagnosis):
+        return static.to_json()
     if static is None:
         obj = runs.to_json()
         for c in obj["candidates"]:

@@ -159,6 +159,10 @@ class Calibration:
     #: optional (elastocal extension): the robot.toml text the calibration was
     #: identified against, so that `elastocal robot` can write the calibrated one
     robot_description: str | None = None
+    #: optional (elastocal extension): the parameters of the model the data did not determine
+    #: (``identify --json``'s ``unidentifiable``): not held, so read as absent (a joint stiffness
+    #: not held is a rigid joint where the calibration is used)
+    unidentifiable: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.parameters]
@@ -202,7 +206,8 @@ class Calibration:
                "parameters": {p.name: p.to_json() for p in self.parameters},
                "residual": self.residual.to_json(), "data": [d.to_json() for d in self.data],
                **({} if self.absolute_residual is None else {"absolute_residual": self.absolute_residual.to_json()}),
-               **({} if self.robot_description is None else {"robot_description": self.robot_description})}
+               **({} if self.robot_description is None else {"robot_description": self.robot_description}),
+               **({"unidentifiable": list(self.unidentifiable)} if self.unidentifiable else {})}
         return out
 
 
@@ -230,7 +235,8 @@ def calibration_from_fit(robot_name: str, fit_json: dict, data_paths: Sequence[s
     return Calibration(robot=robot_name, created=created, model=tuple(fit_json["model"]),
                        torque=fit_json.get("torque", "current"), parameters=tuple(parameters),
                        residual=residual, data=data, absolute_residual=absolute,
-                       robot_description=robot_description)
+                       robot_description=robot_description,
+                       unidentifiable=tuple(str(n) for n in fit_json.get("unidentifiable", ())))
 
 
 def write_calibration(path: str | pathlib.Path, cal: Calibration) -> None:
@@ -419,12 +425,17 @@ def calibration_from_json(doc: object, source: str) -> Calibration:
                          f"got {sign!r}", source=src, column="friction_sign")
     if sign is None and any(is_friction(p.name) for p in parameters):
         parameters = _old_friction_sign(parameters)
-    given = [int(k[1:]) for k in params if is_stiffness_name(k)]
-    if given:   # run data alone give none; static data give one per joint, k1..kN
+    unidentifiable = doc.get("unidentifiable", [])
+    if not isinstance(unidentifiable, list) or not all(isinstance(n, str) for n in unidentifiable):
+        raise InputError(f"expected a list of parameter names, got {unidentifiable!r}", source=src,
+                         column="unidentifiable")
+    given = [int(k[1:]) for k in (*params, *unidentifiable) if is_stiffness_name(k)]
+    if given:   # run data alone give none; static data give one per joint, k1..kN (or say which they could not)
         for k in stiffness_names(max(given)):
-            if k not in params:
-                raise InputError(f"missing {k}: a calibration with joint stiffness holds k1..k{max(given)}",
-                                 source=src, column=f"parameters.{k}")
+            if k not in params and k not in unidentifiable:
+                raise InputError(f"missing {k}: a calibration with joint stiffness holds k1..k{max(given)} (or "
+                                 "lists the undetermined ones in unidentifiable)", source=src,
+                                 column=f"parameters.{k}")
     torque = doc.get("torque", "current")
     if torque not in TORQUES:
         raise InputError(f"expected one of {', '.join(TORQUES)}, got {torque!r}", source=src, column="torque")
@@ -443,4 +454,5 @@ def calibration_from_json(doc: object, source: str) -> Calibration:
     return Calibration(robot=robot, created=created, model=tuple(model), torque=torque,
                        parameters=parameters, residual=residual,
                        data=tuple(_data_file(d, src, k) for k, d in enumerate(data)), source=src,
-                       absolute_residual=absolute, robot_description=description)
+                       absolute_residual=absolute, robot_description=description,
+                       unidentifiable=tuple(unidentifiable))

@@ -57,8 +57,16 @@ def run_columns(n_joints: int = 6) -> tuple[str, ...]:
 STATIC_COLUMNS = static_columns(6)
 #: optional columns of the static table (docs/formats.md §2): the tracker's per-point expanded
 #: uncertainty U95 [m] (weights the fit) and the air it measured through [°C, hPa, %]
-STATIC_OPTIONAL_COLUMNS = ("u95", "temperature_c", "pressure_hpa", "humidity_pct")
+STATIC_OPTIONAL_COLUMNS = ("u95", "sx", "sy", "sz", "temperature_c", "pressure_hpa", "humidity_pct")
+#: the reading's uncertainty: expanded (k = 2) or standard per axis [m]
+UNCERTAINTY_COLUMNS = ("u95", "sx", "sy", "sz")
 RUN_COLUMNS = run_columns(6)
+
+
+def static_omissible(n_joints: int) -> tuple[str, ...]:
+    """The columns an absolute-only table (docs/formats.md "Absolute-only tables") may leave out of
+    its header: no load column is load 0 everywhere; no time, wrench or currents are empty ones."""
+    return ("load", "t") + W_COLS + joint_columns("i", n_joints)
 
 #: a marker coordinate beyond this is taken as millimetres [m]
 MAX_POSITION_M = 20.0
@@ -102,6 +110,12 @@ class StaticTable:
     @property
     def n_joints(self) -> int:
         return int(self.q.shape[1])
+
+    @property
+    def absolute_only(self) -> bool:
+        """Every row is the unloaded state (load 0): a geometric calibration table of absolute
+        positions (docs/formats.md "Absolute-only tables"), no deflections."""
+        return bool(np.all(self.load == "0"))
 
     def optional(self, name: str) -> np.ndarray | None:
         """The optional column ``name`` (NaN where empty), None when the table has none."""
@@ -369,12 +383,12 @@ def _fast_static_table(rows: _Rows, robot: Robot | None, extra_cols: list[str]) 
     n = len(rows.rows)
     text = {}
     for c in ("pose", "load", "marker"):
-        text[c] = np.array(cols[c], dtype=str)
+        text[c] = np.array(cols[c] if c in cols else ("0",) * n, dtype=str)
         if not np.all(text[c] != ""):
             return None
     numbers = {}
     for c in ("t", *Q_COLS, *W_COLS, *I_COLS, *XYZ_COLS, *extra_cols):
-        got = _numbers(cols[c])
+        got = _numbers(cols[c] if c in cols else ("",) * n)
         if got is None:
             return None
         numbers[c] = got
@@ -399,9 +413,9 @@ def _fast_static_table(rows: _Rows, robot: Robot | None, extra_cols: list[str]) 
             return None
         if robot is not None and not np.all(np.isin(text["marker"], np.array(robot.marker_names, dtype=str))):
             return None
-        if "u95" in extra_cols:
-            u95 = numbers["u95"][0]
-            if not np.all(np.isnan(u95) | ((0 <= u95) & (u95 < 0.01))):
+        for c in (c for c in extra_cols if c in UNCERTAINTY_COLUMNS):
+            u = numbers[c][0]
+            if not np.all(np.isnan(u) | ((0 <= u) & (u < 0.01))):
                 return None
     line = np.fromiter((lineno for lineno, _ in rows.rows), dtype=int, count=n)
     return StaticTable(rows.source, text["pose"], text["load"], t, q, w, cur, text["marker"], xyz, line,
@@ -411,8 +425,13 @@ def _fast_static_table(rows: _Rows, robot: Robot | None, extra_cols: list[str]) 
 def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "<static.csv>") -> StaticTable:
     """Read and validate a static table (docs/formats.md §2): in whole-column operations when
     every row passes the checks (the usual case), else row by row to the first bad one."""
-    rows = _Rows(text, source, required=static_columns,
+    rows = _Rows(text, source, required=lambda n: tuple(c for c in static_columns(n) if c not in static_omissible(n)),
                  known=lambda n: static_columns(n) + STATIC_OPTIONAL_COLUMNS, robot=robot)
+    rows.check_groups([(W_COLS, "the wrench"), (rows.i_cols, "the current vector"),
+                       (("sx", "sy", "sz"), "a per-axis uncertainty")])
+    if "u95" in rows.index and "sx" in rows.index:
+        raise InputError("give u95 or sx,sy,sz, not both: each is the reading's uncertainty", source=source,
+                         row=1, column="sx")
     extra_cols = [c for c in STATIC_OPTIONAL_COLUMNS if c in rows.index]
     table = _fast_static_table(rows, robot, extra_cols)
     if table is None:
@@ -454,8 +473,8 @@ def _parse_static_rows(rows: _Rows, robot: Robot | None, extra_cols: list[str]) 
         line.append(lineno)
         for c in extra_cols:
             v = rows.number(lineno, row, c, required=False)
-            if c == "u95" and not (math.isnan(v) or 0 <= v < 0.01):
-                raise InputError(f"u95 {v:g} must be >= 0 and below 0.01 m (metres, not millimetres)",
+            if c in UNCERTAINTY_COLUMNS and not (math.isnan(v) or 0 <= v < 0.01):
+                raise InputError(f"{c} {v:g} must be >= 0 and below 0.01 m (metres, not millimetres)",
                                  source=source, row=lineno, column=c)
             extra[c].append(v)
     table = StaticTable(source, np.array(pose, dtype=str), np.array(load, dtype=str), np.array(t, dtype=float),
@@ -480,7 +499,7 @@ def _static_structure_holds(table: StaticTable) -> bool:
         return False                                 # a pose without its unloaded reference
     pose_load = np.unique(pose * n_load + load)
     loads_of_pose = np.bincount(pose_load // n_load, minlength=n_pose)
-    if np.any(loads_of_pose < 2):
+    if np.any(loads_of_pose < 2) and not table.absolute_only:
         return False                                 # a pose with one load state
     if np.any(np.abs(table.q - table.q[first_of_pose[pose]]) > 1e-6):
         return False                                 # a pose that changes its configuration
@@ -506,8 +525,9 @@ def _check_static_structure(table: StaticTable) -> None:
         first = int(table.line[rows][0])
         if "0" not in loads:
             raise InputError(f"pose {p} has no unloaded reference (load 0)", source=src, row=first, column="load")
-        if len(loads) < 2:
-            raise InputError(f"pose {p} has only one load state; a deflection needs load 0 and a loaded state",
+        if len(loads) < 2 and not table.absolute_only:
+            raise InputError(f"pose {p} has only one load state; a deflection needs load 0 and a loaded state "
+                             "(or a table without loads: every row load 0, a geometric calibration table)",
                              source=src, row=first, column="load")
         q = table.q[rows]
         bad = np.flatnonzero(np.any(np.abs(q - q[0]) > 1e-6, axis=1))

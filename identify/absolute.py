@@ -64,6 +64,7 @@ from elastocal.identify.static import (
     build_dataset,
     identify_static,
 )
+from elastocal.identify.absolute_only import absolute_only_start, is_absolute_only
 from elastocal.formats.tables import StaticTable
 
 #: effects only absolute positions show (docs/cli.md, effect table)
@@ -170,7 +171,10 @@ class AbsoluteFit:
 
         out["parameters"] = mark_stiffness({p.name: {"value": p.value, "std": p.std, "unit": p.unit}
                                             for p in self.parameters})
-        if any(m in ABSOLUTE_EFFECTS for m in self.model):
+        if is_absolute_only(self.static.dataset):    # no deflections: the absolute positions are the data
+            out["residual"] = {"rms": self.rms, "max": self.max, "n": self.n, "unit": "m"}
+            out["noise_floor"] = self.noise_floor
+        elif any(m in ABSOLUTE_EFFECTS for m in self.model):
             out["residual"] = {"rms": self.deflection_rms, "max": self.deflection_max,
                                "n": int(self.deflection_residuals.size), "unit": "m"}
         if self.unidentifiable:
@@ -221,7 +225,14 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
     pos = np.empty((ds.n_states, nm, 3))
     jac = np.zeros((ds.n_states, nm, 3, n_el + 6 + n_k)) if jacobian else None
     data = robot.create_data()          # this evaluation's (the corrected robot is a new model)
+    batch = jacobian and n_k and not np.any(dlink)
+    if batch:       # the geometry's Jacobian of every state at once (no bent links)
+        theta_all = ds.q[ds.state_pose] + robot.offsets + dtheta
+        pos[:], jac[..., n_el + 6:] = kin.position_jacobian_batch(robot, theta_all, markers, st.kin_names,
+                                                                  st.kin_columns, data)
     for s in range(ds.n_states):
+        if batch and not n_el:
+            break
         theta = robot.theta(ds.q[ds.state_pose[s]]) + dtheta[s]
         if not jacobian:
             pos[s] = robot.positions(robot.theta_links(theta, dlink[s]), markers, links=True, data=data)
@@ -231,7 +242,7 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
         j_el = (j10[:, :, robot.actuated_in_link_model] @ b_theta[s]
                 + j10[:, :, robot.springs_in_link_model] @ b_links[s])
         jac[s, :, :, :n_el] = j_el
-        if n_k:
+        if n_k and not batch:
             _, jk = kin.position_jacobian(robot, theta, markers, st.kin_names, st.kin_columns,
                                           dlink[s] if np.any(dlink[s]) else None, data=data)
             jac[s, :, :, n_el + 6:] = jk
@@ -307,7 +318,8 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     :data:`TRACKER_PRIOR_STD_M` per axis on the registration when it is fitted,
     and reported against the registration found."""
     ds0 = data if isinstance(data, StaticDataset) else build_dataset(data)
-    names = tuple(dict.fromkeys(["joint_stiffness", *model]))
+    only = is_absolute_only(ds0)      # no loads: geometry, registration, the twist under self-weight
+    names = tuple(dict.fromkeys(model if only else ["joint_stiffness", *model]))
     static_model, absolute = split_model(names)
     reg = register(robot, ds0) if ds0.abs_xyz is not None else None
     if reg is None:
@@ -319,14 +331,23 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     else:
         kin_names = ()
     work = robot.create_data()        # the static fit's and the absolute bases' buffers
-    fit = identify_static(robot, ds0, model=static_model, torque=torque, form=form, work=work)
+    if only:
+        fit = absolute_only_start(robot, ds0, static_model)
+        torque, form = fit.torque, fit.form
+    else:
+        fit = identify_static(robot, ds0, model=static_model, torque=torque, form=form, work=work)
     ds = fit.dataset
     effects = fit.effects or tuple(get_effect(n, robot) for n in static_model)   # as fitted (selected components)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     pr = _Problem(robot, ds, effects, torque, form, "complementary_stiffness" in static_model, frames, work)
-    tau = _torques(pr, None)
-    iterative = any(e.iterative for e in effects)
-    bases = _absolute_bases(pr, _context(pr, tau, fit.beta if iterative else None))
+    if fit.beta_names:
+        tau = _torques(pr, None)
+        iterative = any(e.iterative for e in effects)
+        bases = _absolute_bases(pr, _context(pr, tau, fit.beta if iterative else None))
+    else:                             # a rigid model: no elastic parameters
+        bases = (np.zeros((ds.n_states, robot.n_joints, 0)),
+                 np.zeros((ds.n_states, len(robot.springs_in_link_model), 0)),
+                 np.zeros((ds.n_states, len(ds.markers), 3, 0)))
     n_el = len(fit.beta_names)
     el_mask = _elastic_mask(fit, effects)
     y = ds0.abs_xyz
@@ -439,7 +460,8 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
         kinematic_values=np.where(free[n_el + 6:], kv, 0.0) if kin_names else np.zeros(0),
         elastic_beta=beta.copy(), measured=y, predicted=pred, rms=float(np.sqrt(np.mean(r_flat ** 2))),
         max=float(np.max(np.abs(r_flat))), n=int(r_flat.size), noise_floor=floor, deflection_residuals=d_res,
-        deflection_rms=float(np.sqrt(np.mean(d_res ** 2))), deflection_max=float(np.max(np.abs(d_res))),
+        deflection_rms=float(np.sqrt(np.mean(d_res ** 2))) if d_res.size else 0.0,
+        deflection_max=float(np.max(np.abs(d_res))) if d_res.size else 0.0,
         rss_whitened=rss_w, n_params=p, iterations=iterations,
         tracker_prior=None if tracker_prior is None else np.asarray(tracker_prior, dtype=float))
 

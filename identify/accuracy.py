@@ -72,8 +72,8 @@ class Validation:
     poses: int
     absolute_nominal: ErrorStats
     absolute_calibrated: ErrorStats
-    deflection_nominal: ErrorStats
-    deflection_calibrated: ErrorStats
+    deflection_nominal: ErrorStats | None          # None: the data hold no deflections (no loads)
+    deflection_calibrated: ErrorStats | None
     keep_frame: bool
     registration: Registration           # the calibrated model's
     #: rms that the noise of these data alone would leave in the absolute comparison
@@ -83,6 +83,22 @@ class Validation:
     nominal_residual: np.ndarray         # (S, M, 3)
     pose_ids: tuple[str, ...]
     reference_states: np.ndarray
+    markers: tuple[str, ...] = ()
+    #: the joints the calibration's stiffness keeps rigid (not held, not determined: identify's marks)
+    rigid: tuple[str, ...] = ()
+
+    def by_marker(self) -> dict:
+        """The absolute errors per marker, both models (docs/cli.md ``by_marker``)."""
+        return {m: {"nominal": ErrorStats.of(self.nominal_residual[:, k]).to_json(),
+                    "calibrated": ErrorStats.of(self.absolute_residual[:, k]).to_json()}
+                for k, m in enumerate(self.markers)}
+
+    def note(self) -> str | None:
+        """What the reader must know of the calibrated model, or None."""
+        if not self.rigid:
+            return None
+        return (f"{', '.join(self.rigid)} not determined by the calibration: "
+                f"{'these joints are' if len(self.rigid) > 1 else 'this joint is'} rigid in the calibrated model")
 
     def per_pose(self) -> list[dict]:
         """Absolute error per pose (unloaded reference), nominal and calibrated [m]."""
@@ -98,11 +114,13 @@ class Validation:
         return {"calibration": self.calibration, "poses": self.poses, "keep_frame": self.keep_frame,
                 "absolute": {"nominal": self.absolute_nominal.to_json(),
                              "calibrated": self.absolute_calibrated.to_json(), "noise_floor": self.noise_floor},
-                "deflection": {"nominal": self.deflection_nominal.to_json(),
-                               "calibrated": self.deflection_calibrated.to_json()},
+                "deflection": None if self.deflection_nominal is None else {
+                    "nominal": self.deflection_nominal.to_json(), "calibrated": self.deflection_calibrated.to_json()},
+                "by_marker": self.by_marker(),
                 "registration": {"rotation": self.registration.rotation.tolist(),
                                  "translation": self.registration.translation.tolist(),
-                                 "base_p_tracker": self.registration.base_p_tracker.tolist()}}
+                                 "base_p_tracker": self.registration.base_p_tracker.tolist()},
+                **({"note": self.note()} if self.note() else {})}
 
 
 def _value(cal: Calibration, name: str) -> float | None:
@@ -128,30 +146,62 @@ def calibration_frame(calibration: Calibration) -> Registration:
     return Registration(rotation=pin.exp3(np.array(values[:3])), translation=np.array(values[3:]), rms=float("nan"))
 
 
+def calibration_compliance(robot: Robot, calibration: Calibration) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Compliance ``c = 1/k`` per joint as the calibration holds it, and the joints it keeps rigid
+    (``c = 0``): those whose stiffness it does not hold, holds marked ``"determined": false`` or
+    holds not positive (identify writes them so: what identify writes, validate reads)."""
+    c = np.zeros(robot.n_joints)
+    rigid = []
+    for j in range(1, robot.n_joints + 1):
+        p = calibration.find(f"k{j}")
+        if p is None or not p.is_result or not p.value > 0 or not np.isfinite(p.value):
+            rigid.append(f"k{j}")
+        else:
+            c[j - 1] = 1.0 / p.value
+    return c, tuple(rigid)
+
+
 def predicted_base_positions(robot: Robot, calibration: Calibration, ds: StaticDataset) -> np.ndarray:
     """Base positions (S, M, 3) of every state's markers under the calibration's full model."""
-    model = tuple(m for m in ("joint_stiffness", *calibration.model)
-                  if m not in ABSOLUTE_EFFECTS and m not in SESSION_EFFECTS)
+    return _predicted(robot, calibration, ds)[0]
+
+
+def _predicted(robot: Robot, calibration: Calibration, ds: StaticDataset) -> tuple[np.ndarray, tuple[str, ...]]:
+    """:func:`predicted_base_positions` and the joints kept rigid (:func:`calibration_compliance`)."""
+    from elastocal.identify.absolute_only import is_absolute_only, self_weight_dataset
+
+    model = tuple(m for m in calibration.model if m not in ABSOLUTE_EFFECTS and m not in SESSION_EFFECTS)
     model = tuple(dict.fromkeys(m for m in model if "static" in get_effect(m).seen_in))
     effects = tuple(get_effect(n, robot) for n in model)
     beta = []
+    rigid: tuple[str, ...] = ()
     for eff in effects:
         if eff.name == "joint_stiffness":
-            for j in range(1, robot.n_joints + 1):
-                k = _value(calibration, f"k{j}")
-                if k is None or not k > 0:
-                    raise InputError(f"the calibration holds no positive k{j}", argument="calibration")
-                beta.append(1.0 / k)
+            compliance, rigid = calibration_compliance(robot, calibration)
+            beta += list(compliance)
         else:
             beta += [_value(calibration, n) or 0.0 for n in eff.parameters]
     beta = np.array(beta)
     rob = calibrated_robot(robot, calibration)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
-    pr = _Problem(rob, ds, effects, calibration.torque, "exact", "complementary_stiffness" in model, frames)
+    if not np.any(beta):                   # a rigid model: the corrected geometry alone
+        return absolute_positions(rob, ds, frames, np.zeros(0), _no_bases(rob, ds)), rigid
+    torque = calibration.torque
+    if is_absolute_only(ds) and not ds.has_wrench:   # no loads: the robot's own weight only
+        ds, torque = self_weight_dataset(ds), "force"
+    if torque == "current" and not ds.has_currents:
+        raise InputError("a current-based calibration with joint stiffness needs the currents i1..iN in every "
+                         "row", source=ds.source)
+    pr = _Problem(rob, ds, effects, torque, "exact", "complementary_stiffness" in model, frames)
     tau = _torques(pr, None)
     iterative = any(e.iterative for e in effects)
     bases = _absolute_bases(pr, _context(pr, tau, beta if iterative else None))
-    return absolute_positions(rob, ds, frames, beta, bases, pr.data)
+    return absolute_positions(rob, ds, frames, beta, bases, pr.data), rigid
+
+
+def _no_bases(robot: Robot, ds: StaticDataset) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return (np.zeros((ds.n_states, robot.n_joints, 0)), np.zeros((ds.n_states, len(robot.springs_in_link_model), 0)),
+            np.zeros((ds.n_states, len(ds.markers), 3, 0)))
 
 
 def _noise_floor(robot: Robot, calibration: Calibration, ds: StaticDataset, rotation: np.ndarray) -> float | None:
@@ -160,7 +210,7 @@ def _noise_floor(robot: Robot, calibration: Calibration, ds: StaticDataset, rota
 
     if ds.sigma_tracker is None:
         return None
-    compliance = np.array([1.0 / (_value(calibration, f"k{j}") or np.inf) for j in range(1, robot.n_joints + 1)])
+    compliance = calibration_compliance(robot, calibration)[0]
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     chols, _, _ = _noise(calibrated_robot(robot, calibration), ds, calibration.torque, compliance, rotation, frames)
     return float(np.sqrt(sum(np.sum(c ** 2) for c in chols) / ds.abs_xyz.size))
@@ -174,8 +224,6 @@ def validate(robot: Robot, calibration: Calibration, data: StaticTable | StaticD
         raise InputError(f"the calibration is of robot {calibration.robot!r}, the description of {robot.name!r}",
                          argument="calibration")
     ds = data if isinstance(data, StaticDataset) else build_dataset(data)
-    if calibration.torque == "current" and not ds.has_currents:
-        raise InputError("a current-based calibration needs the currents i1..i6 in every row", source=ds.source)
     weights = ds.abs_n.reshape(-1)
     y = ds.abs_xyz
     nominal = nominal_positions(robot, ds)
@@ -183,7 +231,7 @@ def validate(robot: Robot, calibration: Calibration, data: StaticTable | StaticD
     if reg_nominal is None or not reg_nominal.rms < 0.05:
         raise InputError("the table's x, y, z are not absolute positions of this robot's markers (a rigid fit "
                          "leaves more than 5 cm or cannot fix a rotation)", source=ds.source)
-    predicted = predicted_base_positions(robot, calibration, ds)
+    predicted, rigid = _predicted(robot, calibration, ds)
     if keep_frame:
         reg = calibration_frame(calibration)
     else:
@@ -197,9 +245,11 @@ def validate(robot: Robot, calibration: Calibration, data: StaticTable | StaticD
     return Validation(
         calibration=calibration_name, poses=len(ds.pose_ids),
         absolute_nominal=ErrorStats.of(nominal_res), absolute_calibrated=ErrorStats.of(calibrated_res),
-        deflection_nominal=ErrorStats.of(d_meas), deflection_calibrated=ErrorStats.of(d_cal),
-        keep_frame=keep_frame, registration=reg, noise_floor=floor, absolute_residual=calibrated_res, nominal_residual=nominal_res,
-        pose_ids=ds.pose_ids, reference_states=refs)
+        deflection_nominal=ErrorStats.of(d_meas) if d_meas.size else None,
+        deflection_calibrated=ErrorStats.of(d_cal) if d_cal.size else None,
+        keep_frame=keep_frame, registration=reg, noise_floor=floor, absolute_residual=calibrated_res,
+        nominal_residual=nominal_res, pose_ids=ds.pose_ids, reference_states=refs, markers=ds.markers,
+        rigid=rigid if "joint_stiffness" in calibration.model else ())
 
 
 #: a check's absolute accuracy holds while the calibrated rms stays within this many noise floors

@@ -218,6 +218,65 @@ def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
     return pos, jac
 
 
+def position_jacobian_batch(robot: Robot, theta: np.ndarray, markers: Sequence[str],
+                            names: Sequence[str], cols: Columns | None = None,
+                            data: RobotData | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`position_jacobian` of many configurations at once, on the chain without link springs:
+    base positions (S, M, 3) at the DH angles ``theta`` (S, N) and their derivatives (S, M, 3, n).
+    One forward kinematics per configuration, the rest in whole-array operations (the fit of a
+    geometric calibration table evaluates hundreds of poses per iteration)."""
+    cols = columns(names, markers) if cols is None else cols
+    theta = np.asarray(theta, dtype=float)
+    ns, nj = theta.shape[0], len(robot.joints)
+    model = robot.model
+    data = (robot.create_data() if data is None else data).rigid
+    fids = [model.getFrameId(MARKER_PREFIX + m) for m in markers]
+    nm = len(markers)
+    pos = np.empty((ns, nm, 3))
+    rot = np.empty((ns, nj + 1, 3, 3))
+    trans = np.empty((ns, nj + 1, 3))
+    for s_ in range(ns):
+        pin.forwardKinematics(model, data, theta[s_])
+        for i in range(nj + 1):
+            rot[s_, i] = data.oMi[i].rotation
+            trans[s_, i] = data.oMi[i].translation
+        for m, fid in enumerate(fids):
+            pos[s_, m] = pin.updateFramePlacement(model, data, fid).translation
+    # the direction of Tz(d_i): z after joint i's placement, before theta_i
+    place_z = np.array([model.jointPlacements[i].rotation[:, 2] for i in range(1, nj + 1)])     # (N, 3)
+    z_dd = np.zeros((ns, nj + 1, 3))
+    z_dd[:, 1:] = np.einsum("sjab,jb->sja", rot[:, :nj], place_z)
+    alpha = np.array([0.0] + [j.alpha for j in robot.joints])
+    a = np.array([0.0] + [j.a for j in robot.joints])
+    n = len(cols.names)
+    jac = np.zeros((ns, nm, 3, n))
+    k, j = cols.kind, cols.joint
+    sel = k == DH_KINDS.index("dd")
+    jac[:, :, :, sel] = z_dd[:, j[sel]].transpose(0, 2, 1)[:, None]
+    sel = k == DH_KINDS.index("da")
+    rot_x, rot_z = rot[..., 0], rot[..., 2]                 # (S, N + 1, 3): the frames' x and z axes
+    jac[:, :, :, sel] = rot_x[:, j[sel] - 1].transpose(0, 2, 1)[:, None]
+    axes = np.zeros((ns, n, 3))
+    origins = np.zeros((ns, n, 3))
+    sel = k == DH_KINDS.index("dq")
+    axes[:, sel], origins[:, sel] = rot_z[:, j[sel]], trans[:, j[sel]]
+    sel_a = k == DH_KINDS.index("dalpha")
+    axes[:, sel_a], origins[:, sel_a] = rot_x[:, j[sel_a] - 1], trans[:, j[sel_a] - 1]
+    sel_b = k == DH_KINDS.index("dbeta")
+    if sel_b.any():
+        jb = j[sel_b]
+        local = np.stack([np.zeros(len(jb)), np.cos(alpha[jb]), np.sin(alpha[jb])], axis=1)
+        axes[:, sel_b] = np.einsum("snij,nj->sni", rot[:, jb - 1], local)
+        origins[:, sel_b] = trans[:, jb - 1] + a[jb][None, :, None] * rot_x[:, jb - 1]
+    rotation = sel | sel_a | sel_b
+    if rotation.any():
+        arm = pos[:, :, None, :] - origins[:, None, rotation, :]                 # (S, M, R, 3)
+        jac[:, :, :, rotation] = np.cross(axes[:, None, rotation, :], arm).transpose(0, 1, 3, 2)
+    for c in np.flatnonzero((k == -1) & (cols.marker >= 0)):
+        jac[:, cols.marker[c], :, c] = rot[:, nj, :, cols.axis[c]]
+    return pos, jac
+
+
 @dataclass(frozen=True)
 class IdentifiableSet:
     """Which columns of a regressor the data determine, and what absorbs the rest."""

@@ -853,6 +853,10 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
 
     tau = _torques(pr, None)
     ctx = _context(pr, tau)
+    if torque == "force" and not np.any(ctx.delta_wrench[ds.defl_state]):
+        raise InputError("every loaded state carries the wrench of its unloaded reference (all zero?): the loads "
+                         "change no torque, so they determine nothing; a table without loads is a geometric "
+                         "calibration table: give every row load 0", source=ds.source, column="fx")
     for eff in effects:
         if "static" not in eff.seen_in and eff.static_refusal is None:
             words = f"{eff.name} cannot be identified from static data"
@@ -872,6 +876,9 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     later = np.array([0 if eff.selected_from is None else 1 + (0 if eff.priority is None else eff.priority[i])
                       for eff in effects for i in range(len(eff.parameters))], dtype=int)
     scale, mask = _select_columns(a, beta_names, later if later.any() else None)
+    if not mask.any():
+        raise UnidentifiableError("no parameter of the model changes the predicted deflections (loads that change "
+                                  "no torque?)", source=ds.source)
     beta = np.zeros(len(beta_names))
     # rows weighted by the readings' U95 when the table has them (1 / sigma, mean weight 1)
     w = None if ds.defl_u95_var is None else np.repeat(1.0 / np.sqrt(ds.defl_u95_var), 3)

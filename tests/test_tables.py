@@ -133,7 +133,7 @@ def test_missing_and_unknown_columns():
     r = rows()
     header = r[0]
     r2 = [[c for c, h in zip(row, header) if h != "i3"] for row in r]
-    with pytest.raises(InputError, match=r"static.csv, line 1: missing column\(s\) i3"):
+    with pytest.raises(InputError, match=r"static.csv, line 1, column i3: missing column\(s\) i3"):
         parse(to_text(r2))
     r3 = [row + ["1"] for row in r]
     r3[0][-1] = "temperature"

@@ -42,8 +42,9 @@ def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = 
     parser.add_argument("--static", help="static deflection table, CSV (docs/formats.md §2)")
     parser.add_argument("--runs", help="run table, CSV (docs/formats.md §3)")
     if model_flags:
-        parser.add_argument("--model", default="joint_stiffness",
-                            help="comma-separated effects to include (default joint_stiffness)")
+        parser.add_argument("--model", default=None,
+                            help="comma-separated effects to include (default joint_stiffness; on a table "
+                                 "without loads kinematic_errors,tracker_frame)")
         parser.add_argument("--torque", choices=("current", "force"), default="current",
                             help="joint torques from motor currents (default) or from the wrench columns")
         parser.add_argument("--form", choices=("exact", "first-order"), default="exact",
@@ -181,3 +182,13 @@ def load_inputs(args: argparse.Namespace) -> Inputs:
     runs = read_run_table(args.runs, robot) if args.runs else None
     files = tuple(pathlib.Path(p) for p in (args.static, args.runs) if p)
     return Inputs(robot, static, runs, files)
+
+
+def table_model(args: argparse.Namespace, inputs: "Inputs", model: tuple[str, ...]) -> tuple[str, ...]:
+    """The model for these inputs: an absolute-only static table (no loads, no runs) takes the effects
+    named, joint_stiffness only when named, and without --model kinematic_errors,tracker_frame."""
+    from elastocal.model.effects import parse_model
+
+    if inputs.static is not None and inputs.runs is None and inputs.static.absolute_only:
+        return parse_model(args.model, absolute_only=True)
+    return model

@@ -12,6 +12,7 @@ from elastocal.commands._inputs import (
     add_tracker_arguments,
     load_inputs,
     prior_line,
+    table_model,
     tracker_prior,
 )
 from elastocal.model.effects import parse_model
@@ -231,7 +232,7 @@ def format_runs(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     inputs = load_inputs(args)
-    model = parse_model(args.model)
+    model = table_model(args, inputs, parse_model(args.model))
     prior = tracker_prior(args, inputs)
     static, runs = diagnose_inputs(inputs, model, args.torque, args.form,
                                    exclude_outliers=getattr(args, "exclude_outliers", False), prior=prior)
@@ -244,6 +245,11 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(obj))
         return 0
     out = [f"{inputs.robot.name}"]
+    from elastocal.diagnose.absolute_only import AbsoluteOnlyDiagnosis
+
+    if isinstance(static, AbsoluteOnlyDiagnosis):
+        print("\n".join([*out, static.text()]))
+        return 0
     if static is not None:
         out.append(format_static(static, args, model))
         line = None if static.absolute is None else prior_line(

@@ -12,6 +12,7 @@ from elastocal.commands._inputs import (
     input_paths,
     load_inputs,
     prior_line,
+    table_model,
     tracker_prior,
 )
 from elastocal.commands._outputs import Outputs
@@ -46,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     inputs = load_inputs(args)
     if inputs.static is None and inputs.runs is None:
         raise InputError("the log holds neither a static experiment nor runs", source=args.log or "--static")
+    model = table_model(args, inputs, model)
     prior = tracker_prior(args, inputs)
     obj, fit = identify_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers,
                                tracker_prior=None if prior is None else prior.base_p_tracker)

@@ -11,6 +11,7 @@ from elastocal.commands._inputs import (
     add_tracker_arguments,
     input_paths,
     load_inputs,
+    table_model,
     tracker_prior,
 )
 from elastocal.commands._outputs import Outputs
@@ -40,10 +41,15 @@ def run(args: argparse.Namespace) -> int:
         if args.add in model:
             raise InputError(f"{args.add} is already in the model", source="--add")
     inputs = load_inputs(args)
+    model = table_model(args, inputs, model)
     static, runs = diagnose_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers,
                                    prior=tracker_prior(args, inputs))
+    from elastocal.diagnose.absolute_only import AbsoluteOnlyDiagnosis
     from elastocal.report.html import render_report
 
+    if isinstance(static, AbsoluteOnlyDiagnosis):
+        raise InputError("the HTML report of a table without loads is not written yet: elastocal diagnose gives "
+                         "its diagnosis, elastocal validate its errors", source=args.static or "--static")
     add = args.add
     if add is not None and static is not None and add not in {c.effect for c in static.candidates}:
         reason = next((n.reason for n in static.not_testable if n.effect == add), "not a candidate")

@@ -60,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
         obj["registration"]["prior"] = {"base_p_tracker": list(prior.base_p_tracker), "source": prior.source,
                                         "offset": float(np.linalg.norm(found - np.asarray(prior.base_p_tracker))),
                                         "unit": "m"}
+    if result.note() is not None:
+        args.notes.append(f"elastocal validate: note: {result.note()}")
     if args.json:
         print(json.dumps(obj))
         return 0
@@ -68,9 +70,12 @@ def run(args: argparse.Namespace) -> int:
     print("absolute positions:")
     print(_row("nominal", result.absolute_nominal))
     print(_row("calibrated", result.absolute_calibrated))
-    print("deflections:")
-    print(_row("nominal", result.deflection_nominal))
-    print(_row("calibrated", result.deflection_calibrated))
+    if result.deflection_nominal is not None:
+        print("deflections:")
+        print(_row("nominal", result.deflection_nominal))
+        print(_row("calibrated", result.deflection_calibrated))
+    else:
+        print("deflections: none (a table without loads)")
     a_n, a_c = result.absolute_nominal, result.absolute_calibrated
     line = prior_line(prior, obj["registration"])
     if line:

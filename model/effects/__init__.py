@@ -53,8 +53,19 @@ def run_effects(part: str | None = None) -> tuple[str, ...]:
                  and (part is None or get_effect(n).run_part == part))
 
 
-def parse_model(text: str | None) -> tuple[str, ...]:
-    """``--model`` text -> effect names, joint_stiffness always first."""
+#: the default model of an absolute-only table (docs/cli.md "Absolute-only tables")
+ABSOLUTE_ONLY_MODEL = ("kinematic_errors", "tracker_frame")
+
+
+def parse_model(text: str | None, *, absolute_only: bool = False) -> tuple[str, ...]:
+    """``--model`` text -> effect names, joint_stiffness always first; on an absolute-only table
+    (no loads) the effects named, joint_stiffness only when named, and without ``--model``
+    :data:`ABSOLUTE_ONLY_MODEL`."""
+    if absolute_only:
+        names = [n.strip() for n in (text or ",".join(ABSOLUTE_ONLY_MODEL)).split(",") if n.strip()]
+        for n in names:
+            get_effect(n)
+        return tuple(dict.fromkeys(names))
     names = [n.strip() for n in (text or "joint_stiffness").split(",") if n.strip()]
     for n in names:
         get_effect(n)

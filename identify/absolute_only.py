@@ -1,0 +1,79 @@
+"""Absolute-only tables: where the absolute fit starts when there are no deflections.
+
+A geometric calibration table (docs/formats.md "Absolute-only tables") holds one
+absolute reading per pose and marker, no loads: there is no deflection fit to
+start from. The absolute fit (identify/absolute.py) then starts rigid: the
+elastic parameters at zero, the registration in closed form. The only elastic
+effect such data can show is the joints' twist under the robot's own weight
+(``joint_stiffness``, optional there): its torques are the gravity torques of the
+description's masses at each pose (``torque = "force"`` with no external wrench),
+so it needs the masses, and a joint whose gravity torque does not change across
+the poses is not determined (a constant twist is a joint offset; no torque is
+no twist): it stays rigid and is reported as such, never guessed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Sequence
+
+import numpy as np
+
+from elastocal.errors import EffectRefused
+from elastocal.model.effects import get_effect
+from elastocal.model.robot import MARKER_PREFIX, Robot
+from elastocal.identify.static import StaticDataset, StaticFit, _context, _Problem, _torques
+
+#: effects an absolute-only table can show beside the geometry and the registration
+SELF_WEIGHT_EFFECTS = ("joint_stiffness",)
+#: a joint whose gravity torque spans less than this fraction of the largest joint's span is not
+#: determined by the poses (its twist does not change from pose to pose)
+MIN_TORQUE_SPAN = 1e-3
+#: the torque source of an absolute-only table: the model's gravity, no external wrench
+SELF_WEIGHT_TORQUE = "force"
+
+
+def is_absolute_only(ds: StaticDataset) -> bool:
+    """A dataset without deflections: every state is its pose's reference."""
+    return ds.n_deflections == 0
+
+
+def self_weight_dataset(ds: StaticDataset) -> StaticDataset:
+    """The dataset with no external wrench on any state (the robot carries its own weight only)."""
+    return replace(ds, state_wrench=np.zeros_like(ds.state_wrench))
+
+
+def absolute_only_start(robot: Robot, ds: StaticDataset, static_model: Sequence[str]) -> StaticFit:
+    """The rigid start of the absolute fit of an absolute-only table, as a :class:`StaticFit` with
+    no deflections: the elastic parameters of ``static_model`` at zero, those the poses cannot
+    determine listed in ``unidentifiable``. Refuses an effect such a table cannot show, by name."""
+    for name in static_model:
+        if name not in SELF_WEIGHT_EFFECTS:
+            words = (f"{name} cannot be shown by a table without loads (one absolute reading per pose); "
+                     "it takes kinematic_errors, tracker_frame and joint_stiffness under the robot's own weight")
+            raise EffectRefused(name, words, message=words, argument="model")
+    if static_model and not robot.has_masses:
+        words = ("joint_stiffness on a table without loads is the twist under the robot's own weight: it needs "
+                 "the link masses (mass and com of each [[joint]] in robot.toml)")
+        raise EffectRefused("joint_stiffness", words, message=words, argument="model")
+    ds = self_weight_dataset(ds)
+    effects = tuple(get_effect(n, robot) for n in static_model)
+    frames = tuple(MARKER_PREFIX + m for m in ds.markers)
+    pr = _Problem(robot, ds, effects, SELF_WEIGHT_TORQUE, "exact", False, frames)
+    names = tuple(p for eff in effects for p in eff.parameters)
+    unident: list[str] = []
+    if static_model:
+        tau = _torques(pr, None)
+        span = np.ptp(tau, axis=0)
+        weak = span < MIN_TORQUE_SPAN * max(float(span.max()), 1e-300)
+        unident = [f"k{j + 1}" for j in np.flatnonzero(weak)]
+        ctx = _context(pr, tau)
+    else:
+        ctx = None
+    n = len(names)
+    empty = np.zeros((0, 3))
+    return StaticFit(model=tuple(static_model), torque=SELF_WEIGHT_TORQUE, form="exact", parameters=(),
+                     unidentifiable=tuple(unident), beta_names=names, beta=np.zeros(n), beta_cov=np.zeros((n, n)),
+                     predicted=empty, residuals=empty, rms=0.0, max=0.0, n=0, rss=0.0, n_params=0,
+                     noise_floor=None, expected_rss=None, condition_number=1.0, iterations=0, dataset=ds,
+                     absolute_model=None if ctx is None else (pr, np.zeros(n), ctx), effects=effects)
