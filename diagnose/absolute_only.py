@@ -18,6 +18,7 @@ from typing import Sequence
 
 from elastocal.diagnose.absolute import AbsoluteDiagnosis, diagnose_absolute
 from elastocal.diagnose.stepwise import FLOOR_RATIO
+from elastocal.diagnose.verdict import NotTestable
 from elastocal.model.robot import Robot
 from elastocal.identify.static import StaticDataset
 
@@ -40,7 +41,7 @@ class AbsoluteOnlyDiagnosis:
 
     model: tuple[str, ...]
     absolute: AbsoluteDiagnosis
-    not_testable: tuple[tuple[str, str], ...]
+    not_testable: tuple[NotTestable, ...]
     outliers: tuple = ()
 
     @property
@@ -77,7 +78,7 @@ class AbsoluteOnlyDiagnosis:
                 "noise_floor": b.noise_floor,
                 "candidates": [c.to_json() for c in a.candidates],
                 "verdict": self.verdict,
-                "not_testable": [{"effect": e, "reason": r} for e, r in self.not_testable],
+                "not_testable": [{"effect": n.effect, "reason": n.reason} for n in self.not_testable],
                 "steps": [{"effect": s.effect, "residual": {"rms": s.rms_after, "max": s.max_after, "n": b.n,
                                                             "unit": "m"},
                            "noise_floor": s.noise_floor_after, "delta_bic": s.delta_bic, "p_value": s.p_value}
@@ -106,7 +107,7 @@ class AbsoluteOnlyDiagnosis:
         lines.append(f"  final {', '.join(f.model)}: {um(f.rms)} rms, floor {um(f.noise_floor)}")
         lines.append(f"  verdict: {self.verdict or 'none'}")
         lines += [f"  {s}" for s in self.unexplained()]
-        lines += [f"  not tested: {e}: {r}" for e, r in self.not_testable]
+        lines += [f"  not tested: {n.effect}: {n.reason}" for n in self.not_testable]
         return "\n".join(lines)
 
 
@@ -124,4 +125,5 @@ def diagnose_absolute_only(robot: Robot, ds: StaticDataset, model: Sequence[str]
     skipped.append(("backlash", NOT_TESTABLE["backlash"]))
     diag = diagnose_absolute(robot, ds, tuple(model), pool=tuple(pool), tracker_prior=tracker_prior)
     return AbsoluteOnlyDiagnosis(model=tuple(dict.fromkeys([*model, "tracker_frame"])), absolute=diag,
-                                 not_testable=tuple(skipped), outliers=tuple(ds.outliers))
+                                 not_testable=tuple(NotTestable(e, r) for e, r in skipped),
+                                 outliers=tuple(ds.outliers))

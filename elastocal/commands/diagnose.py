@@ -86,7 +86,9 @@ def plan_command(args: argparse.Namespace, effects) -> str:
 def open_effects(diag) -> tuple[str, ...]:
     """The plannable effects the static diagnosis leaves open: not testable, unidentifiable in
     part, or leaning towards the effect without deciding (-10 < delta BIC < 0)."""
-    if diag.verdict is not None:
+    from elastocal.diagnose.absolute_only import AbsoluteOnlyDiagnosis
+
+    if diag.verdict is not None or isinstance(diag, AbsoluteOnlyDiagnosis):    # no loads: nothing to plan for
         return ()
     out = [n.effect for n in diag.not_testable]
     out += [c.effect for c in diag.candidates if c.unidentifiable or (not c.significant and c.delta_bic < 0)]
