@@ -48,6 +48,22 @@ FORCE_BACKENDS = MappingProxyType({
 })
 
 
+#: URL scheme -> (module, class) of the frozen parameters its backend reads from the URL, parsed
+#: once with the URL (drivers.urls; ``url.settings``); light modules, so that reading a cell.toml
+#: imports no device library
+URL_PARAMS = MappingProxyType({
+    "canopen": ("elastocal.drivers.url_params", "CanopenParams"),
+    "modbus+tcp": ("elastocal.drivers.url_params", "ModbusTcpParams"),
+    "modbus+rtu": ("elastocal.drivers.url_params", "ModbusRtuParams"),
+    "tracker+tcp": ("elastocal.drivers.url_params", "TrackerTcpParams"),
+    "tracker+serial": ("elastocal.drivers.url_params", "TrackerSerialParams"),
+    "tracker+emscon": ("elastocal.drivers.url_params", "EmsconParams"),
+    "egm": ("elastocal.drivers.guidance", "GuidanceParams"),
+    "rsi": ("elastocal.drivers.guidance", "GuidanceParams"),
+    "netft": ("elastocal.drivers.force", "NetFtParams"),
+})
+
+
 #: device kind -> entry-point group where other packages register backends (name = URL scheme,
 #: value = "module:Class", the class built like the built-in ones: ``Class(config, links=links)``)
 ENTRY_POINT_GROUPS = MappingProxyType({"drive": "elastocal.drives", "tracker": "elastocal.trackers"})

@@ -112,14 +112,14 @@ class CanopenDrive(Drive):
         url = config.url
         super().__init__(url, joint=config.joint, timeout_s=config.timeout_s, retries=config.retries,
                          max_current_a=config.max_current_a, max_rate_hz=1000.0)
-        self.node_id = url.int_param("node", 1, low=1, high=127)
-        eds = url.param("eds")
-        self._eds = pathlib.Path(eds) if eds else default_eds()
+        settings = url.settings               # parsed once with the URL (drivers.url_params.CanopenParams)
+        self.node_id = settings.node
+        self._eds = pathlib.Path(settings.eds) if settings.eds else default_eds()
         if not self._eds.exists():
             raise InputError(f"{self.name}: EDS file {self._eds} not found", source=url.text)
         self._own_links = links is None
         self._links = SharedLinks() if links is None else links
-        self._link_key = ("canopen", url.can_interface, url.can_channel)
+        self._link_key = ("canopen", settings.interface, settings.channel)
         self.link: CanopenLink = self._links.acquire(self._link_key, lambda: CanopenLink(url), CanopenLink.close)
         self._streaming = False
         self._emcy: list = []

@@ -113,12 +113,15 @@ class CanopenLink:
     """One CAN channel: bus, canopen Network, SYNC producer and cycle bookkeeping."""
 
     def __init__(self, url: DeviceUrl) -> None:
-        self.interface = url.can_interface
-        self.channel = url.can_channel
-        self.bitrate = url.int_param("bitrate", 1_000_000, low=10_000, high=1_000_000)
+        settings = url.settings               # drivers.url_params.CanopenParams
+        self.interface = settings.interface
+        self.channel = settings.channel
+        self.bitrate = settings.bitrate
         kwargs: dict = {}
-        if self.interface in ("udp_multicast", CAN_LOOPBACK) and url.param("port") is not None:
-            kwargs["port"] = url.int_param("port", 43113, low=1, high=65535)
+        if self.interface in ("udp_multicast", CAN_LOOPBACK) and settings.port is not None:
+            if settings.port == 0:           # a served cell's placeholder, never a bus to open
+                raise InputError(f"port=0 is outside 1..65535 in {url.text}", source=url.text)
+            kwargs["port"] = settings.port
         try:
             bus = open_can_bus(self.interface, self.channel, **kwargs)
         except InputError as exc:

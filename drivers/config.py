@@ -496,7 +496,7 @@ def _check_can_nodes(drives: tuple[DriveConfig, ...], *, source: str) -> None:
     for d in drives:
         if d.url.scheme != "canopen":
             continue
-        key = (d.url.can_interface, d.url.can_channel, d.url.int_param("node", 1, source=source))
+        key = (d.url.settings.interface, d.url.settings.channel, d.url.settings.node)
         if key in seen:
             raise InputError(f"joints {seen[key]} and {d.joint} use the same CAN node {key[2]} on "
                              f"{key[0]}/{key[1]}", source=source, column="drive")

@@ -22,7 +22,7 @@ class ModbusCellController(CellController):
         super().__init__(config.url, timeout_s=config.timeout_s, retries=config.retries,
                          move_timeout_s=config.move_timeout_s)
         self.config = config
-        self.unit = config.url.int_param("unit", 1, low=0, high=247)
+        self.unit = config.url.settings.unit
         self.link, self._release_link = acquire_link(config.url, config.timeout_s, links)
         self._read_specs = tuple(r for r in config.registers if r.access == "read")
 

@@ -70,7 +70,6 @@ from elastocal.drivers.emscon_packets import (
 )
 from elastocal.errors import BeamBroken, DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout, InputError, ProtocolError
 
-DEFAULT_PORT = 700
 #: result status -> gap reason (in a stream) / fault text (single measurement)
 BLOCKED = {es.ES_RS_MeasurementStatusNotReady: "beam broken", es.ES_RS_NoStationaryResult: "no target"}
 #: a slot is still measured when its request is this late [s] (its sample says when it was
@@ -99,13 +98,11 @@ class EmsconTracker(Tracker):
         super().__init__(config.url, markers=config.markers, timeout_s=config.timeout_s, retries=config.retries)
         url = config.url
         self.config = config
-        self.host = url.host
-        self.port = url.port if url.port is not None else DEFAULT_PORT
-        init = url.param("initialize", "1")
-        if init not in ("0", "1"):
-            raise InputError(f"initialize={init!r} must be 0 or 1 in {url.text}", source="tracker.url")
-        self.auto_initialize = init == "1"
-        self.init_timeout_s = url.float_param("init_timeout_s", 120.0, source="tracker.url")
+        settings = url.settings                 # drivers.url_params.EmsconParams
+        self.host = settings.host
+        self.port = settings.port
+        self.auto_initialize = settings.initialize
+        self.init_timeout_s = settings.init_timeout_s
         self._lock = threading.RLock()
         self._sock: PacketSocket | None = None
         self._resync = False
@@ -277,7 +274,7 @@ class EmsconTracker(Tracker):
 
     def _reflector_for(self, marker: str) -> Reflector:
         url = self.config.url
-        wanted = url.param(f"reflector.{marker}", url.param("reflector"))
+        wanted = url.settings.reflector_for(marker)
         names = ", ".join(f"{r.id} {r.name!r}" for r in self._reflectors) or "none"
         if wanted is None:
             for r in self._reflectors:

@@ -27,7 +27,7 @@ def endpoint(url: DeviceUrl) -> tuple | None:
 
 
 def modbus_unit(url: DeviceUrl) -> int:
-    return url.int_param("unit", 1, low=0, high=247)
+    return url.settings.unit
 
 
 def check_endpoints(devices: list[tuple[str, DeviceUrl, tuple[RegisterSpec, ...]]], *, source: str) -> None:

@@ -151,7 +151,8 @@ class NetFtSensor(ForceSensor):
 
     def __init__(self, url: DeviceUrl, *, source: str = "url") -> None:
         super().__init__(url)
-        self.params = NetFtParams.from_url(url, source=source)
+        self.params = url.settings if isinstance(url.settings, NetFtParams) else \
+            NetFtParams.from_url(url, source=source)
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self._sock.connect((self.params.host, self.params.port))

@@ -104,7 +104,9 @@ class Guidance(abc.ABC):
         if n_joints < 1:
             raise InputError(f"the robot needs at least one joint, got {n_joints}")
         self.url = url
-        self.params = GuidanceParams.from_url(url, source=source)
+        # parsed once with the URL; a DeviceUrl made by hand (no settings) is parsed here
+        self.params = url.settings if isinstance(url.settings, GuidanceParams) else \
+            GuidanceParams.from_url(url, source=source)
         self.n_joints = int(n_joints)
         self._check_joints()
         self.name = f"{self.kind.value} controller"

@@ -55,7 +55,7 @@ class ModbusLoadRig(Device):
             raise InputError(f"{url.text}: a simulated cell's load rig is a modbus+tcp device on 127.0.0.1",
                              source=source, column="sim.load_url")
         super().__init__(url, name="load rig", timeout_s=timeout_s, retries=retries)
-        self.unit = url.int_param("unit", UNIT, low=0, high=247)
+        self.unit = url.settings.unit if url.param("unit") is not None else UNIT
         try:
             self.link, self._release_link = acquire_link(url, timeout_s, None)
         except DeviceError as exc:

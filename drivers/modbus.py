@@ -86,17 +86,15 @@ class ModbusLink:
         self.url = url
         self.timeout_s = timeout_s
         self._lock = threading.Lock()
+        settings = url.settings               # drivers.url_params.ModbusTcpParams / ModbusRtuParams
         if url.scheme == "modbus+tcp":
-            self.where = f"{url.host}:{url.port}"
-            self.client = ModbusTcpClient(url.host, port=url.port, timeout=timeout_s, retries=0,
+            self.where = f"{settings.host}:{settings.port}"
+            self.client = ModbusTcpClient(settings.host, port=settings.port, timeout=timeout_s, retries=0,
                                           reconnect_delay=0.0, reconnect_delay_max=0.0)
         else:
-            self.where = url.path
-            baud = url.int_param("baud", 115200, low=300, high=10_000_000)
-            parity = (url.param("parity") or "N").upper()
-            if parity not in ("N", "E", "O"):
-                raise InputError(f"{url.text}: parity must be N, E or O")
-            self.client = ModbusSerialClient(url.path, baudrate=baud, parity=parity, timeout=timeout_s,
+            self.where = settings.device
+            self.client = ModbusSerialClient(settings.device, baudrate=settings.baud, parity=settings.parity,
+                                             timeout=timeout_s,
                                              retries=0, reconnect_delay=0.0, reconnect_delay_max=0.0)
         self.client.set_max_no_responses(1_000_000)
         self.connect()

@@ -31,8 +31,8 @@ from elastocal.errors import DeviceDisconnected, DeviceError, DeviceFault, Devic
 
 def link_key(url) -> tuple:
     if url.scheme == "modbus+tcp":
-        return ("modbus+tcp", url.host, url.port)
-    return ("modbus+rtu", url.path)
+        return ("modbus+tcp", url.settings.host, url.settings.port)
+    return ("modbus+rtu", url.settings.device)
 
 
 def acquire_link(url, timeout_s: float, links: SharedLinks | None) -> tuple[ModbusLink, Callable[[], None]]:
@@ -54,7 +54,7 @@ class ModbusDrive(Drive):
         super().__init__(config.url, joint=config.joint, timeout_s=config.timeout_s, retries=config.retries,
                          max_current_a=config.max_current_a, max_rate_hz=1000.0)
         self.config = config
-        self.unit = config.url.int_param("unit", 1, low=0, high=247)
+        self.unit = config.url.settings.unit
         self.link, self._release_link = acquire_link(config.url, config.timeout_s, links)
         self._status = config.register("status")
         self._poller: threading.Thread | None = None

@@ -161,8 +161,7 @@ class LineTracker(Tracker):
                 raise InputError(f"tracker: marker name {m!r} cannot be sent in the protocol "
                                  "(letters, digits, _ . - ; at most 32)")
         self.config = config
-        self.baud = config.url.int_param("baud", 115200, low=300, high=10_000_000) \
-            if config.url.scheme == "tracker+serial" else None
+        self.baud = config.url.settings.baud if config.url.scheme == "tracker+serial" else None
         self._replies: queue.Queue = queue.Queue()
         self._cmd_lock = threading.Lock()
         self._state: _StreamState | None = None
@@ -181,10 +180,10 @@ class LineTracker(Tracker):
 
     # --------------------------------------------------------- transport
     def _make_transport(self):
-        url = self.config.url
-        if url.scheme == "tracker+tcp":
-            return _TcpTransport(url.host, url.port, self.timeout_s)
-        return _SerialTransport(url.path, self.baud, self.timeout_s)
+        settings = self.config.url.settings      # parsed once with the URL (drivers.url_params)
+        if self.config.url.scheme == "tracker+tcp":
+            return _TcpTransport(settings.host, settings.port, self.timeout_s)
+        return _SerialTransport(settings.device, settings.baud, self.timeout_s)
 
     def _open(self) -> None:
         self._shutdown_transport()

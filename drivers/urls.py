@@ -13,12 +13,16 @@
     netft://192.168.1.1                      ATI Net F/T force/torque sensor (RDT, UDP port 49152 by default)
 
 The schemes are those of the backend tables in :mod:`elastocal.drivers` (listed once, there).
+The URL is parsed once: the syntax here, then the parameters its backend reads (host, port,
+node, unit, baud, ...) by the backend's frozen parameter class (``URL_PARAMS`` there), kept on
+the URL as :attr:`DeviceUrl.settings`; the backends read those and parse nothing again.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+import importlib
+from dataclasses import dataclass, field, replace
 from urllib.parse import parse_qsl, urlsplit
 
 from elastocal.drivers import (
@@ -28,6 +32,7 @@ from elastocal.drivers import (
     FORCE_BACKENDS,
     GUIDANCE_BACKENDS,
     TRACKER_BACKENDS,
+    URL_PARAMS,
     plugin_entry_points,
 )
 from elastocal.errors import InputError
@@ -52,6 +57,9 @@ class DeviceUrl:
     port: int | None
     path: str
     params: tuple[tuple[str, str], ...] = ()
+    #: what the backend reads from the URL, checked (drivers.url_params and the table
+    #: URL_PARAMS); None for an outside package's scheme (its backend checks its own URL)
+    settings: object = field(default=None, compare=False, repr=False)
 
     def param(self, key: str, default: str | None = None) -> str | None:
         for k, v in self.params:
@@ -97,7 +105,7 @@ class DeviceUrl:
         """The same URL with another TCP port (used for ephemeral ports)."""
         query = "&".join(f"{k}={v}" for k, v in self.params)
         text = f"{self.scheme}://{self.host}:{port}{self.path}" + (f"?{query}" if query else "")
-        return replace(self, text=text, port=port)
+        return self._reparsed(replace(self, text=text, port=port))
 
     def with_path(self, path: str) -> "DeviceUrl":
         """The same URL with another path (serial device or CAN channel)."""
@@ -106,23 +114,27 @@ class DeviceUrl:
         if not path.startswith("/"):
             path = "/" + path
         text = f"{self.scheme}://{netloc}{path}" + (f"?{query}" if query else "")
-        return replace(self, text=text, path=path)
+        return self._reparsed(replace(self, text=text, path=path))
 
     def with_param(self, key: str, value) -> "DeviceUrl":
         """The same URL with the query parameter ``key`` set to ``value`` (added or replaced)."""
         params = tuple((k, v) for k, v in self.params if k != key) + ((key, str(value)),)
         query = "&".join(f"{k}={v}" for k, v in params)
         netloc = self.host + (f":{self.port}" if self.port is not None else "")
-        return replace(self, text=f"{self.scheme}://{netloc}{self.path}?{query}", params=params)
+        return self._reparsed(replace(self, text=f"{self.scheme}://{netloc}{self.path}?{query}", params=params))
 
     def with_host(self, host: str) -> "DeviceUrl":
         query = "&".join(f"{k}={v}" for k, v in self.params)
         netloc = host + (f":{self.port}" if self.port is not None else "")
         text = f"{self.scheme}://{netloc}{self.path}" + (f"?{query}" if query else "")
-        return replace(self, text=text, host=host)
+        return self._reparsed(replace(self, text=text, host=host))
 
     def __str__(self) -> str:
         return self.text
+
+    def _reparsed(self, changed: "DeviceUrl") -> "DeviceUrl":
+        """``changed`` (an address or parameter replaced) with its backend's parameters made anew."""
+        return changed if self.settings is None else replace(changed, settings=_settings(changed, "url"))
 
 
 def parse_device_url(text: str, *, allowed: tuple[str, ...] | None = None,
@@ -156,40 +168,12 @@ def parse_device_url(text: str, *, allowed: tuple[str, ...] | None = None,
     params = tuple(parse_qsl(parts.query, keep_blank_values=True))
     url = DeviceUrl(text=text, scheme=scheme, host=parts.hostname or "", port=port, path=parts.path,
                     params=params)
-    if scheme in plugins:
-        pass                            # the outside package's backend checks its own URL when it opens
-    elif scheme == "canopen":
-        if not url.host:
-            raise InputError(f"{text}: give the python-can interface, e.g. canopen://virtual/cell?node=5",
-                             source=source)
-        if not url.can_channel:
-            raise InputError(f"{text}: give the CAN channel after the interface, e.g. canopen://virtual/cell?node=5",
-                             source=source)
-        if url.param("node") is None:
-            raise InputError(f"{text}: the node id is missing (?node=1..127)", source=source)
-        url.int_param("node", 0, source=source, low=1, high=127)
-        url.int_param("bitrate", 1_000_000, source=source, low=10_000, high=1_000_000)
-    elif scheme in ("modbus+tcp", "tracker+tcp"):
-        if not url.host or url.port is None:
-            raise InputError(f"{text}: give host and port, e.g. {scheme}://127.0.0.1:1502", source=source)
-        if scheme == "modbus+tcp":
-            url.int_param("unit", 1, source=source, low=0, high=247)
-    elif scheme in GUIDANCE_SCHEMES:
-        if url.port is None:
-            raise InputError(f"{text}: give the address and UDP port elastocal listens on for the controller, "
-                             f"e.g. {scheme}://0.0.0.0:{6510 if scheme == 'egm' else 59152}", source=source)
-    elif scheme in FORCE_SCHEMES:
-        if not url.host:
-            raise InputError(f"{text}: give the sensor's address, e.g. netft://192.168.1.1", source=source)
-    elif scheme == "tracker+emscon":
-        if not url.host:
-            raise InputError(f"{text}: give the emScon server, e.g. tracker+emscon://192.168.0.1:700",
-                             source=source)
-    else:  # serial
-        if not url.path:
-            raise InputError(f"{text}: give the serial device, e.g. {scheme}:///dev/ttyUSB0?baud=115200",
-                             source=source)
-        url.int_param("baud", 115200, source=source, low=300, high=10_000_000)
-        if scheme == "modbus+rtu":
-            url.int_param("unit", 1, source=source, low=1, high=247)
-    return url
+    if scheme in plugins or scheme not in URL_PARAMS:
+        return url                      # the outside package's backend checks its own URL when it opens
+    return replace(url, settings=_settings(url, source))
+
+
+def _settings(url: DeviceUrl, source: str):
+    """The backend's parameters of ``url`` (its scheme's class in URL_PARAMS)."""
+    module_name, class_name = URL_PARAMS[url.scheme]
+    return getattr(importlib.import_module(module_name), class_name).from_url(url, source=source)

@@ -155,7 +155,10 @@ def main(argv: list[str] | None = None) -> int:
     args.notes = []
     try:
         _refuse_empty_values(parser, args)
-        code = int(modules[args.command].run(args) or 0)
+        from elastocal.commands._heartbeat import Heartbeat
+
+        with Heartbeat(args.command, serves=getattr(args, "action", None) == "serve"):   # a word while it works
+            code = int(modules[args.command].run(args) or 0)
         for text in args.notes:  # after the output, and only when the command did not fail on an error
             print(text, file=sys.stderr)
         return code

@@ -268,3 +268,73 @@ def test_demo_lists_an_implausible_candidate_as_implausible():
     assert "implausible: a drift of 133 mm/h" in line and "ΔBIC" not in line
     plain = SimpleNamespace(**{**vars(drift), "implausible": None})
     assert "ΔBIC -40" in candidate_line(3, plain, 24e-6)
+
+
+def test_device_urls_are_parsed_once_into_the_backends_frozen_parameters(monkeypatch):
+    import dataclasses
+
+    from elastocal.drivers import url_params
+    from elastocal.drivers.force import NetFtParams
+    from elastocal.drivers.guidance import GuidanceParams
+    from elastocal.drivers.urls import DeviceUrl, parse_device_url
+    from elastocal.errors import InputError
+
+    cases = {
+        "canopen://virtual/cell?node=5&bitrate=500000": url_params.CanopenParams("virtual", "cell", 5, 500_000),
+        "modbus+tcp://127.0.0.1:1502?unit=3": url_params.ModbusTcpParams("127.0.0.1", 1502, 3),
+        "modbus+rtu:///dev/pts/3?baud=9600&parity=e": url_params.ModbusRtuParams("/dev/pts/3", 9600, "E", 1),
+        "tracker+tcp://127.0.0.1:7000": url_params.TrackerTcpParams("127.0.0.1", 7000),
+        "tracker+serial:///dev/ttyUSB0": url_params.TrackerSerialParams("/dev/ttyUSB0", 115200),
+        "tracker+emscon://10.0.0.2?initialize=0&reflector=RRR&reflector.R2=7":
+            url_params.EmsconParams("10.0.0.2", 700, False, 120.0, "RRR", (("R2", "7"),)),
+    }
+    for text, expected in cases.items():
+        settings = parse_device_url(text).settings
+        assert settings == expected, text
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            settings.host = "x"
+    emscon = parse_device_url("tracker+emscon://h?reflector=RRR&reflector.R2=7").settings
+    assert (emscon.reflector_for("R2"), emscon.reflector_for("R1")) == ("7", "RRR")
+    assert isinstance(parse_device_url("rsi://0.0.0.0:59152?cycle_ms=12").settings, GuidanceParams)
+    assert isinstance(parse_device_url("netft://192.168.1.1").settings, NetFtParams)
+    # a changed address: the parameters follow
+    assert parse_device_url("modbus+tcp://127.0.0.1:0?unit=2").with_port(1503).settings.port == 1503
+    # checked once, at parse time, by the backend's class
+    for bad, words in (("canopen://virtual/cell", "node id is missing"), ("tracker+tcp://127.0.0.1", "host and port"),
+                       ("modbus+rtu:///dev/x?parity=Q", "parity"), ("tracker+emscon://h?initialize=2", "0 or 1"),
+                       ("rsi://0.0.0.0:59152?cycle_ms=5", "cycle_ms")):
+        with pytest.raises(InputError, match=words):
+            parse_device_url(bad)
+    # the backends parse nothing again: the URL's own readers are not called when a backend opens
+    calls = []
+    for name in ("param", "int_param", "float_param"):
+        original = getattr(DeviceUrl, name)
+        monkeypatch.setattr(DeviceUrl, name, lambda self, *a, _o=original, _n=name, **k: calls.append(_n) or _o(self, *a, **k))
+    url = parse_device_url("modbus+tcp://127.0.0.1:1502?unit=3")
+    calls.clear()
+    from elastocal.drivers.endpoints import modbus_unit
+    from elastocal.drivers.modbus_drive import link_key
+
+    assert modbus_unit(url) == 3 and link_key(url) == ("modbus+tcp", "127.0.0.1", 1502) and calls == []
+
+
+def test_a_silent_command_says_it_is_working_on_a_terminal():
+    import io
+    import threading
+
+    from elastocal.commands._heartbeat import Heartbeat
+
+    assert not Heartbeat("identify", stream=io.StringIO()).active      # not a terminal: nothing said
+    assert not Heartbeat("calibrate", stream=io.StringIO(), force=False).active
+    err = io.StringIO()
+    spoke = threading.Event()
+
+    class Err(io.StringIO):
+        def write(self, text):
+            n = err.write(text)
+            spoke.set()
+            return n
+
+    with Heartbeat("identify", stream=Err(), after_s=0.01, every_s=0.05, force=True):
+        assert spoke.wait(30.0)          # a silent command: the line comes (event, not a duration)
+    assert err.getvalue().startswith("elastocal identify: working, ")
