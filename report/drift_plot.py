@@ -42,16 +42,16 @@ def _datetimes(t_ns: np.ndarray) -> np.ndarray:
 
 def _styles(names: list[str]) -> list[tuple[str, str]]:
     """(colour, marker) per parameter: the colour of its joint, the marker of its family
-    (fc, fv, fl, cl...); parameters without a joint number take the colours after the six joints'."""
+    (fc, fv, fl, cl...); parameters without a joint number take the colours after the joints'."""
     import matplotlib
 
     palette = list(matplotlib.colormaps["tab10"].colors) + list(matplotlib.colormaps["Dark2"].colors)
     families: dict[str, int] = {}
-    spare = 6
+    joint_names = [re.match(r"^([A-Za-z_]+?)([1-9][0-9]?)([a-z]?)$", name) for name in names]
+    spare = max([6] + [int(m.group(2)) for m in joint_names if m])       # after the last joint's colour
     used: set[tuple[int, str]] = set()
     out = []
-    for name in names:
-        m = re.match(r"^([A-Za-z_]+?)([1-6])([a-z]?)$", name)
+    for name, m in zip(names, joint_names):
         family = m.group(1) if m else name
         marker = _MARKERS[families.setdefault(family, len(families)) % len(_MARKERS)]
         if m:
