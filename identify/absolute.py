@@ -450,7 +450,7 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
         for k, name in enumerate(kin_names):
             col = n_el + 6 + k
             if free[col]:
-                params.append(Parameter(name, float(kv[k]), float(std_full[col]), kin.unit_of(name)))
+                params.append(Parameter(name, float(kv[k]), float(std_full[col]), kin.unit_of(name, robot)))
             else:
                 unident.append(name)
         absorbed = dict(ident.absorbed_by) if ident is not None else {}

@@ -37,10 +37,20 @@ import pinocchio as pin
 
 from elastocal.errors import InputError
 from elastocal.model.robot import MARKER_PREFIX, Robot, RobotData
+from elastocal.identify.urdf_geometry import UNITS as URDF_UNITS
+from elastocal.identify.urdf_geometry import (
+    URDF_KINDS,
+    corrected_urdf_robot,
+    describe_urdf,
+    urdf_parameter_names,
+    urdf_position_jacobian,
+)
 
 #: DH error kinds per joint, in the order of the parameter vector
 DH_KINDS = ("dq", "da", "dd", "dalpha", "dbeta")
-UNITS = {"dq": "rad", "da": "m", "dd": "m", "dalpha": "rad", "dbeta": "rad", "marker": "m"}
+UNITS = {"dq": "rad", "da": "m", "dd": "m", "dalpha": "rad", "dbeta": "rad", "marker": "m", **URDF_UNITS}
+#: every kind: the DH ones, then a URDF joint origin's six (identify/urdf_geometry.py)
+ALL_KINDS = DH_KINDS + URDF_KINDS[1:]
 #: |sin(alpha_{i-1})| below this: the axes of joints i-1 and i are parallel
 PARALLEL_TOL = 1e-6
 #: a column whose part independent of the columns kept before it is below this
@@ -66,9 +76,8 @@ def parallel_joints(robot: Robot) -> tuple[int, ...]:
 
 def parameter_names(robot: Robot, markers: Sequence[str]) -> tuple[str, ...]:
     """The full set of kinematic parameters of ``robot`` with these markers."""
-    if robot.urdf is not None:
-        raise InputError("kinematic_errors needs a modified-DH robot (a URDF robot's joint origins are not "
-                         "DH parameters)", argument="model")
+    if robot.urdf is not None:            # each joint origin's six errors and the offsets
+        return urdf_parameter_names(robot, markers)
     parallel = parallel_joints(robot)
     names = []
     for i in range(1, len(robot.joints) + 1):
@@ -78,10 +87,14 @@ def parameter_names(robot: Robot, markers: Sequence[str]) -> tuple[str, ...]:
     return tuple(names)
 
 
-def unit_of(name: str) -> str:
+def unit_of(name: str, robot: Robot | None = None) -> str:
+    """The unit of a kinematic parameter (``dq`` of a prismatic joint of ``robot`` is a length)."""
     if name.startswith(("dx_", "dy_", "dz_")):
         return UNITS["marker"]
-    return UNITS[name.rstrip("0123456789")]
+    kind = name.rstrip("0123456789")
+    if kind == "dq" and robot is not None and robot.joints[int(name[2:]) - 1].kind.value == "prismatic":
+        return "m"
+    return UNITS[kind]
 
 
 def describe(name: str) -> str:
@@ -91,6 +104,8 @@ def describe(name: str) -> str:
     if name.startswith(("dx_", "dy_", "dz_")):
         return f"the {name[1]} position of marker {name[3:]} in the flange"
     kind, joint = name.rstrip("0123456789"), name[len(name.rstrip("0123456789")):]
+    if describe_urdf(kind, joint):
+        return describe_urdf(kind, joint)
     return {"dq": f"the zero of joint {joint}", "da": f"the link length a{int(joint) - 1}",
             "dd": f"the offset d{joint} along axis {joint}", "dalpha": f"the twist alpha{int(joint) - 1}",
             "dbeta": f"the tilt beta{joint} of axis {joint} (parallel to axis {int(joint) - 1})"}.get(kind, name)
@@ -112,7 +127,7 @@ def corrected_robot(robot: Robot, names: Sequence[str], values: Sequence[float])
     """A new robot whose DH table and markers carry the errors ``names = values``
     (names as :func:`parameter_names`; absent ones are zero)."""
     if robot.urdf is not None:
-        raise InputError("kinematic corrections need a modified-DH robot", source=robot.source)
+        return corrected_urdf_robot(robot, names, values)
     dh, markers = _split(names, values)
     for m in markers:
         robot.frame_id(m)
@@ -149,7 +164,7 @@ def columns(names: Sequence[str], markers: Sequence[str]) -> Columns:
             axis.append("xyz".index(name[1]))
         else:
             k = name.rstrip("0123456789")
-            kind.append(DH_KINDS.index(k))
+            kind.append(ALL_KINDS.index(k))
             joint.append(int(name[len(k):]))
             marker.append(-1)
             axis.append(0)
@@ -169,6 +184,12 @@ def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
     cols = columns(names, markers) if cols is None else cols
     theta = np.asarray(theta, dtype=float)
     nj = len(robot.joints)
+    if robot.urdf is not None:
+        if link_angles is not None:
+            raise InputError("kinematic_errors with link_compliance needs a modified-DH robot (a URDF robot's "
+                             "bent links are not modelled)", argument="model")
+        pos, jac = urdf_position_jacobian(robot, theta[None], markers, cols, ALL_KINDS, data)
+        return pos[0], jac[0]
     if link_angles is None:
         model, config, ids = robot.model, theta, list(range(nj + 1))
         first = list(range(1, nj + 1))          # the Pinocchio joint that carries joint i's DH placement
@@ -227,6 +248,8 @@ def position_jacobian_batch(robot: Robot, theta: np.ndarray, markers: Sequence[s
     geometric calibration table evaluates hundreds of poses per iteration)."""
     cols = columns(names, markers) if cols is None else cols
     theta = np.asarray(theta, dtype=float)
+    if robot.urdf is not None:
+        return urdf_position_jacobian(robot, theta, markers, cols, ALL_KINDS, data)
     ns, nj = theta.shape[0], len(robot.joints)
     model = robot.model
     data = (robot.create_data() if data is None else data).rigid
