@@ -135,6 +135,25 @@ def unmodelled_effects(cal: Calibration) -> dict[str, list[str]]:
     return out
 
 
+def refuse_unmodelled(cal: Calibration, without: str | None, *, source: str) -> dict[str, list[str]]:
+    """The calibration's unmodelled effects (:func:`unmodelled_effects`), refused by name unless
+    ``without`` (comma-separated, the ``--without`` flag) leaves them out knowingly: a compensation
+    that silently drops a deflection the calibration found is a wrong path."""
+    unmodelled = unmodelled_effects(cal)
+    names = {w.strip() for w in (without or "").split(",") if w.strip()}
+    unknown = sorted(names - set(cal.model))
+    if unknown:
+        raise InputError(f"{', '.join(unknown)} not in the calibration's model ({', '.join(cal.model)})",
+                         source="--without")
+    refused = {e: p for e, p in unmodelled.items() if e not in names}
+    if refused:
+        what = "; ".join(f"{e} ({', '.join(p) or 'no parameters'})" for e, p in refused.items())
+        raise InputError(f"the calibration holds {what}, which compensation does not model: the compensated path "
+                         f"would leave {'their' if len(refused) > 1 else 'its'} deflection uncorrected; give "
+                         f"--without {','.join(refused)} to compensate the rest knowingly", source=source)
+    return unmodelled
+
+
 #: samples per block of the batched evaluation: numpy calls on rows of this length amortise their
 #: per-call cost and the work arrays (a few MB) stay in cache (4096 was the fastest of 512..8192)
 BLOCK_SAMPLES = 4096

@@ -338,3 +338,20 @@ def test_a_silent_command_says_it_is_working_on_a_terminal():
     with Heartbeat("identify", stream=Err(), after_s=0.01, every_s=0.05, force=True):
         assert spoke.wait(30.0)          # a silent command: the line comes (event, not a duration)
     assert err.getvalue().startswith("elastocal identify: working, ")
+
+
+def test_stream_refuses_a_calibration_effect_it_does_not_model_before_starting(tmp_path, capsys):
+    from elastocal.formats.calibration import calibration_from_fit, write_calibration
+
+    params = {f"k{j}": {"value": 5e5, "std": 1e3, "unit": "N*m/rad"} for j in range(1, 7)}
+    params.update({"cl2x": {"value": 2e-8, "std": 1e-9, "unit": "rad/(N*m)"}})
+    fit = {"model": ["joint_stiffness", "link_compliance"], "torque": "current", "parameters": params,
+           "residual": {"rms": 1e-5, "max": 3e-5, "n": 100}}
+    write_calibration(tmp_path / "cal.json", calibration_from_fit("HH-150", fit))
+    assert main(["sim", "path", "--out", str(tmp_path / "p"), "--step", "0.1"]) == 0
+    capsys.readouterr()
+    assert main(["stream", "--sim", "--yes", "--calibration", str(tmp_path / "cal.json"), "--path",
+                 str(tmp_path / "p" / "path.csv"), "--out", str(tmp_path / "s.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "link_compliance (cl2x)" in err and "--without link_compliance" in err
+    assert not (tmp_path / "s.mcap").exists()

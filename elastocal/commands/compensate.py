@@ -100,7 +100,7 @@ def _stats(d: np.ndarray) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.compensation.files import read_path, write_compensated_csv, write_krl, write_rapid
-    from elastocal.compensation.model import CompensationModel, NotConverged, unmodelled_effects
+    from elastocal.compensation.model import CompensationModel, NotConverged, refuse_unmodelled
     from elastocal.commands._outputs import note
     from elastocal.compensation.trajectory import compensate_path, predicted_residual
     from elastocal.formats.calibration import read_calibration
@@ -117,18 +117,7 @@ def run(args: argparse.Namespace) -> int:
     fixed = _parse_wrench(args.wrench) if args.wrench is not None else None
     robot = load_robot(args.robot)
     cal = read_calibration(args.calibration)
-    unmodelled = unmodelled_effects(cal)
-    without = {w.strip() for w in (args.without or "").split(",") if w.strip()}
-    unknown = sorted(without - set(cal.model))
-    if unknown:
-        raise InputError(f"{', '.join(unknown)} not in the calibration's model ({', '.join(cal.model)})",
-                         source="--without")
-    refused = {e: p for e, p in unmodelled.items() if e not in without}
-    if refused:                  # before anything is computed or written
-        what = "; ".join(f"{e} ({', '.join(p) or 'no parameters'})" for e, p in refused.items())
-        raise InputError(f"the calibration holds {what}, which compensation does not model: the compensated path "
-                         f"would leave {'their' if len(refused) > 1 else 'its'} deflection uncorrected; give "
-                         f"--without {','.join(refused)} to compensate the rest knowingly", source=args.calibration)
+    unmodelled = refuse_unmodelled(cal, args.without, source=args.calibration)   # before anything is computed
     model = CompensationModel.from_calibration(robot, cal, source=args.calibration)
     if args.tool:
         if args.tool not in robot.marker_names:

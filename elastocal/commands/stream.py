@@ -28,6 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calibration", required=True, help="calibration JSON (docs/formats.md §4)")
     parser.add_argument("--path", required=True, help="planned path CSV: t,q1..qn and optionally fx..mz")
     parser.add_argument("--out", required=True, help="the MCAP log to write")
+    parser.add_argument("--without", metavar="EFFECTS",
+                        help="comma-separated effects of the calibration to leave out knowingly (as compensate: a "
+                             "calibration holding static effects compensation does not model is refused)")
     parser.add_argument("--source", choices=("sensor", "currents", "path"),
                         help="where the process wrench comes from (default: the cell's [force_sensor], else the "
                              "path's fx..mz or --wrench)")
@@ -122,6 +125,10 @@ def run(args: argparse.Namespace) -> int:
     if args.yes and not args.sim:
         raise InputError("--yes answers the prompt of a simulated cell only; add --sim, or let a person answer",
                          source="--yes")
+    from elastocal.compensation.model import refuse_unmodelled
+    from elastocal.formats.calibration import read_calibration
+
+    refuse_unmodelled(read_calibration(args.calibration), args.without, source=args.calibration)
     wrench = _wrench(args.wrench, "--wrench") if args.wrench else None
     sim_wrench = None
     spec = None
