@@ -1,11 +1,18 @@
-"""The simulated cell: exact nonlinear statics of a virtual-joint robot.
+"""The simulated cell: exact nonlinear statics of a virtual-joint robot with N joints.
 
-This is the truth model of tests, benchmarks and the demo. One torsion spring
-per joint (``k``), optional springs at the distal ends of links 2 and 3
-(``link_compliance``), gravity of the links, the gravity compensator on joint 2,
-an external wrench at the load point, and switchable effects that elastocal's
-joint-only model does not know about: link compliance, tracker thermal drift,
-static friction that absorbs part of a load change, backlash.
+This is the truth model of tests, benchmarks and the demo. One spring per joint
+(``k``), optional springs at the distal ends of the two longest links
+(``link_compliance``), gravity of the links, the gravity compensator, an external
+wrench at the load point, and switchable effects that elastocal's joint-only
+model does not know about: link compliance, tracker thermal drift, static
+friction that absorbs part of a load change, backlash.
+
+It is an independent witness of the identification: its torques, compensator,
+friction and equilibria are computed by sims/physics.py with Pinocchio's own
+algorithms (``rnea`` at rest, frame Jacobians), never with the physics methods
+or the effect and fitting code the identification uses (tests/test_layers.py).
+Any robot the bottom layer describes works: N revolute or prismatic joints,
+per-joint truths of length N (:meth:`CellTruth.for_robot`).
 
 Conventions (docs/formats.md): ``xi i`` is the load torque a joint carries,
 ``xi_j i_j = k_j (theta_j - q_j - offset_j)`` at rest. Friction during motion
@@ -26,7 +33,7 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.model.robot import LOAD_FRAME, Robot
-from elastocal.identify.kinematics import corrected_robot
+from elastocal.sims import physics
 
 #: HH-150 joint stiffness, Yang Table 6 (current-based) [N·m/rad]
 HH150_STIFFNESS = (0.559e6, 1.435e6, 1.829e6, 0.184e6, 0.171e6, 0.070e6)
@@ -83,6 +90,37 @@ def _arr(value, n: int, name: str) -> np.ndarray:
     if not np.all(np.isfinite(out)):
         raise ValueError(f"{name}: values must be finite")
     return out
+
+
+def _unit_of(name: str) -> str:
+    """Unit of a kinematic error: joint zeros and twists in rad, lengths and markers in m."""
+    return "rad" if name.rstrip("0123456789") in ("dq", "dalpha", "dbeta") else "m"
+
+
+def as_built(robot: Robot, errors: Sequence[tuple[str, float]]) -> Robot:
+    """The robot as built: the drawing's DH table and markers with the truth's errors
+    (``dq<i>``, ``da<i>``, ``dd<i>``, ``dalpha<i>``, ``dbeta<i>`` on joint i, ``dx_<m>``..
+    on marker m); errors naming a joint or marker the robot does not have are ignored."""
+    if not errors:
+        return robot
+    if robot.urdf is not None:
+        raise ValueError("kinematic errors are simulated on a modified-DH robot")
+    field_of = {"dq": "offset", "da": "a", "dd": "d", "dalpha": "alpha", "dbeta": "beta"}
+    joints = list(robot.joints)
+    markers = {m: np.array(p, dtype=float) for m, p in robot.tool.flange_p_markers}
+    for name, value in errors:
+        if name.startswith(("dx_", "dy_", "dz_")):
+            if name[3:] in markers:
+                markers[name[3:]]["xyz".index(name[1])] += value
+            continue
+        kind = name.rstrip("0123456789")
+        i = int(name[len(kind):]) - 1
+        if kind in field_of and 0 <= i < len(joints):
+            key = field_of[kind]
+            joints[i] = replace(joints[i], **{key: getattr(joints[i], key) + value})
+    tool = replace(robot.tool, flange_p_markers=tuple((m, tuple(float(x) for x in markers[m]))
+                                                      for m, _ in robot.tool.flange_p_markers))
+    return replace(robot, joints=tuple(joints), tool=tool)
 
 
 def joint_values(prismatic: Sequence[bool], revolute: Sequence[float], prismatic_value: float) -> np.ndarray:
@@ -144,6 +182,10 @@ class CellTruth:
         if "stiffness" not in changes:
             changes["stiffness"] = joint_values(prismatic, HH150_STIFFNESS, TRACK_STIFFNESS)
         return cls(prismatic=prismatic, **changes)
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.stiffness.size)
 
     def per_joint(self, revolute: Sequence[float], prismatic_value: float) -> np.ndarray:
         """One value per joint of this cell (:func:`joint_values`)."""
@@ -238,10 +280,8 @@ class CellTruth:
             if np.any(arr):
                 for j, (v, p) in enumerate(zip(arr, self.prismatic), start=1):
                     out[f"{prefix}{j}"] = {"value": float(v), "unit": units[p]}
-        from elastocal.identify.kinematics import unit_of
-
         for name, v in self.kinematic_errors:
-            out[name] = {"value": float(v), "unit": unit_of(name)}
+            out[name] = {"value": float(v), "unit": _unit_of(name)}
         rvec = _rotation_vector(self.tracker_rotation)
         for name, v, unit in zip(("rx", "ry", "rz", "tx", "ty", "tz"), (*rvec, *self.tracker_translation),
                                  ("rad",) * 3 + ("m",) * 3):
@@ -283,30 +323,39 @@ def spring_angle(torque: np.ndarray, stiffness: np.ndarray, hardening_torque: np
 
 
 class SimCell:
-    """Statics of the simulated robot; immutable, thread-safe."""
+    """Statics of the simulated robot; immutable, thread-safe (each computation makes its own
+    Pinocchio Data). The physics is sims/physics.py's (module docstring)."""
 
     def __init__(self, robot: Robot, truth: CellTruth | None = None) -> None:
         self.robot = robot
-        self.truth = truth if truth is not None else CellTruth()
+        self.truth = truth if truth is not None else CellTruth.for_robot(robot) if robot.n_joints != 6 \
+            else CellTruth()
+        if self.truth.n_joints != robot.n_joints:
+            raise ValueError(f"the cell's truth holds {self.truth.n_joints} joints, the robot "
+                             f"{robot.name!r} {robot.n_joints} (CellTruth.for_robot sizes one)")
         if robot.compensator is None:
             self.truth = replace(self.truth, compensator=None)
-        if self.truth.stiffness.size != robot.n_joints:
-            raise ValueError(f"the cell's truth has {self.truth.stiffness.size} joints, the robot "
-                             f"{robot.name!r} {robot.n_joints}: CellTruth.for_robot(robot)")
         #: the robot as built: the drawing's table with the truth's kinematic errors
         #: (the physics runs on it; ``robot`` is the description users have)
-        errors = tuple((n, v) for n, v in self.truth.kinematic_errors
-                       if not n.startswith(("dx_", "dy_", "dz_")) or n[3:] in robot.marker_names)
-        self.physical = corrected_robot(robot, *zip(*errors)) if errors else robot
+        self.physical = as_built(robot, self.truth.kinematic_errors)
 
     # --------------------------------------------------------------- statics
-    def _full_load(self, theta10: np.ndarray, wrench: np.ndarray) -> np.ndarray:
-        return self.physical.load_torque(theta10, wrench, self.truth.compensator, links=True)
+    def _springs(self) -> physics.Springs:
+        t = self.truth
+
+        def twist(gear: np.ndarray) -> np.ndarray:
+            out = spring_angle(gear, t.stiffness, t.hardening_torque)
+            if np.any(t.backlash):
+                out = out + 0.5 * t.backlash * np.tanh(gear / t.backlash_torque_nm)
+            return out
+
+        return physics.Springs(twist=twist, link_compliance=t.link_compliance)
 
     def equilibrium(self, q: Sequence[float], wrench: Sequence[float] | None = None, *,
                     reference: Equilibrium | None = None, tol_rad: float = 1e-13,
                     max_iter: int = 200) -> Equilibrium:
-        """Solve ``k dtheta + backlash = load(theta)`` at commanded ``q``.
+        """Solve ``spring twist(gear torque) = theta - theta_rigid`` at commanded ``q``
+        (physics.solve_equilibrium).
 
         ``reference``: the unloaded equilibrium at the same ``q``; when given and
         the truth has static friction, friction absorbs up to ``static_friction``
@@ -317,40 +366,24 @@ class SimCell:
         t = self.truth
         q = np.asarray(q, dtype=float)
         w = np.zeros(6) if wrench is None else np.asarray(wrench, dtype=float)
+        loads = physics.Loads(wrench=w, compensator=t.compensator)
+        springs = self._springs()
+        data = r.link_model.createData()
         theta0 = r.theta(q)
         absorbed = np.zeros(r.n_joints)
-
-        def solve(fixed_absorbed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            th10 = r.theta_links(theta0)
-            for _ in range(max_iter):
-                load = self._full_load(th10, w)
-                gear = load[self.robot.actuated_in_link_model] - fixed_absorbed
-                dtheta = spring_angle(gear, t.stiffness, t.hardening_torque)
-                if np.any(t.backlash):
-                    dtheta = dtheta + 0.5 * t.backlash * np.tanh(gear / t.backlash_torque_nm)
-                new = th10.copy()
-                new[self.robot.actuated_in_link_model] = theta0 + dtheta
-                new[self.robot.springs_in_link_model] = t.link_compliance * load[self.robot.springs_in_link_model]
-                step = np.max(np.abs(new - th10))
-                th10 = new
-                if step < tol_rad:
-                    break
-            load = self._full_load(th10, w)
-            return th10, load[self.robot.actuated_in_link_model] - fixed_absorbed
-
-        th10, gear = solve(absorbed)
+        sol = physics.solve_equilibrium(r, theta0, loads, springs, data=data, tol_rad=tol_rad, max_iter=max_iter)
         if reference is not None and np.any(t.static_friction):
-            delta = gear - reference.gear_torque
+            delta = sol.gear_torque - reference.gear_torque
             absorbed = np.sign(delta) * np.minimum(np.abs(delta), t.static_friction)
-            th10, gear = solve(absorbed)
+            sol = physics.solve_equilibrium(r, theta0, loads, springs, absorbed=absorbed, data=data,
+                                            tol_rad=tol_rad, max_iter=max_iter)
         tilt = np.zeros(3)
         if np.any(t.base_tilt):
-            tilt[:2] = t.base_tilt * self.base_moment(th10, w)[:2]
-        return Equilibrium(q=q, theta=th10[self.robot.actuated_in_link_model].copy(),
-                           link_angles=th10[self.robot.springs_in_link_model].copy(), gear_torque=gear,
+            tilt[:2] = t.base_tilt * self.base_moment(sol.theta_links, w)[:2]
+        return Equilibrium(q=q, theta=sol.theta, link_angles=sol.link_angles, gear_torque=sol.gear_torque,
                            wrench=w, friction_torque=absorbed, base_rotation=tilt)
 
-    def base_moment(self, theta10: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+    def base_moment(self, theta_links: np.ndarray, wrench: np.ndarray) -> np.ndarray:
         """Moment the robot puts on its base about the base origin [N·m]: the link
         weights and the external wrench (the compensator's forces are internal)."""
         import pinocchio as pin
@@ -358,16 +391,19 @@ class SimCell:
         r = self.physical
         model = r.link_model
         data = model.createData()
-        com = pin.centerOfMass(model, data, theta10)
+        com = pin.centerOfMass(model, data, theta_links)
         mass = pin.computeTotalMass(model)
         moment = mass * np.cross(com, np.array(r.gravity))
-        p_load = r.positions(theta10, [LOAD_FRAME], links=True)[0]
+        p_load = physics.frame_positions(r, data, theta_links, [LOAD_FRAME])[0]
         return moment + wrench[3:] + np.cross(p_load, wrench[:3])
+
+    def _theta_links(self, eq: Equilibrium) -> np.ndarray:
+        return self.physical.theta_links(eq.theta, eq.link_angles)
 
     def marker_positions(self, eq: Equilibrium, markers: Sequence[str]) -> np.ndarray:
         """Noise-free base-frame positions (len(markers), 3) at an equilibrium."""
-        th10 = self.physical.theta_links(eq.theta, eq.link_angles)
-        p = self.physical.positions(th10, list(markers), links=True)
+        r = self.physical
+        p = physics.frame_positions(r, r.link_model.createData(), self._theta_links(eq), list(markers))
         if np.any(eq.base_rotation):
             import pinocchio as pin
 
@@ -379,7 +415,7 @@ class SimCell:
         return self.to_tracker(self.marker_positions(eq, markers))
 
     def to_tracker(self, base_p: np.ndarray) -> np.ndarray:
-        """Base-frame positions (N, 3) in the tracker's measurement frame."""
+        """Base-frame positions (M, 3) in the tracker's measurement frame."""
         return np.asarray(base_p) @ self.truth.tracker_rotation.T + self.truth.tracker_translation
 
     @property
@@ -416,13 +452,11 @@ class SimCell:
         return (eq.gear_torque + self.friction_torque(dq, eq.gear_torque)) / self.robot.torque_constants
 
     def friction_torque(self, dq: np.ndarray, load_torque: np.ndarray) -> np.ndarray:
-        """Friction the drive supplies on top of the load torque during a motion at ``dq``:
-        ``fc sign(dq) + fv dq + fl |tau_load| sign(dq)``, in the direction of motion."""
+        """Friction the drive supplies on top of the load torque during a motion at ``dq``
+        (physics.friction_effort: in the direction of motion)."""
         t = self.truth
-        dq = np.asarray(dq, dtype=float)
-        s = np.sign(dq)
-        return t.coulomb * s + t.viscous * dq + t.load_friction * np.abs(load_torque) * s
+        return physics.friction_effort(dq, load_torque, t.coulomb, t.viscous, t.load_friction)
 
     def load_point(self, eq: Equilibrium) -> np.ndarray:
-        th10 = self.physical.theta_links(eq.theta, eq.link_angles)
-        return self.physical.positions(th10, [LOAD_FRAME], links=True)[0]
+        r = self.physical
+        return physics.frame_positions(r, r.link_model.createData(), self._theta_links(eq), [LOAD_FRAME])[0]

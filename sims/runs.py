@@ -31,19 +31,30 @@ from elastocal.sims.cell import CellTruth, SimCell
 DEFAULT_COULOMB = (110.0, 180.0, 140.0, 35.0, 30.0, 22.0)
 DEFAULT_VISCOUS = (650.0, 1100.0, 800.0, 160.0, 140.0, 90.0)
 DEFAULT_LOAD_FRICTION = (0.04, 0.03, 0.035, 0.04, 0.045, 0.05)
+#: a linear track's carriage: Coulomb [N], viscous [N·s/m], load-dependent [-] (the simulator's
+#: choice of a plausible size, not a measured value)
+TRACK_FRICTION = (400.0, 3000.0, 0.03)
 
 
 def default_run_truth(base: CellTruth) -> CellTruth:
-    """``base`` with plausible Coulomb, viscous and load-dependent friction."""
-    return replace(base, coulomb=np.array(DEFAULT_COULOMB), viscous=np.array(DEFAULT_VISCOUS),
-                   load_friction=np.array(DEFAULT_LOAD_FRICTION))
+    """``base`` with plausible Coulomb, viscous and load-dependent friction (a six-axis arm's
+    values on the revolute joints, the last one repeated beyond six; a track's on a prismatic one)."""
+    return replace(base, coulomb=base.per_joint(DEFAULT_COULOMB, TRACK_FRICTION[0]),
+                   viscous=base.per_joint(DEFAULT_VISCOUS, TRACK_FRICTION[1]),
+                   load_friction=base.per_joint(DEFAULT_LOAD_FRICTION, TRACK_FRICTION[2]))
 
 
-def _six(value, name: str) -> tuple[float, ...]:
+def _six(value, name: str, n: int | None = 6) -> tuple[float, ...]:
+    """Finite numbers, ``n`` of them (any number for None: one per joint, checked against the robot)."""
     out = tuple(float(v) for v in value)
-    if len(out) != 6 or not all(np.isfinite(out)):
-        raise ValueError(f"{name}: expected 6 finite numbers")
+    if (n is not None and len(out) != n) or not out or not all(np.isfinite(out)):
+        raise ValueError(f"{name}: expected {n if n is not None else 'one per joint,'} finite numbers")
     return out
+
+
+def _check_size(robot: Robot, name: str, value: tuple[float, ...]) -> None:
+    if len(value) != robot.n_joints:
+        raise ValueError(f"{name}: {len(value)} values for the {robot.n_joints} joints of {robot.name!r}")
 
 
 @dataclass(frozen=True)
@@ -59,7 +70,7 @@ class SweepPlan:
     wrench: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # payload on the load point
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "q_base", _six(self.q_base, "q_base"))
+        object.__setattr__(self, "q_base", _six(self.q_base, "q_base", None))
         object.__setattr__(self, "wrench", _six(self.wrench, "wrench"))
         if not self.q2_end > self.q2_start:
             raise ValueError("q2_end must be above q2_start")
@@ -85,8 +96,8 @@ class FrictionPlan:
     samples: int = 240              # samples per run
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "q_u", _six(self.q_u, "q_u"))
-        object.__setattr__(self, "q_v", _six(self.q_v, "q_v"))
+        object.__setattr__(self, "q_u", _six(self.q_u, "q_u", None))
+        object.__setattr__(self, "q_v", _six(self.q_v, "q_v", len(self.q_u)))
         object.__setattr__(self, "loads", tuple((str(n), _six(w, f"load {n}")) for n, w in self.loads))
         if self.samples < 2 or any(s <= 0 for s in self.speeds_rad_s):
             raise ValueError("samples must be >= 2 and speeds positive")
@@ -113,7 +124,7 @@ def _record(cols: _Columns, cell: SimCell, rng: np.random.Generator, *, run: str
     noise = cell.truth.current_noise_a
     w = np.asarray(wrench, dtype=float)
     for k in range(len(t)):
-        i = cell.motion_currents(q[k], dq[k], w) + rng.normal(0.0, noise, size=6)
+        i = cell.motion_currents(q[k], dq[k], w) + rng.normal(0.0, noise, size=cell.robot.n_joints)
         cols.run.append(run)
         cols.direction.append(direction)
         cols.load.append(load)
@@ -127,6 +138,7 @@ def _record(cols: _Columns, cell: SimCell, rng: np.random.Generator, *, run: str
 def simulate_sweeps(robot: Robot, truth: CellTruth, plan: SweepPlan, rng: np.random.Generator, *,
                     t0: float = 0.0, cols: _Columns | None = None) -> tuple[_Columns, float]:
     """Joint-2 sweeps (``+`` then ``-``) at each q3 of ``plan``."""
+    _check_size(robot, "q_base", plan.q_base)
     cell = SimCell(robot, truth)
     cols = _Columns.empty() if cols is None else cols
     n = int(round((plan.q2_end - plan.q2_start) / plan.step_rad)) + 1
@@ -139,7 +151,7 @@ def simulate_sweeps(robot: Robot, truth: CellTruth, plan: SweepPlan, rng: np.ran
             q = np.tile(plan.q_base, (n, 1))
             q[:, 2] = q3
             q[:, 1] = path
-            dq = np.zeros((n, 6))
+            dq = np.zeros((n, robot.n_joints))
             dq[:, 1] = plan.speed_rad_s if direction == "+" else -plan.speed_rad_s
             times = t + dt * np.arange(n)
             _record(cols, cell, rng, run=f"sweep{k}{direction}", direction=direction, load=load, t=times, q=q,
@@ -151,6 +163,7 @@ def simulate_sweeps(robot: Robot, truth: CellTruth, plan: SweepPlan, rng: np.ran
 def simulate_friction_runs(robot: Robot, truth: CellTruth, plan: FrictionPlan, rng: np.random.Generator, *,
                            t0: float = 0.0, cols: _Columns | None = None) -> tuple[_Columns, float]:
     """UV and VU runs at each speed and load of ``plan``."""
+    _check_size(robot, "q_u", plan.q_u)
     cell = SimCell(robot, truth)
     cols = _Columns.empty() if cols is None else cols
     qu, qv = np.array(plan.q_u), np.array(plan.q_v)
@@ -231,7 +244,7 @@ def hide_in_runs(truth: CellTruth, effect: str) -> CellTruth:
     for name in names:
         if name not in RUN_HIDDEN:
             raise ValueError(f"the simulator cannot hide {name!r} in run data; one of {', '.join(RUN_HIDDEN)}")
-    zero = np.zeros(6)
+    zero = np.zeros(truth.n_joints)
     full = default_run_truth(truth)
     return replace(truth,
                    coulomb=full.coulomb if names & {"coulomb_friction", "friction"} else zero,

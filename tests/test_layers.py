@@ -43,6 +43,10 @@ FORBIDDEN = {
     ("elastocal.diagnose", "elastocal.sims"), ("elastocal.design", "elastocal.sims"),
     ("elastocal.report", "elastocal.sims"), ("elastocal.compensation", "elastocal.report"),
     ("elastocal.acquisition", "elastocal.sims"),
+    # the simulator is an independent witness: it computes the physics its own way, never with
+    # the fits' code (docs/physics.md); only the bottom layer's description and formats
+    ("elastocal.sims", "elastocal.identify"), ("elastocal.sims", "elastocal.diagnose"),
+    ("elastocal.sims", "elastocal.design"),
 }
 
 
@@ -115,6 +119,17 @@ def violations(root: pathlib.Path) -> list[str]:
 def test_nothing_imports_upward():
     problems = violations(ROOT)
     assert not problems, "\n".join(problems)
+
+
+def test_the_simulator_uses_no_fitting_or_effect_code():
+    """sims/ reads the robot description and writes the file formats; its physics is its own
+    (sims/physics.py): no identify/, diagnose/ or design/ module, no effect module."""
+    known = modules(ROOT)
+    bad = [f"{name} imports {target}" for name, path in known.items() if name.startswith("elastocal.sims")
+           for _, target in imports(name, path, known)
+           if target.startswith(("elastocal.identify", "elastocal.diagnose", "elastocal.design",
+                                 "elastocal.model.effects"))]
+    assert not bad, bad
 
 
 def test_every_module_has_a_layer():
