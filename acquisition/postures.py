@@ -145,8 +145,8 @@ def _read_file(path: str, robot: Robot, joints: Sequence[str], points: Sequence[
             u = _number(cells[ucol], decimal_comma=decimal_comma, source=path, line=line,
                         column=header[ucol]) * length_m
             if not 0.0 <= u < 0.01:
-                raise InputError(f"an uncertainty of {u * 1e3:g} mm; below 10 mm expected (the wrong --unit?)",
-                                 source=path, row=line, column=header[ucol])
+                raise InputError((f"an uncertainty of {u * 1e3:g} mm; below 10 mm expected (the wrong ",
+                                  Arg("unit"), "?)"), source=path, row=line, column=header[ucol])
         _check_joints(q, robot, joints, source=path, line=line, angles_given=angle_rad)
         rows.q.append(q)
         rows.xyz.append(xyz)
@@ -162,13 +162,13 @@ def _check_joints(q: np.ndarray, robot: Robot, joints: Sequence[str], *, source:
         if j.lower - LIMIT_SLACK <= value <= j.upper + LIMIT_SLACK:
             continue
         unit = j.unit
-        hint = ""
+        hint: tuple = ()
         if j.kind is JointKind.REVOLUTE and angles_given == 1.0 and abs(value) > MAX_RADIANS:
-            hint = "; the numbers look like degrees: give --angles deg"
+            hint = ("; the numbers look like degrees: give ", Arg("angles", "deg"))
         elif j.kind is JointKind.PRISMATIC and abs(value) > 10.0:
-            hint = "; the numbers look like millimetres: give --unit mm"
-        raise InputError(f"joint {i + 1} ({j.name or col}) at {value:.6g} {unit} is outside its limits "
-                         f"{j.lower:g}..{j.upper:g} {unit}{hint}", source=source, row=line, column=col)
+            hint = ("; the numbers look like millimetres: give ", Arg("unit", "mm"))
+        raise InputError((f"joint {i + 1} ({j.name or col}) at {value:.6g} {unit} is outside its limits "
+                          f"{j.lower:g}..{j.upper:g} {unit}", *hint), source=source, row=line, column=col)
 
 
 def _check_lengths(xyz: np.ndarray, lines: list[int], *, source: str) -> None:
