@@ -46,11 +46,12 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
-from elastocal.errors import InputError
+from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
 from elastocal.model.effects import get_effect
 from elastocal.identify.registration import Registration, kabsch, register
+from elastocal.identify.toolpoints import ToolPoints, find_tool_points, fit_tool_points, needs_prefit, usable
 from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.static import (
     Parameter,
@@ -115,6 +116,8 @@ class AbsoluteFit:
     n_params: int = 0
     iterations: int = 0
     tracker_prior: np.ndarray | None = None
+    #: the tool-point pre-fit the full model started from (None: robot.toml's markers)
+    tool_prefit: ToolPoints | None = None
 
     @property
     def residuals(self) -> np.ndarray:
@@ -159,6 +162,9 @@ class AbsoluteFit:
             out["registration"]["prior"] = {
                 "base_p_tracker": [float(v) for v in self.tracker_prior], "std": TRACKER_PRIOR_STD_M,
                 "offset": float(np.linalg.norm(reg.base_p_tracker - np.asarray(self.tracker_prior))), "unit": "m"}
+        if self.tool_prefit is not None:        # optional: where the pre-fit found the markers (flange frame)
+            out["tool_prefit"] = {"rms": self.tool_prefit.rms, "unit": "m", "flange_p_markers": {
+                m: [float(v) for v in p] for m, p in zip(self.tool_prefit.markers, self.tool_prefit.flange_p_markers)}}
         if self.absorbed_by:
             out["absorbed_by"] = {name: kin.absorbed_words(name, combo) for name, combo in self.absorbed_by.items()}
         return out
@@ -322,6 +328,10 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     names = tuple(dict.fromkeys(model if only else ["joint_stiffness", *model]))
     static_model, absolute = split_model(names)
     reg = register(robot, ds0) if ds0.abs_xyz is not None else None
+    nominal_robot = robot
+    tools = _tool_prefit(robot, ds0, reg, fits_markers="kinematic_errors" in absolute)
+    if tools is not None:              # the full model starts from the markers the pre-fit found
+        robot, reg = tools.robot(robot), tools.registration
     if reg is None:
         raise InputError("this table holds no absolute positions of the robot's markers (a rigid fit of the "
                          "model leaves more than 5 cm, or too few points to fix a rotation); "
@@ -446,6 +456,9 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
         for k, name in enumerate(FRAME_NAMES):
             value = float(rvec[k]) if k < 3 else float(t[k - 3])
             params.append(Parameter(name, value, float(std6[k]), "rad" if k < 3 else "m"))
+    kv_total = np.where(free[n_el + 6:], kv, 0.0) if kin_names else np.zeros(0)
+    if tools is not None:              # marker corrections from robot.toml's positions: the pre-fit's and the fit's
+        kv, kv_total = _with_prefit(tools, nominal_robot, kin_names, kv, kv_total)
     if kin_names:
         for k, name in enumerate(kin_names):
             col = n_el + 6 + k
@@ -457,13 +470,53 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     return AbsoluteFit(
         model=names, static=fit, parameters=tuple(params), unidentifiable=tuple(unident), absorbed_by=absorbed,
         identifiable=ident, registration=registration, kinematic_names=kin_names,
-        kinematic_values=np.where(free[n_el + 6:], kv, 0.0) if kin_names else np.zeros(0),
+        kinematic_values=kv_total,
         elastic_beta=beta.copy(), measured=y, predicted=pred, rms=float(np.sqrt(np.mean(r_flat ** 2))),
         max=float(np.max(np.abs(r_flat))), n=int(r_flat.size), noise_floor=floor, deflection_residuals=d_res,
         deflection_rms=float(np.sqrt(np.mean(d_res ** 2))) if d_res.size else 0.0,
         deflection_max=float(np.max(np.abs(d_res))) if d_res.size else 0.0,
         rss_whitened=rss_w, n_params=p, iterations=iterations,
-        tracker_prior=None if tracker_prior is None else np.asarray(tracker_prior, dtype=float))
+        tracker_prior=None if tracker_prior is None else np.asarray(tracker_prior, dtype=float),
+        tool_prefit=tools)
+
+
+def _tool_prefit(robot: Robot, ds: StaticDataset, nominal: Registration | None, *,
+                 fits_markers: bool) -> ToolPoints | None:
+    """The tool-point pre-fit (identify/toolpoints.py) when robot.toml's markers leave the
+    readings unexplained (or explained only roughly): its placement to start the full model
+    from, None to start from robot.toml's; refused naming the marker no placement explains."""
+    if ds.abs_xyz is None or not needs_prefit(nominal):
+        return None
+    if nominal is None:
+        tools = find_tool_points(robot, ds)
+    else:
+        tools = fit_tool_points(robot, ds)
+        if tools is None or not usable(robot, tools, nominal):
+            return None
+    if not usable(robot, tools, nominal):
+        return None
+    if not fits_markers:
+        if nominal is not None:
+            return None
+        far = ", ".join(f"{m} {np.linalg.norm(v) * 100:.3g} cm" for m, v in tools.moved(robot).items()
+                        if np.linalg.norm(v) > 0.05)
+        raise InputError(("the markers are far from robot.toml's [tool.markers] (a tool-point pre-fit moves ", far,
+                          "); add kinematic_errors to ", Arg("model"), " to fit them, or correct robot.toml"),
+                         source=ds.source)
+    return tools
+
+
+def _with_prefit(tools: ToolPoints, robot: Robot, kin_names: Sequence[str], kv: np.ndarray,
+                 kv_total: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The marker corrections ``dx_/dy_/dz_`` counted from robot.toml's markers: the pre-fit's
+    move plus the full fit's correction of it."""
+    moved = tools.moved(robot)
+    kv, kv_total = kv.copy(), kv_total.copy()
+    for k, name in enumerate(kin_names):
+        if name.startswith(("dx_", "dy_", "dz_")) and name[3:] in moved:
+            kv[k] += moved[name[3:]]["xyz".index(name[1])]
+            kv_total[k] += moved[name[3:]]["xyz".index(name[1])]
+    return kv, kv_total
 
 
 def _tracker_position(st: _Setup, x: np.ndarray, n_el: int) -> np.ndarray:
