@@ -268,7 +268,12 @@ def test_schedule_checks_the_check_arguments(tmp_path, capsys):
     base[5] = str(bare)
     assert main(base) == 2
     assert "no --calibration" in _one_line(capsys.readouterr().err)
-    assert main([*base, "--check-args=--calibration cal.json"]) == 0
+    missing = tmp_path / "cal.json"
+    assert main([*base, f"--check-args=--calibration {missing}"]) == 2    # read at install, not at the first run
+    assert _one_line(capsys.readouterr().err).startswith(f"elastocal schedule: {missing}: cannot read")
+    golden = json.loads((pathlib.Path(__file__).parent / "data" / "golden" / "calibration_static.json").read_text())
+    missing.write_text(json.dumps(golden["json"]), encoding="utf-8")       # a calibration file of the golden run
+    assert main([*base, f"--check-args=--calibration {missing}"]) == 0
 
 
 # ---------------------------------------------------------------- cli.main last resorts
