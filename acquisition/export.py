@@ -292,6 +292,28 @@ def tracker_position_from_log(contents: LogContents) -> tuple[float, float, floa
     return tuple(float(x) for x in v)
 
 
+def tracker_noise_from_log(contents: LogContents):
+    """The tracker noise law the cell.toml the log carries states (``[tracker] noise``,
+    model/tracker_noise.py), or None when it does not say (as :func:`tracker_position_from_log`);
+    a table that is there but malformed is an error naming the log."""
+    if contents.cell is None or not contents.cell.text.strip():
+        return None
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    from elastocal.model.tracker_noise import parse_tracker_noise
+
+    try:
+        doc = tomllib.loads(contents.cell.text.removeprefix("\ufeff"))
+    except tomllib.TOMLDecodeError:
+        return None
+    tracker = doc.get("tracker")
+    if not isinstance(tracker, dict) or "noise" not in tracker:
+        return None
+    return parse_tracker_noise(tracker["noise"], source=f"{contents.path} ({lf.TOPIC_CELL})")
+
+
 def export_files(contents: LogContents) -> dict[str, str | StaticTable | RunTable | None]:
     """What an export of a log writes: file name -> its text or table (None:
     the log has none, e.g. no static experiment)."""

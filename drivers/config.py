@@ -44,6 +44,7 @@ from elastocal.drivers.guidance_config import (
 from elastocal.drivers.urls import CONTROLLER_SCHEMES, DRIVE_SCHEMES, TRACKER_SCHEMES, DeviceUrl, parse_device_url
 from elastocal.errors import InputError, check_known_keys
 from elastocal.formats.textfiles import read_text_file
+from elastocal.model.tracker_noise import TrackerNoise, parse_tracker_noise, tracker_noise_doc
 
 try:  # Python 3.11+
     import tomllib
@@ -87,6 +88,9 @@ class TrackerConfig:
     #: where the tracker head stands, robot base coordinates [m] (optional; used by
     #: `elastocal plan` to keep only poses whose markers it can see)
     base_p_tracker: tuple[float, float, float] | None = None
+    #: the tracker's noise law as its maker states it (optional; model/tracker_noise.py): weights,
+    #: noise floor and outlier test where the readings are not repeated enough to estimate it
+    noise: TrackerNoise | None = None
 
     @property
     def name(self) -> str:
@@ -349,8 +353,8 @@ def _tracker(t: Mapping, *, source: str) -> TrackerConfig:
     where = "tracker"
     if not isinstance(t, Mapping):
         raise InputError("expected a table", source=source, column=where)
-    check_known_keys(t, ("url", "markers", "rate_hz", "timeout_s", "retries", "base_p_tracker"), source=source,
-                where=where)
+    check_known_keys(t, ("url", "markers", "rate_hz", "timeout_s", "retries", "base_p_tracker", "noise"),
+                     source=source, where=where)
     if "url" not in t:
         raise InputError("missing required key", source=source, column="tracker.url")
     base_p_tracker = None
@@ -372,7 +376,8 @@ def _tracker(t: Mapping, *, source: str) -> TrackerConfig:
                          rate_hz=_rate(t, 100.0, source=source, where=where),
                          timeout_s=_num(t, "timeout_s", 1.0, source=source, where=where),
                          retries=_int(t, "retries", 2, source=source, where=where),
-                         base_p_tracker=base_p_tracker)
+                         base_p_tracker=base_p_tracker,
+                         noise=parse_tracker_noise(t["noise"], source=source) if "noise" in t else None)
 
 
 def _controller(t: Mapping, *, source: str) -> ControllerConfig:
@@ -562,6 +567,8 @@ def _document(c: CellConfig) -> dict[str, Any]:
                           "timeout_s": t.timeout_s, "retries": t.retries}
         if t.base_p_tracker is not None:
             doc["tracker"]["base_p_tracker"] = list(t.base_p_tracker)
+        if t.noise is not None:
+            doc["tracker"]["noise"] = tracker_noise_doc(t.noise)
     if c.controller is not None:
         k = c.controller
         controller: dict[str, Any] = {"url": k.url.text, "timeout_s": k.timeout_s, "retries": k.retries,

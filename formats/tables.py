@@ -23,6 +23,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 
 from elastocal.errors import InputError
+from elastocal.model.tracker_noise import TrackerNoise
 from elastocal.formats.textfiles import read_text_file
 from elastocal.model.robot import Robot
 
@@ -103,6 +104,9 @@ class StaticTable:
     line: np.ndarray      # (n,) line number in the file (header = 1)
     #: optional columns present (STATIC_OPTIONAL_COLUMNS): name -> (n,) values, NaN when empty
     extra: tuple[tuple[str, np.ndarray], ...] = ()
+    #: the tracker's noise law the cell states (cell.toml ``[tracker] noise``), if it does
+    #: (model/tracker_noise.py): for weights, floor and outliers where the repeats cannot say
+    tracker_noise: TrackerNoise | None = None
 
     def __len__(self) -> int:
         return len(self.pose)
@@ -137,7 +141,7 @@ class StaticTable:
     def subset(self, mask: np.ndarray) -> "StaticTable":
         return StaticTable(self.source, self.pose[mask], self.load[mask], self.t[mask], self.q[mask],
                            self.wrench[mask], self.currents[mask], self.marker[mask], self.xyz[mask],
-                           self.line[mask], tuple((k, v[mask]) for k, v in self.extra))
+                           self.line[mask], tuple((k, v[mask]) for k, v in self.extra), self.tracker_noise)
 
 
 @dataclass(frozen=True, eq=False)

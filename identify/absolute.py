@@ -278,6 +278,7 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
     known = ds.sigma_tracker is not None
     sig_t = ds.sigma_tracker if known else UNIT_NOISE_M
     nm = len(ds.markers)
+    law = ds.abs_cov if known else None      # the tracker's law: each reading at its range and beam
     sig_i = ds.sigma_current if (known and torque == "current" and ds.sigma_current is not None) else None
     covs = np.zeros((ds.n_states, 3 * nm, 3 * nm))
     jac_pose: dict[int, np.ndarray] = {}
@@ -285,7 +286,8 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
     for s in range(ds.n_states):
         cov = np.zeros((3 * nm, 3 * nm))
         for m in range(nm):
-            cov[3 * m:3 * m + 3, 3 * m:3 * m + 3] += sig_t ** 2 / ds.abs_n[s, m] * np.eye(3)
+            cov[3 * m:3 * m + 3, 3 * m:3 * m + 3] += (sig_t ** 2 / ds.abs_n[s, m] * np.eye(3) if law is None
+                                                      else law[s, m])
         if sig_i is not None:
             pi = int(ds.state_pose[s])
             if pi not in jac_pose:

@@ -4,12 +4,16 @@ The readings that repeat ``(pose, load, marker)`` measure one position; a
 reading far off the others (a beam break, a reflector knocked, a reading of the
 wrong reflector) is found by a robust test:
 
-* the scale is robust: the tracker's repeatability from the *median* over the
-  repeat groups of their sample variance, corrected by the median of its
-  chi-square distribution, so a few bad readings do not inflate it;
+* the scale is the tracker's noise law where there is one
+  (model/tracker_noise.py: a constant plus a part growing with range, along
+  and across the beam; estimated from the repeats or stated by the cell), so
+  a far reading is judged by the noise at its range; else it is robust: the
+  tracker's repeatability from the *median* over the repeat groups of their
+  sample variance, corrected by the median of its chi-square distribution, so
+  a few bad readings do not inflate it;
 * each reading is compared with the mean of the *other* readings of its group
-  (leave-one-out, variance ``sigma^2 (1 + 1/(n-1))`` per coordinate); the
-  statistic is chi-square with 3 degrees of freedom under noise;
+  (leave-one-out, covariance ``Sigma (1 + 1/(n-1))``, ``Sigma`` the law's at the
+  group's position or ``sigma^2 I``); the statistic is chi-square with 3 degrees of freedom under noise;
 * the worst reading of a group is flagged when its p-value is below
   ``ALPHA / N`` (Bonferroni over the N readings tested: the chance that a
   complete dataset shows any outlier is below ``ALPHA``), then removed and the
@@ -88,18 +92,30 @@ def _robust_sigma_grouped(xyz: np.ndarray, code: np.ndarray, n_groups: int) -> f
     return float(np.sqrt(np.median(s2) / median_scale))
 
 
-def find_outliers(table, *, alpha: float = ALPHA) -> tuple[Outlier, ...]:
-    """Readings of a static table far off their repeats, worst first.
+def _inverse_covariances(xyz: np.ndarray, code: np.ndarray, n_groups: int, noise, sigma: float | None):
+    """(G, 3, 3) inverse covariance of one reading of each group: the law's at the group's
+    mean position, else ``I / sigma^2``."""
+    if noise is None:
+        return np.broadcast_to(np.eye(3) / sigma**2, (n_groups, 3, 3))
+    n = np.maximum(group_count(code, n_groups), 1)
+    return np.linalg.inv(noise.covariance(group_sum(code, xyz, n_groups) / n[:, None]))
+
+
+def find_outliers(table, *, alpha: float = ALPHA, noise=None) -> tuple[Outlier, ...]:
+    """Readings of a static table far off their repeats, worst first; ``noise`` the
+    tracker's law (:class:`~elastocal.model.tracker_noise.TrackerNoise`) or None (a robust
+    constant from the repeats).
 
     The first test of every group is one grouped pass over the rows; only the groups whose
     worst reading fails it are tested again reading by reading."""
     xyz = table.xyz
     code, n_groups = _group_codes(table)
-    sigma = _robust_sigma_grouped(xyz, code, n_groups)
+    sigma = _robust_sigma_grouped(xyz, code, n_groups) if noise is None else 1.0
     n = group_count(code, n_groups)
     tested = int(n[n >= 3].sum())
     if sigma is None or not sigma > 0 or tested == 0:
         return ()
+    w = _inverse_covariances(xyz, code, n_groups, noise, sigma)
     limit = alpha / tested
     big = n >= 3
     rows = np.flatnonzero(big[code])
@@ -107,7 +123,8 @@ def find_outliers(table, *, alpha: float = ALPHA) -> tuple[Outlier, ...]:
     x = xyz[rows]
     ng = n[g][:, None]
     others = (group_sum(g, x, n_groups)[g] - x) / (ng - 1)
-    d2 = ((x - others) ** 2).sum(axis=1) / (sigma**2 * (1.0 + 1.0 / (ng[:, 0] - 1)))
+    e = x - others
+    d2 = np.einsum("ni,nij,nj->n", e, w[g], e) / (1.0 + 1.0 / (ng[:, 0] - 1))
     worst = np.full(n_groups, -np.inf)
     np.maximum.at(worst, g, d2)
     candidates = np.flatnonzero(big & (scipy.stats.chi2.sf(np.where(big, worst, 0.0), 3) < limit * (1 + 1e-6)))
@@ -121,7 +138,8 @@ def find_outliers(table, *, alpha: float = ALPHA) -> tuple[Outlier, ...]:
                 x = xyz[left]
                 m = len(left)
                 others = (x.sum(axis=0) - x) / (m - 1)
-                d2 = ((x - others) ** 2).sum(axis=1) / (sigma**2 * (1.0 + 1.0 / (m - 1)))
+                e = x - others
+                d2 = np.einsum("ni,ij,nj->n", e, w[c], e) / (1.0 + 1.0 / (m - 1))
                 k = int(np.argmax(d2))
                 p = float(scipy.stats.chi2.sf(d2[k], 3))
                 if p >= limit:
@@ -134,6 +152,19 @@ def find_outliers(table, *, alpha: float = ALPHA) -> tuple[Outlier, ...]:
     return tuple(found)
 
 
+def tracker_noise_of(table, stated=None):
+    """The tracker's noise law for a table: estimated from its repeats where they are
+    enough (identify/trackernoise.py: a first estimate, the outliers it shows left out, and
+    estimated again), else ``stated`` (cell.toml ``[tracker] noise``), else None."""
+    from elastocal.identify.trackernoise import estimate_tracker_noise
+
+    first = estimate_tracker_noise(table)
+    if first is None:
+        return stated
+    bad = find_outliers(table, noise=first)
+    return estimate_tracker_noise(table, exclude=outlier_mask(len(table), bad)) if bad else first
+
+
 def outlier_mask(n_rows: int, outliers) -> np.ndarray:
     """(n_rows,) bool: True at the outliers' rows."""
     mask = np.zeros(n_rows, dtype=bool)
@@ -141,11 +172,12 @@ def outlier_mask(n_rows: int, outliers) -> np.ndarray:
     return mask
 
 
-def without_outliers(table):
-    """(the table without its outliers, the outliers marked excluded)."""
+def without_outliers(table, *, noise=None):
+    """(the table without its outliers, the outliers marked excluded); ``noise`` the
+    tracker's law stated by the cell (estimated from the repeats where they are enough)."""
     from dataclasses import replace
 
-    found = find_outliers(table)
+    found = find_outliers(table, noise=tracker_noise_of(table, noise if noise is not None else table.tracker_noise))
     if not found:
         return table, ()
     return table.subset(~outlier_mask(len(table), found)), tuple(replace(o, excluded=True) for o in found)

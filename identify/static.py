@@ -46,6 +46,7 @@ from elastocal.identify.evidence import check_loads_changed, mark_stiffness
 from elastocal.identify.grouping import combine, first_seen, group_count, group_sum, sums_per_group
 from elastocal.identify.registration import in_base_axes, refine_registration
 from elastocal.formats.tables import StaticTable
+from elastocal.model.tracker_noise import TrackerNoise
 
 TORQUE_SOURCES = ("current", "force")
 FORMS = ("exact", "first-order")
@@ -98,6 +99,12 @@ class StaticDataset:
     abs_t: np.ndarray | None = None    # (S, M) mean time of those readings [s], NaN if unknown
     #: rotation tracker <- base that dP was turned back by (identify/registration.py); None: dP as measured
     tracker_rotation: np.ndarray | None = None
+    #: the tracker's noise law in force (model/tracker_noise.py): estimated from the repeats where
+    #: they are enough, else the cell's; None without either
+    tracker_noise: TrackerNoise | None = None
+    #: (S, M, 3, 3) covariance of each state's mean reading of each marker under that law,
+    #: tracker frame [m²]; None without a law
+    abs_cov: np.ndarray | None = None
 
     @property
     def n_states(self) -> int:
@@ -133,19 +140,23 @@ def _in_order(values: np.ndarray, start: np.ndarray | float) -> np.ndarray:
     return np.add.accumulate(np.concatenate([np.asarray(start, dtype=float)[None], values]), axis=0)[-1]
 
 
-def build_dataset(table: StaticTable) -> StaticDataset:
+def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = None) -> StaticDataset:
     """Average repeated readings and form the deflections of a validated table.
 
     The tracker's repeatability leaves out the readings far off their repeats
-    (identify/outliers.py); they are listed in ``outliers``.
+    (identify/outliers.py); they are listed in ``outliers``. The tracker's noise
+    law (identify/trackernoise.py) is estimated from the repeats where they are
+    enough, else ``tracker_noise`` (cell.toml ``[tracker] noise``) is taken; it gives
+    every mean reading its covariance (``abs_cov``) and, without repeats, the noise level.
 
     States are numbered pose by pose in order of first appearance, the reference (load 0)
     first, then the pose's loads in order of first appearance; deflections run over the
     loaded states and every marker of the table. One grouped pass over the rows
     (identify/grouping.py): no Python loop per row, state or marker."""
-    from elastocal.identify.outliers import find_outliers, outlier_mask
+    from elastocal.identify.outliers import find_outliers, outlier_mask, tracker_noise_of
 
-    outliers = find_outliers(table)
+    noise = tracker_noise_of(table, tracker_noise if tracker_noise is not None else table.tracker_noise)
+    outliers = find_outliers(table, noise=noise)
     bad = outlier_mask(len(table), outliers)
     pose_code, pose_first = first_seen(table.pose)
     marker_code, marker_first = first_seen(table.marker)
@@ -225,6 +236,14 @@ def build_dataset(table: StaticTable) -> StaticDataset:
     c1, c0 = d_state * n_markers + d_marker, d_ref * n_markers + d_marker
     sigma_tracker = float(np.sqrt(dev_sq_p / dof_p)) if dof_p else None
     sigma_current = np.sqrt(dev_sq_i / dof_i) if dof_i else None
+    abs_cov = None
+    if noise is not None:          # each mean reading's covariance under the law
+        finite = np.all(np.isfinite(xyz_mean), axis=1)
+        abs_cov = np.full((n_cells, 3, 3), np.nan)
+        abs_cov[finite] = noise.covariance(xyz_mean[finite]) / count[finite][:, None, None]
+        abs_cov = abs_cov.reshape(n_states, n_markers, 3, 3)
+        if sigma_tracker is None:  # no repeats: the law sets the level
+            sigma_tracker = noise.rms_sigma(xyz_mean[finite])
     return StaticDataset(
         source=table.source, pose_ids=pose_ids, q=q, markers=markers,
         state_pose=state_pose, state_load=state_load, state_ref=state_ref, state_currents=cur,
@@ -237,6 +256,7 @@ def build_dataset(table: StaticTable) -> StaticDataset:
         outliers=outliers,
         abs_xyz=xyz_mean.reshape(n_states, n_markers, 3), abs_n=count.reshape(n_states, n_markers),
         abs_t=t_mean.reshape(n_states, n_markers).astype(float),
+        tracker_noise=noise, abs_cov=abs_cov,
     )
 
 
@@ -619,6 +639,10 @@ def _noise_blocks(pr: _Problem, beta: np.ndarray, bases,
         order = np.argsort(ds.state_pose, kind="stable")
     if ds.defl_u95_var is not None:          # the readings' own U95 (docs/import.md)
         v_ref, v_own = ds.defl_u95_var_ref, ds.defl_u95_var
+    elif ds.abs_cov is not None:             # the tracker's law, per coordinate at each reading's range
+        v_cell = np.trace(ds.abs_cov, axis1=-2, axis2=-1) / 3.0          # (S, M)
+        v_ref = v_cell[ds.defl_ref, ds.defl_marker]
+        v_own = v_ref + v_cell[ds.defl_state, ds.defl_marker]
     else:
         v_ref = ds.sigma_tracker**2 / ds.defl_n_ref
         v_own = v_ref + ds.sigma_tracker**2 / ds.defl_n

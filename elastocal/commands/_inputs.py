@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import pathlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from elastocal.errors import InputError
 from elastocal.model.robot import Robot
@@ -124,7 +124,7 @@ def load_log_noted(args: argparse.Namespace, path: str | pathlib.Path, *, with_t
     without its MCAP summary (a killed recorder): what was read is then only
     what came before its last complete chunk. ``with_tracker``: and where the
     log's cell.toml says the tracker stands (or None)."""
-    from elastocal.acquisition.export import tables_from_log, tracker_position_from_log
+    from elastocal.acquisition.export import tables_from_log, tracker_noise_from_log, tracker_position_from_log
     from elastocal.acquisition.logreader import read_log
     from elastocal.commands._outputs import log_note, note
 
@@ -133,7 +133,11 @@ def load_log_noted(args: argparse.Namespace, path: str | pathlib.Path, *, with_t
     if text:
         note(args, text)
     if with_tracker:
-        return (*tables_from_log(contents), tracker_position_from_log(contents))
+        robot, static, runs = tables_from_log(contents)
+        noise = tracker_noise_from_log(contents)
+        if static is not None and noise is not None:      # the cell's stated law travels with the table
+            static = replace(static, tracker_noise=noise)
+        return robot, static, runs, tracker_position_from_log(contents)
     return tables_from_log(contents)
 
 
@@ -172,7 +176,8 @@ def load_inputs(args: argparse.Namespace) -> Inputs:
         robot, static, runs, tracker = load_log_noted(args, args.log, with_tracker=True)
         if args.robot:
             robot = load_robot(args.robot)
-        return Inputs(robot, static, runs, (pathlib.Path(args.log),), pathlib.Path(args.log), tracker)
+        return Inputs(robot, _with_cell_noise(args, static), runs, (pathlib.Path(args.log),),
+                      pathlib.Path(args.log), tracker)
     if not args.robot:
         raise InputError("missing --robot robot.toml (or give a log)", source="--robot")
     if not args.static and not args.runs:
@@ -181,7 +186,21 @@ def load_inputs(args: argparse.Namespace) -> Inputs:
     static = read_static_table(args.static, robot) if args.static else None
     runs = read_run_table(args.runs, robot) if args.runs else None
     files = tuple(pathlib.Path(p) for p in (args.static, args.runs) if p)
-    return Inputs(robot, static, runs, files)
+    return Inputs(robot, _with_cell_noise(args, static), runs, files)
+
+
+def _with_cell_noise(args: argparse.Namespace, static: StaticTable | None) -> StaticTable | None:
+    """The static table with ``--cell``'s ``[tracker] noise`` law (docs/cell-config.md), when
+    both are given (it comes before the one of the cell.toml a log carries)."""
+    cell_path = getattr(args, "cell", None)
+    if static is None or not cell_path:
+        return static
+    from elastocal.drivers.config import load_cell_config
+
+    cell = load_cell_config(cell_path)
+    if cell.tracker is None or cell.tracker.noise is None:
+        return static
+    return replace(static, tracker_noise=cell.tracker.noise)
 
 
 def table_model(args: argparse.Namespace, inputs: "Inputs", model: tuple[str, ...]) -> tuple[str, ...]:
