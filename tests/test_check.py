@@ -246,3 +246,24 @@ def test_yes_on_a_cell_nobody_simulates_is_refused_before_anything_is_written(ce
     assert not (cell / "checks").exists()
     assert main(["check", "--cell", str(cell / "cell.toml"), "--yes", "--sim", "--unattended"]) == 2
     assert "give one" in capsys.readouterr().err and not (cell / "checks").exists()
+
+
+def test_an_old_calibration_checks_friction_with_its_sign_turned(robot, calibration, tmp_path):
+    """A calibration written under the old run model (friction of the other sign, no
+    friction_sign field) reads with its friction turned, and the friction check of the
+    unchanged cell holds as with the new file."""
+    from elastocal.formats.calibration import read_calibration
+
+    write_calibration(tmp_path / "new.json", calibration)
+    doc = json.loads((tmp_path / "new.json").read_text(encoding="utf-8"))
+    assert doc.pop("friction_sign") == "direction_of_motion"
+    for name, p in doc["parameters"].items():
+        if name.startswith(("fc", "fv", "fl")):
+            p["value"] = -p["value"]
+    (tmp_path / "old.json").write_text(json.dumps(doc), encoding="utf-8")
+    old = read_calibration(tmp_path / "old.json")
+    assert calibration.value("fc2") > 0 and old.value("fc2") == pytest.approx(calibration.value("fc2"))
+    assert "sign converted" in old.find("fl3").note
+    _, runs = check_data(robot, TRUTH, 21)
+    res = check_calibration(robot, old, runs=runs)
+    assert res.friction is not None and res.friction.passed and len(res.friction.joints) == 6
