@@ -3,10 +3,11 @@ first round leaves a hidden effect open, one planned round of at most 6 poses, t
 both rounds; the same with a random round of the same count (poses from the same candidates, load
 forces of the same size in random rig directions); and complete cells (no hidden effect).
 
-    python benchmarks/discriminate_acceptance.py [--seeds 20] [--effects link_compliance,backlash,...]
+    python benchmarks/discriminate_acceptance.py [--seeds 20] [--poses 6] [--effects link_compliance,backlash,...]
 
 Prints one table row per case: how often diagnose names the hidden effect (or, for "none", stays
-null) after the first round alone, after the planned round, after the random round.
+null) after the first round alone, after the planned round, after the random round, and the
+median delta BIC of the hidden effect's test on both rounds together (planned | random).
 """
 
 from __future__ import annotations
@@ -41,14 +42,19 @@ def _wrenches(forces: np.ndarray, pose_loads) -> list[np.ndarray]:
     return [np.array([np.concatenate([forces[f], np.zeros(3)]) for f in fl]) for fl in pose_loads]
 
 
-def one_seed(robot, hidden: str, seed: int) -> dict:
+def _dbic(diag, effect: str) -> float:
+    """The delta BIC of ``effect``'s test against the model (nan when it was not tested)."""
+    return next((c.delta_bic for c in diag.candidates if c.effect == effect), float("nan"))
+
+
+def one_seed(robot, hidden: str, seed: int, n_poses: int = N_POSES) -> dict:
     truth = CellTruth().with_hidden(hidden)
     first = simulate_static(robot, truth, seed=seed, plan=FIRST[hidden])
     d1 = diagnose_static(robot, first)
     targets = TARGETS if hidden == "none" else (hidden,)
     workspace = Workspace(f_max_n=F_MAX_N)
     design = plan_discrimination(robot, given_from_diagnosis(d1), targets, workspace, markers=robot.marker_names,
-                                 n_poses=N_POSES, loads_per_pose=LOADS_PER_POSE, seed=seed, n_random=0)
+                                 n_poses=n_poses, loads_per_pose=LOADS_PER_POSE, seed=seed, n_random=0)
     planned = simulate_static(robot, truth, seed=seed + 10_000, poses=design.q,
                               wrenches=_wrenches(design.forces, design.pose_loads))
     d2 = diagnose_static(robot, concat_static_tables([first, planned]))
@@ -60,23 +66,28 @@ def one_seed(robot, hidden: str, seed: int) -> dict:
     d3 = diagnose_static(robot, concat_static_tables([first, random_round]))
     want = None if hidden == "none" else hidden
     return {"first": d1.verdict == want, "planned": d2.verdict == want, "random": d3.verdict == want,
-            "poses": len(design.q), "time_s": design.time_s}
+            "poses": len(design.q), "time_s": design.time_s,
+            "dbic_planned": _dbic(d2, hidden), "dbic_random": _dbic(d3, hidden)}
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--poses", type=int, default=N_POSES, help="poses of the planned and random rounds")
     parser.add_argument("--effects", default="link_compliance,backlash,nonlinear_stiffness,none")
     args = parser.parse_args(argv)
     robot = load_robot(ROBOT)
-    print("| hidden effect | first round | + planned round (≤ 6 poses) | + random round (same count) | seeds |")
-    print("| --- | --- | --- | --- | --- |")
+    print(f"| hidden effect | first round | + planned round (≤ {args.poses} poses) | + random round (same count) "
+          "| median ΔBIC, planned / random | seeds |")
+    print("| --- | --- | --- | --- | --- | --- |")
     for hidden in args.effects.split(","):
         started = time.monotonic()
-        rows = [one_seed(robot, hidden, s) for s in range(args.seeds)]
+        rows = [one_seed(robot, hidden, s, args.poses) for s in range(args.seeds)]
         n = len(rows)
+        med = "-" if hidden == "none" else (f"{np.nanmedian([r['dbic_planned'] for r in rows]):.0f} / "
+                                             f"{np.nanmedian([r['dbic_random'] for r in rows]):.0f}")
         print(f"| {hidden} | {sum(r['first'] for r in rows)}/{n} | {sum(r['planned'] for r in rows)}/{n} | "
-              f"{sum(r['random'] for r in rows)}/{n} | {n} ({time.monotonic() - started:.0f} s) |")
+              f"{sum(r['random'] for r in rows)}/{n} | {med} | {n} ({time.monotonic() - started:.0f} s) |")
         sys.stdout.flush()
     return 0
 

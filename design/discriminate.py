@@ -186,7 +186,7 @@ class _Problem:
 
     def __init__(self, robot: Robot, given: GivenData, targets: Sequence[str], rivals: Sequence[str]):
         self.robot, self.given, self.targets, self.rivals = robot, given, tuple(targets), tuple(rivals)
-        model_extra = tuple(m for m in given.model if m != "joint_stiffness")
+        model_extra = tuple(m for m in given.model if m != "joint_stiffness" and m not in targets)
         self.effects = tuple(dict.fromkeys([*model_extra, *targets, *rivals]))
         names = ("joint_stiffness", *self.effects)
         self.param_names = tuple(p for n in names for p in get_effect(n).parameters)
@@ -378,10 +378,11 @@ def _worth(evidence: Sequence[Evidence], time_s: float) -> tuple[bool, str]:
 
 def given_from_diagnosis(diag, *, noise_source: str = "the given data's repeated readings",
                          sigma_tracker: float | None = None, sigma_current: np.ndarray | None = None) -> GivenData:
-    """The given data as a static diagnosis (diagnose/static.py) saw them: its fitted joint
-    springs, its measured noise (else the values given), and what it fitted of each candidate."""
-    fit = diag.fit
-    ds = fit.dataset
+    """The given data as a static diagnosis (diagnose/static.py) saw them: its final model (with
+    the effects it added) and that model's joint springs, its measured noise (else the values
+    given), and what it fitted of each candidate."""
+    fit = diag.final          # the model with the effects the diagnosis added: what the data say so far
+    ds = diag.fit.dataset
     n = ds.q.shape[1]
     fitted_k = {p.name: p.value for p in fit.parameters}
     # a joint spring the given data do not determine keeps the prior (its compliance only scales
@@ -397,6 +398,6 @@ def given_from_diagnosis(diag, *, noise_source: str = "the given data's repeated
     if st is None:
         raise InputError("the given data have no repeated readings: give the tracker noise", argument="tracker_noise")
     sc = ds.sigma_current if ds.sigma_current is not None else sigma_current
-    return GivenData(dataset=ds, model=tuple(diag.model), compliance=1.0 / k, sigma_tracker=float(st),
+    return GivenData(dataset=ds, model=tuple(fit.model), compliance=1.0 / k, sigma_tracker=float(st),
                      sigma_current=sc, fitted=tuple(fitted),
                      noise_source=noise_source if ds.sigma_tracker is not None else "the noise given")

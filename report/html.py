@@ -381,9 +381,11 @@ def _runs_html(runs: RunDiagnosis) -> str:
 
 
 def render_report(robot: Robot, static: Diagnosis | None, runs: RunDiagnosis | None = None, *,
-                  add: str | None = None, inputs: Sequence[str] = (), command: str | None = None) -> str:
+                  add: str | None = None, inputs: Sequence[str] = (), command: str | None = None,
+                  next_experiment: tuple[Sequence[str], str] | None = None) -> str:
     """The HTML page. ``add``: the effect whose augmented fit is shown beside
-    the model (default: the verdict)."""
+    the model (default: the verdict). ``next_experiment``: (the effects these data
+    leave open, the command that plans the experiment for them)."""
     title = f"elastocal report: {robot.name}"
     body = [f"<h1>{_e(title)}</h1>"]
     if inputs:
@@ -394,6 +396,11 @@ def render_report(robot: Robot, static: Diagnosis | None, runs: RunDiagnosis | N
         body.append(_verdict_html(static))
         body.append("<h2>Candidate effects</h2>")
         body.append(_candidates_html(static))
+        if next_experiment is not None:
+            effects, plan = next_experiment
+            body.append(f'<p id="next-experiment"><b>Left open</b> ({_e(", ".join(effects))}: not testable, '
+                        f"unidentifiable in part, or not decided by these data). The experiment that settles it: "
+                        f"<code>{_e(plan)}</code> (docs/plan.md)</p>")
         effect = add if add is not None else static.verdict
         sides = [_Side(f"model: {', '.join(static.model)}", static.fit, static.where, BEFORE_COLOUR)]
         absolute_steps = () if static.absolute is None else tuple(c.effect for c in static.absolute.steps)

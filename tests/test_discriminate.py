@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from elastocal.cli import main
+from elastocal.design.candidates import Workspace
+from elastocal.design.discriminate import given_from_diagnosis, plan_discrimination
 from elastocal.diagnose.static import diagnose_static
 from elastocal.formats.plan import load_plan
 from elastocal.formats.robot_toml import load_robot
@@ -80,7 +82,24 @@ def test_plan_discriminate_decides_what_the_first_round_leaves_open(first_round,
     second = simulate_static(robot, truth, seed=101, poses=poses, wrenches=wrenches)
     first = read_static_table(first_round / "static.csv", robot)
     assert diagnose_static(robot, first).verdict is None
-    assert diagnose_static(robot, concat_static_tables([first, second])).verdict == "link_compliance"
+    both = diagnose_static(robot, concat_static_tables([first, second]))
+    assert both.verdict == "link_compliance"
+
+    # sequential: with both rounds given, a third is not worth its time (the data decide it)
+    third = plan_discrimination(robot, given_from_diagnosis(both), ["link_compliance"],
+                                Workspace(f_max_n=obj["f_max"]), markers=robot.marker_names, n_candidates=60,
+                                seed=3, n_random=0)
+    assert not third.worth
+    assert "already decide" in third.reason
+    assert third.evidence[0].delta_bic_rival_given < -10.0
+
+
+def test_report_ends_with_the_next_experiment(first_round, tmp_path):
+    out = tmp_path / "report.html"
+    assert main(["report", str(first_round / "log.mcap"), "--out", str(out)]) == 0
+    page = out.read_text(encoding="utf-8")
+    assert 'id="next-experiment"' in page
+    assert "elastocal plan --discriminate" in page and "link_compliance" in page
 
 
 def test_diagnose_ends_open_lines_with_the_plan_command(first_round, capsys):

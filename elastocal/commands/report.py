@@ -57,8 +57,11 @@ def run(args: argparse.Namespace) -> int:
     effect = add if add is not None else (static.verdict if static is not None else None)
     command = identify_command(args, (*model, effect)) if effect is not None else None
     names = ([args.robot] if args.robot else []) + [str(f) for f in inputs.files]
+    from elastocal.commands.diagnose import open_effects, plan_command
+
+    left = open_effects(static) if static is not None else ()
     page = render_report(inputs.robot, static, runs, add=add, inputs=names,
-                         command=command)
+                         command=command, next_experiment=(left, plan_command(args, left)) if left else None)
     with outputs:
         outputs.temp(out).write_text(page, encoding="utf-8")
     verdict = static.verdict if static is not None else (runs.verdict if runs is not None else None)
