@@ -387,8 +387,10 @@ def given_from_diagnosis(diag, *, noise_source: str = "the given data's repeated
     fitted_k = {p.name: p.value for p in fit.parameters}
     # a joint spring the given data do not determine keeps the prior (its compliance only scales
     # the nuisance columns; the targets' sizes do not depend on it except nonlinear ones)
-    k = np.array([fitted_k.get(f"k{j}", prior) if fitted_k.get(f"k{j}", 0.0) > 0 else prior
-                  for j, prior in enumerate(DEFAULT_PRIOR_STIFFNESS[:n], start=1)])
+    known = [v for j in range(1, n + 1) if (v := fitted_k.get(f"k{j}", 0.0)) > 0]
+    priors = [DEFAULT_PRIOR_STIFFNESS[j - 1] if j <= len(DEFAULT_PRIOR_STIFFNESS)
+              else float(np.median(known)) if known else DEFAULT_PRIOR_STIFFNESS[-1] for j in range(1, n + 1)]
+    k = np.array([fitted_k[f"k{j}"] if fitted_k.get(f"k{j}", 0.0) > 0 else priors[j - 1] for j in range(1, n + 1)])
     fitted = []
     for c in diag.candidates:
         for name, value in zip(c.fit.beta_names, c.fit.beta):
