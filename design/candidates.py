@@ -35,8 +35,8 @@ class TestPose:
     def __post_init__(self) -> None:
         q = tuple(float(v) for v in self.q)
         w = tuple(float(v) for v in self.wrench)
-        if len(q) != 6 or not all(math.isfinite(v) for v in q):
-            raise InputError(f"expected 6 finite joint values, got {self.q!r}", argument="test_pose")
+        if not q or not all(math.isfinite(v) for v in q):
+            raise InputError(f"expected one finite value per joint, got {self.q!r}", argument="test_pose")
         if len(w) != 6 or not all(math.isfinite(v) for v in w):
             raise InputError(f"expected 6 finite wrench values, got {self.wrench!r}", argument="wrench")
         if not any(w):
@@ -92,25 +92,34 @@ class Workspace:
 
 
 # ================================================================ kinematics
-def _six(q: np.ndarray) -> np.ndarray:
+def _poses(robot: Robot, q: np.ndarray) -> np.ndarray:
     q = np.asarray(q, dtype=float)
-    if q.ndim != 2 or q.shape[1] != 6:
-        raise ValueError(f"expected poses of shape (n, 6), got {q.shape}")
+    if q.ndim != 2 or q.shape[1] != robot.n_joints:
+        raise ValueError(f"expected poses of shape (n, {robot.n_joints}), got {q.shape}")
     return q
 
 
+#: the joints of a six-axis arm; joints before them (a track) are auxiliary
+ARM_JOINTS = 6
+
+
+def _auxiliary(robot: Robot) -> int:
+    return max(robot.n_joints - ARM_JOINTS, 0)
+
+
 def _joint_origins(robot: Robot, q: np.ndarray) -> np.ndarray:
-    """(n, 8, 3): base origin, the six joint origins, the load point."""
+    """(n, N + 2, 3): base origin, the N joint origins, the load point."""
     model = robot.model
     data = model.createData()
     fid = model.getFrameId(LOAD_FRAME)
-    out = np.empty((len(q), 8, 3))
+    n = robot.n_joints
+    out = np.empty((len(q), n + 2, 3))
     for i, qi in enumerate(q):
         pin.framesForwardKinematics(model, data, robot.theta(qi))
         out[i, 0] = 0.0
-        for j in range(1, 7):
+        for j in range(1, n + 1):
             out[i, j] = data.oMi[j].translation
-        out[i, 7] = data.oMf[fid].translation
+        out[i, n + 1] = data.oMf[fid].translation
     return out
 
 
@@ -146,21 +155,24 @@ def check_poses(robot: Robot, q: np.ndarray, workspace: Workspace, markers: Sequ
     """Index (n,) of the first constraint of :data:`REJECTIONS` each pose breaks,
     -1 for poses that respect them all (joint limits are the caller's: sampled
     poses are within them)."""
-    q = _six(q)
+    q = _poses(robot, q)
     origins = _joint_origins(robot, q)
+    n_joints, aux = robot.n_joints, _auxiliary(robot)
     data = robot.create_data()
     mpos = np.array([robot.positions(robot.theta(qi), list(markers), data=data) for qi in q])  # (n, M, 3)
-    load = origins[:, 7]
+    load = origins[:, n_joints + 1]
     out = np.full(len(q), -1)
-    low = np.minimum(origins[:, 3:8, 2].min(axis=1), mpos[:, :, 2].min(axis=1))
+    # every joint origin from the arm's elbow (its third joint) on, and the load point
+    low = np.minimum(origins[:, aux + 3:n_joints + 2, 2].min(axis=1), mpos[:, :, 2].min(axis=1))
     height_bad = (low < workspace.min_height_m) | (load[:, 2] > workspace.max_height_m)
     out[height_bad] = 0
-    reach_bad = np.hypot(load[:, 0], load[:, 1]) < workspace.min_radius_m
+    arm_axis = origins[:, aux + 1, :2]            # the arm's first axis (vertical), where a track put it
+    reach_bad = np.hypot(*(load[:, :2] - arm_axis).T) < workspace.min_radius_m
     out[(out < 0) & reach_bad] = 1
     if workspace.base_p_tracker is not None:
         tracker = np.array(workspace.base_p_tracker)
-        seg_a = origins[:, :6]          # capsules: base-J1, J1-J2, ..., J5-J6
-        seg_b = origins[:, 1:7]
+        seg_a = origins[:, :n_joints]          # capsules: base-J1, J1-J2, ..., J(N-1)-JN
+        seg_b = origins[:, 1:n_joints + 1]
         hidden = np.zeros(len(q), dtype=bool)
         for m in range(len(markers)):
             p = mpos[:, m]                                         # (n, 3)
@@ -178,7 +190,7 @@ def check_poses(robot: Robot, q: np.ndarray, workspace: Workspace, markers: Sequ
 class Candidates:
     """Sampled poses that respect the workspace, and why the others did not."""
 
-    q: np.ndarray                         # (n, 6)
+    q: np.ndarray                         # (n, N)
     sampled: int                          # poses drawn
     accepted: int                         # of them respecting the workspace (the first n are kept)
     rejected: tuple[tuple[str, int], ...]  # (reason, count) of the others
@@ -193,7 +205,8 @@ def sample_candidates(robot: Robot, n: int, rng: np.random.Generator, workspace:
         raise InputError(f"must be >= 1, got {n}", argument="candidates")
     lo = robot.lower.copy()
     hi = robot.upper.copy()
-    for j in (0, 3, 5):
+    for j in (0, 3, 5):             # the arm's first, fourth and sixth joints (after a track's)
+        j += _auxiliary(robot)
         lo[j], hi[j] = max(lo[j], -math.pi), min(hi[j], math.pi)
     limit = max_sampled if max_sampled is not None else 50 * n
     kept: list[np.ndarray] = []
@@ -201,7 +214,7 @@ def sample_candidates(robot: Robot, n: int, rng: np.random.Generator, workspace:
     sampled = 0
     while len(kept) < n and sampled < limit:
         batch = min(max(2 * (n - len(kept)), 64), limit - sampled)
-        q = rng.uniform(lo, hi, size=(batch, 6))
+        q = rng.uniform(lo, hi, size=(batch, robot.n_joints))
         sampled += batch
         code = check_poses(robot, q, workspace, markers)
         for k in range(len(REJECTIONS)):

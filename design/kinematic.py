@@ -146,7 +146,8 @@ def plan_for_geometry(robot: Robot, candidates: Candidates, design: ExperimentDe
     var = noise.tracker_m ** 2 / noise.repeats
     pose_k = np.einsum("nri,nrj->nij", regs[:, :, keep], regs[:, :, keep]) / var
     sel = np.array(design.candidate_index, dtype=int)
-    ridge_el = 1e-9 * float(np.mean(np.trace(pose_el, axis1=-2, axis2=-1))) / 6.0 * np.eye(6)
+    n_el = pose_el.shape[-1]            # one compliance per joint
+    ridge_el = 1e-9 * float(np.mean(np.trace(pose_el, axis1=-2, axis2=-1))) / n_el * np.eye(n_el)
     ridge_k = 1e-9 * float(np.mean(np.trace(pose_k, axis1=-2, axis2=-1))) / len(pose_k[0]) * np.eye(len(pose_k[0]))
     eye_k = np.eye(len(pose_k[0]))
     m_el = ridge_el + pose_el[sel].sum(axis=0)

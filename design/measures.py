@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.design.candidates import TestPose, _six
+from elastocal.design.candidates import TestPose, _poses
 from elastocal.model.robot import DEFAULT_PRIOR_STIFFNESS, LOAD_FRAME, Robot
 
 
@@ -36,14 +36,14 @@ class NoiseModel:
 
 
 def pose_matrices(robot: Robot, q: np.ndarray, markers: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Per pose: ``G = sum_m J_m^T J_m`` (n, 6, 6) over the markers' position
-    Jacobians, and ``B = J_f^T`` (n, 6, 6) of the load point, so that a wrench
+    """Per pose: ``G = sum_m J_m^T J_m`` (n, N, N) over the markers' position
+    Jacobians, and ``B = J_f^T`` (n, N, 6) of the load point, so that a wrench
     ``W`` loads the joints with ``Gamma = B W`` and one deflection measurement
     of every marker adds ``diag(Gamma) G diag(Gamma)`` to the information."""
-    q = _six(q)
+    q = _poses(robot, q)
     frames = [LOAD_FRAME, *markers]
-    g = np.empty((len(q), 6, 6))
-    b = np.empty((len(q), 6, 6))
+    g = np.empty((len(q), robot.n_joints, robot.n_joints))
+    b = np.empty((len(q), robot.n_joints, 6))
     data = robot.create_data()
     for i, qi in enumerate(q):
         jac = robot.jacobians(robot.theta(qi), frames, data=data)
@@ -54,13 +54,13 @@ def pose_matrices(robot: Robot, q: np.ndarray, markers: Sequence[str]) -> tuple[
 
 
 def _marker_jacobians(robot: Robot, q: np.ndarray, markers: Sequence[str]) -> np.ndarray:
-    """(n, M, 3, 6) position Jacobians of the markers."""
+    """(n, M, 3, N) position Jacobians of the markers."""
     data = robot.create_data()
-    return np.array([robot.jacobians(robot.theta(qi), list(markers), data=data)[:, :3, :] for qi in _six(q)])
+    return np.array([robot.jacobians(robot.theta(qi), list(markers), data=data)[:, :3, :] for qi in _poses(robot, q)])
 
 
 def a0_matrix(robot: Robot, test: TestPose) -> np.ndarray:
-    """``A0 = J_p(q0) diag(J_f(q0)^T W0)`` (3, 6): the load point's deflection
+    """``A0 = J_p(q0) diag(J_f(q0)^T W0)`` (3, N): the load point's deflection
     per unit compliance at the test pose under the process load (K31)."""
     jac = robot.jacobians(robot.theta(np.array(test.q)), [LOAD_FRAME])[0]
     gamma = jac.T @ np.array(test.wrench)
@@ -106,9 +106,9 @@ class DesignQuality:
     k40: float                    # trace(A0 M^-1 A0^T) [-]
     accuracy_m: float             # predicted rms positioning error at the test pose after compensation [m]
     test_deflection_m: float      # size of the test pose's deflection under the process load [m]
-    stiffness_rel_std: np.ndarray  # (6,) predicted std(k_j)/k_j (inf where unidentifiable)
-    information: np.ndarray       # (6, 6) M in compliances (rad/(N·m))
-    covariance: np.ndarray        # (6, 6) predicted covariance of the compliances
+    stiffness_rel_std: np.ndarray  # (N,) predicted std(k_j)/k_j (inf where unidentifiable)
+    information: np.ndarray       # (N, N) M in compliances (rad/(N·m); m/N for a prismatic joint)
+    covariance: np.ndarray        # (N, N) predicted covariance of the compliances
     n_deflections: int
 
 
@@ -128,28 +128,31 @@ def _noise_per_pose(jc: np.ndarray, n_loads: int, noise: NoiseModel, xi: np.ndar
 
 
 def evaluate_design(robot: Robot, q: np.ndarray, wrenches: np.ndarray | Sequence[np.ndarray], test: TestPose,
-                    markers: Sequence[str], *, prior_stiffness: Sequence[float] = DEFAULT_PRIOR_STIFFNESS,
+                    markers: Sequence[str], *, prior_stiffness: Sequence[float] | None = None,
                     noise: NoiseModel = NoiseModel()) -> DesignQuality:
     """K40, predicted accuracy and stiffness std of an experiment: poses ``q``
     (n, 6), each measured unloaded and under the wrenches ``wrenches[i]``
     (L_i, 6) on the load point (base axes), every marker read ``repeats`` times
     per state."""
-    q = _six(q)
+    q = _poses(robot, q)
     if len(wrenches) != len(q):
         raise ValueError("one array of wrenches per pose")
+    if prior_stiffness is None:
+        prior_stiffness = robot.prior_stiffness() if robot.n_joints != 6 else DEFAULT_PRIOR_STIFFNESS
     c_prior = 1.0 / np.asarray(prior_stiffness, dtype=float)
+    nj = robot.n_joints
     xi = robot.torque_constants
     a0 = a0_matrix(robot, test)
-    info = np.zeros((6, 6))
+    info = np.zeros((nj, nj))
     blocks = []
     n_defl = 0
-    jm_all = _marker_jacobians(robot, q, markers)          # (n, M, 3, 6)
+    jm_all = _marker_jacobians(robot, q, markers)          # (n, M, 3, N)
     _, b_all = pose_matrices(robot, q, [])
     for i in range(len(q)):
         w = np.atleast_2d(np.asarray(wrenches[i], dtype=float))
-        jm = jm_all[i].reshape(-1, 6)                       # (3M, 6)
-        gam = w @ b_all[i].T                                # (L, 6)
-        a_i = np.concatenate([jm * g[None, :] for g in gam])   # (L*3M, 6)
+        jm = jm_all[i].reshape(-1, nj)                      # (3M, N)
+        gam = w @ b_all[i].T                                # (L, N)
+        a_i = np.concatenate([jm * g[None, :] for g in gam])   # (L*3M, N)
         info += a_i.T @ a_i
         blocks.append((a_i, _noise_per_pose(jm * c_prior[None, :], len(w), noise, xi)))
         n_defl += len(w) * len(markers)

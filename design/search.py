@@ -99,7 +99,7 @@ def _weighted_info_parts(robot: Robot, q: np.ndarray, markers: Sequence[str], fo
     and ``P`` the covariance of one load state's marker readings (tracker noise
     and current noise through the prior compliances), and the scaled joint
     torques ``gamma = c_prior * J_f^T F`` (n, F, 6) of each force."""
-    jm = _marker_jacobians(robot, q, markers).reshape(len(q), -1, 6)     # (n, 3M, 6)
+    jm = _marker_jacobians(robot, q, markers).reshape(len(q), -1, robot.n_joints)     # (n, 3M, N)
     _, b = pose_matrices(robot, q, [])
     n_rows = jm.shape[1]
     p = np.broadcast_to(noise.tracker_m ** 2 / noise.repeats * np.eye(n_rows), (len(q), n_rows, n_rows)).copy()
@@ -124,7 +124,8 @@ def _combo_info(h: np.ndarray, gamma: np.ndarray, combo: Sequence[int]) -> np.nd
 
 def _weight(a0_scaled: np.ndarray) -> np.ndarray:
     w = a0_scaled.T @ a0_scaled
-    return w + IDENTIFIABILITY_WEIGHT * np.trace(w) / 6.0 * np.eye(6)
+    n = w.shape[0]
+    return w + IDENTIFIABILITY_WEIGHT * np.trace(w) / n * np.eye(n)
 
 
 def _greedy(info: np.ndarray, m0: np.ndarray, weight: np.ndarray, n: int) -> list[int]:
@@ -171,7 +172,8 @@ def plan_experiment(robot: Robot, candidates: Candidates, test: TestPose, *, n_p
     mean_info = np.array([_combo_info(h, gamma, c).mean(axis=0) for c in combos])
     chosen = combos[int(np.argmin(_phi(mean_info, weight)))]
     pose_info = _combo_info(h, gamma, chosen)
-    ridge = RIDGE * float(np.mean(np.trace(pose_info, axis1=-2, axis2=-1))) / 6.0 * np.eye(6)
+    n_el = pose_info.shape[-1]
+    ridge = RIDGE * float(np.mean(np.trace(pose_info, axis1=-2, axis2=-1))) / n_el * np.eye(n_el)
     sel = np.array(_greedy(pose_info, ridge, weight, n_poses))
     exchanges = 0
     rounds = 0
@@ -245,12 +247,13 @@ def choose_check(robot: Robot, design: ExperimentDesign, test: TestPose, *, n_ch
     c_prior = 1.0 / np.asarray(prior_stiffness, dtype=float)
     g, b = pose_matrices(robot, design.q, markers)
     a0 = a0_matrix(robot, test) * c_prior[None, :]
-    weight = a0.T @ a0 + IDENTIFIABILITY_WEIGHT * np.trace(a0.T @ a0) / 6.0 * np.eye(6)
+    n_el = a0.shape[1]
+    weight = a0.T @ a0 + IDENTIFIABILITY_WEIGHT * np.trace(a0.T @ a0) / n_el * np.eye(n_el)
     best: tuple[float, int, list[int]] | None = None
     for li, f in enumerate(design.forces):
         gam = np.einsum("nij,j->ni", b[:, :, :3], f) * c_prior[None, :]
         info = g * gam[:, :, None] * gam[:, None, :]
-        ridge = RIDGE * float(np.mean(np.trace(info, axis1=-2, axis2=-1))) / 6.0 * np.eye(6)
+        ridge = RIDGE * float(np.mean(np.trace(info, axis1=-2, axis2=-1))) / n_el * np.eye(n_el)
         m = ridge.copy()
         picked: list[int] = []
         for _ in range(n_check):

@@ -629,7 +629,8 @@ def parse_run_table(text: str, robot: Robot | None = None, *, source: str = "<ru
     row passes the checks, else row by row to the first bad one; then the checks per run."""
     rows = _Rows(text, source, required=lambda n: ("run", "direction", "load", "t") + joint_columns("q", n),
                  known=run_columns, robot=robot)
-    rows.check_groups([(rows.dq_cols, "the joint speed vector"), (rows.i_cols, "the current vector"), (W_COLS, "the wrench"),
+    rows.check_groups([(rows.dq_cols, "the joint speed vector"), (rows.i_cols, "the current vector"),
+                       (W_COLS, "the wrench"),
                        (("marker",) + XYZ_COLS, "a followed marker")])
     table = _fast_run_table(rows, robot)
     if table is None:

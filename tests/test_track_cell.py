@@ -230,3 +230,27 @@ def test_the_demo_chain_runs_on_the_track_cell(tmp_path):
     assert comp["exact"]["max"] < 0.05 * comp["uncompensated"]["max"]
     krl = (out / "compensated.src").read_text(encoding="utf-8")
     assert "E6AXIS" in krl and " E1 " in krl
+
+
+def test_plan_for_the_track_robot_gives_seven_joint_poses_and_every_stiffness(tmp_path):
+    out = tmp_path / "plan.toml"
+    done = _cli("plan", "--robot", str(bundled_robot_path_of("hh150_track")), "--test-pose", "3,0,0.5,-0.5,0,-1.2,0",
+                "--wrench", "0,0,-1500", "--poses", "8", "--candidates", "300", "--out", str(out), "--json")
+    assert done.returncode == 0, done.stderr
+    obj = json.loads(done.stdout)
+    assert all(len(q) == 7 for q in obj["poses"].values())
+    from elastocal.formats.plan import load_plan
+
+    plan = load_plan(out)
+    plan.validate_for(ROBOT)
+    assert len(plan.static.poses[0].q) == 7
+    # wrong N on the command line: one line naming the flag
+    bad = _cli("plan", "--robot", str(bundled_robot_path_of("hh150_track")), "--test-pose", "0,0.5,-0.5,0,-1.2,0",
+               "--wrench", "0,0,-1500", "--out", str(tmp_path / "bad.toml"))
+    assert bad.returncode == 2 and "--test-pose" in bad.stderr and "expected 7" in bad.stderr
+
+
+def bundled_robot_path_of(name: str):
+    from elastocal.formats.robot_toml import bundled_robot_path
+
+    return bundled_robot_path(name)

@@ -30,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--tracker-position", metavar="X,Y,Z",
                      help="the tracker in base coordinates [m]: keep only poses whose markers it sees")
     use = parser.add_argument_group("where the robot works")
-    use.add_argument("--test-pose", metavar="Q1,...,Q6",
+    use.add_argument("--test-pose", metavar="Q1,...,QN",
                      help="the working pose [rad] (negative first value: --test-pose=-0.3,...)")
     add_aliased(use, "--wrench", "--load", dest="load", metavar="FX,FY,FZ[,MX,MY,MZ]",
                      help="the process load on the load point, base axes [N, N*m]")
@@ -58,7 +58,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="how the calibration will get the joint torques (default current)")
     exp.add_argument("--check-poses", type=int, default=3, help="poses of the short [check] (default 3)")
     exp.add_argument("--friction-path", metavar="U;V",
-                     help="a UV/VU path for friction and the check: 6 joint values, ';', 6 joint values [rad]")
+                     help="a UV/VU path for friction and the check: one value per joint, ';', one value per "
+                          "joint [rad]")
     exp.add_argument("--friction-speeds", default="0.05,0.15", help="speeds of the friction path [rad/s]")
     exp.add_argument("--name", default="calibration", help="the plan's name")
     add_seed(exp, "seed of the candidate sampling")
@@ -67,7 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "the kinematic set and the tracker registration are observable too (docs/absolute.md)")
     prior = parser.add_argument_group("prior stiffness (noise model and map)")
     prior.add_argument("--calibration", help="a calibration JSON whose k1..k6 serve as the prior")
-    prior.add_argument("--stiffness", metavar="K1,...,K6", help="prior joint stiffness [N*m/rad]")
+    prior.add_argument("--stiffness", metavar="K1,...,KN",
+                       help="prior joint stiffness, one per joint [N*m/rad; N/m for a prismatic joint]")
     out = parser.add_argument_group("output")
     out.add_argument("--out", required=True, help="plan.toml to write")
     out.add_argument("--map", help="write the first-order map (Y Fig. 4-6) here, .png or .svg")
@@ -105,9 +107,10 @@ def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def _prior(args: argparse.Namespace) -> tuple[tuple[float, ...], str]:
+def _prior(args: argparse.Namespace, robot=None) -> tuple[tuple[float, ...], str]:
     from elastocal.design.search import DEFAULT_PRIOR_STIFFNESS
 
+    n_joints = 6 if robot is None else robot.n_joints
     if args.calibration and args.stiffness:
         raise InputError("give --calibration or --stiffness, not both", source="--stiffness")
     if args.calibration:
@@ -115,11 +118,17 @@ def _prior(args: argparse.Namespace) -> tuple[tuple[float, ...], str]:
 
         cal = read_calibration(args.calibration)
         k = tuple(cal.stiffness())
+        if len(k) != n_joints:
+            raise InputError(f"the calibration holds {len(k)} joint stiffnesses; the robot has {n_joints} joints",
+                             source=args.calibration)
         where = f"calibration {args.calibration}"
     elif args.stiffness:
-        k = numbers(args.stiffness, (6,), "--stiffness")
+        k = numbers(args.stiffness, (n_joints,), "--stiffness")
         where = "--stiffness"
     else:
+        if robot is not None and n_joints != 6:
+            return tuple(robot.prior_stiffness()), ("robot.toml's stiffness where given, else Yang's analysis "
+                                                    "values (give --calibration for a better noise model)")
         return DEFAULT_PRIOR_STIFFNESS, "Yang's analysis values (give --calibration for a better noise model)"
     if not all(v > 0 for v in k):
         raise InputError("stiffness values must be > 0", source="--stiffness" if args.stiffness else args.calibration)
@@ -134,8 +143,9 @@ def _friction(args: argparse.Namespace, robot=None):
     halves = args.friction_path.split(";")
     if len(halves) != 2:
         raise InputError("expected U;V: six joint values, ';', six joint values", source="--friction-path")
-    u = numbers(halves[0], (6,), "--friction-path")
-    v = numbers(halves[1], (6,), "--friction-path")
+    n_joints = 6 if robot is None else robot.n_joints
+    u = numbers(halves[0], (n_joints,), "--friction-path")
+    v = numbers(halves[1], (n_joints,), "--friction-path")
     if robot is not None:
         for half, values in (("U", u), ("V", v)):
             for j, (x, lo, hi) in enumerate(zip(values, robot.lower, robot.upper), start=1):
@@ -215,10 +225,12 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("no marker to read", source="--markers")
     if args.load is None:
         raise InputError("the process load is required: --wrench FX,FY,FZ[,MX,MY,MZ]", source="--wrench")
-    test = dz.TestPose(q=numbers(args.test_pose, (6,), "--test-pose"), wrench=_wrench(args.load, "--wrench"))
+    test = dz.TestPose(q=numbers(args.test_pose, (robot.n_joints,), "--test-pose"),
+                       wrench=_wrench(args.load, "--wrench"))
     for j, (v, lo, hi) in enumerate(zip(test.q, robot.lower, robot.upper), start=1):
         if not lo <= v <= hi:
-            raise InputError(f"q{j} = {v} rad is outside the joint limits [{lo:.4g}, {hi:.4g}]", source="--test-pose")
+            raise InputError(f"q{j} = {v} {robot.joints[j - 1].unit} is outside the joint limits [{lo:.4g}, {hi:.4g}]",
+                             source="--test-pose")
     f_max = args.f_max if args.f_max is not None else float(np.linalg.norm(test.wrench[:3]))
     if f_max <= 0:
         raise InputError("the process load has no force, so the largest load force is unknown: give --f-max",
@@ -231,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
                              link_radius_m=args.link_radius)
     noise = dz.NoiseModel(tracker_m=args.tracker_noise, current_a=args.current_noise if args.torque == "current"
                           else 0.0, repeats=args.repeats)
-    prior, prior_source = _prior(args)
+    prior, prior_source = _prior(args, robot)
     friction = _friction(args, robot)
     try:
         planned = plan_calibration(robot, test, workspace, noise, markers=markers, n_poses=args.poses,
@@ -261,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
             fom.plot_first_order_map(fmap, outputs.temp(args.map), test_q=test.q, poses=design.q)
         outputs.temp(out).write_text(text, encoding="utf-8")
     q = design.quality
-    names = [f"k{j}" for j in range(1, 7)]
+    names = [f"k{j}" for j in range(1, robot.n_joints + 1)]
     obj = {
         "plan": str(out),
         "poses": {pid: [float(v) for v in qq] for pid, qq in zip(pose_ids, design.q)},
