@@ -70,7 +70,8 @@ def test_figaroh_calibration_csv_becomes_an_absolute_only_table(tmp_path, capsys
         np.testing.assert_array_equal([float(r[a]) for a in "xyz"], p[k, int(r["marker"][1]) - 1])
 
 
-def test_mm_and_degrees_named_columns_three_points_two_files_and_u95(tmp_path, capsys):
+@pytest.mark.parametrize("flag, columns", [("--u95", ("u95",)), ("--std", ("sx", "sy", "sz"))])
+def test_mm_and_degrees_named_columns_three_points_two_files_and_uncertainty(tmp_path, capsys, flag, columns):
     """A motion-capture export: joints in degrees under their own names, three bodies in mm,
     an uncertainty column in mm; two sessions' files numbered on."""
     names = ["J1 [deg]", "J2 [deg]", "J3 [deg]", "J4 [deg]", "J5 [deg]", "J6 [deg]"]
@@ -88,7 +89,7 @@ def test_mm_and_degrees_named_columns_three_points_two_files_and_u95(tmp_path, c
     out = tmp_path / "static.csv"
     assert main(["import", str(files[0][0]), str(files[1][0]), "--robot", str(DH_ROBOT), "--joints", ",".join(names),
                  "--points", "R1=tool_X,tool_Y,tool_Z;R2=side_X,side_Y,side_Z;R3=top_X,top_Y,top_Z",
-                 "--unit", "mm", "--angles", "deg", "--u95", "U95", "--out", str(out)]) == 0
+                 "--unit", "mm", "--angles", "deg", flag, "U95", "--out", str(out)]) == 0
     assert "24 rows, 8 postures" in capsys.readouterr().out
     rows = _read(out)
     assert [r["pose"] for r in rows] == [str(k) for k in range(1, 9) for _ in range(3)]
@@ -98,7 +99,38 @@ def test_mm_and_degrees_named_columns_three_points_two_files_and_u95(tmp_path, c
         np.testing.assert_allclose([float(r[f"q{j}"]) for j in range(1, 7)], q[k % 4], rtol=0, atol=1e-12)
         np.testing.assert_allclose([float(r[a]) for a in "xyz"], p[k % 4, int(r["marker"][1]) - 1], rtol=0,
                                    atol=1e-12)
-        assert float(r["u95"]) == pytest.approx(5e-5, rel=1e-12)
+        assert [float(r[c]) for c in columns] == pytest.approx([5e-5] * len(columns), rel=1e-12)
+        assert not ({"u95", "sx"} - set(columns)) & set(r)       # only the uncertainty asked for
+    from elastocal.formats.tables import read_static_table
+
+    table = read_static_table(out, bundled_robot("hh150"))     # an absolute-only table elastocal reads
+    assert len(table) == 24 and set(table.load) == {"0"}
+
+
+def test_a_figaroh_file_with_unknown_tool_points_calibrates(tmp_path, capsys):
+    """FIGAROH's layout from a robot whose two markers sit 15-25 cm from robot.toml's, read
+    with 20 µm of noise: imported, then identified (the tool-point pre-fit finds the markers)."""
+    rng = np.random.default_rng(7)
+    q = rng.uniform(ROBOT.lower, ROBOT.upper, size=(40, 6))
+    moved = {"R1": np.array([0.12, -0.1, 0.08]), "R2": np.array([-0.15, 0.05, 0.17])}
+    from dataclasses import replace
+
+    true = replace(ROBOT, tool=replace(ROBOT.tool, flange_p_markers=tuple(
+        (m, tuple(np.array(p) + moved.get(m, 0.0))) for m, p in ROBOT.tool.flange_p_markers)))
+    p = np.array([true.positions(true.theta(row), ["R1", "R2"]) for row in q]) + np.array([2.0, 1.0, -0.5])
+    p += rng.normal(0.0, 20e-6, size=p.shape)
+    _figaroh_csv(tmp_path / "figaroh.csv", q, p)
+    out = tmp_path / "static.csv"
+    assert main(["import", str(tmp_path / "figaroh.csv"), "--robot", str(DH_ROBOT),
+                 "--points", "R1=x1,y1,z1;R2=x2,y2,z2", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["identify", "--robot", str(DH_ROBOT), "--static", str(out), "--json"]) == 0
+    fit = json.loads(capsys.readouterr().out)
+    found = fit["tool_prefit"]["flange_p_markers"]
+    for m, p0 in ROBOT.tool.flange_p_markers:
+        if m in moved:
+            assert np.linalg.norm(np.array(found[m]) - (np.array(p0) + moved[m])) < 1e-3
+    assert fit["absolute_residual"]["rms"] < 3 * 20e-6
 
 
 def _write(tmp_path, header, rows) -> str:
