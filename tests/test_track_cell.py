@@ -231,7 +231,7 @@ def test_the_demo_chain_runs_on_the_track_cell(tmp_path):
     assert "E6AXIS" in krl and " E1 " in krl
     absolute = summary["absolute"]
     if absolute["rms_after"] > 1.3 * absolute["noise_floor"]:
-        # seen in 3 of 5 runs (seed 2, 8 or 12 poses): the joint fit of geometry, registration and the
+        # seen in 3 of 6 runs (seed 2, 8 or 12 poses): the joint fit of geometry, registration and the
         # selected link-compliance components ends above the nominal geometry's error (0.8 mm where the
         # floor is 3.5 um), while identify on the same log without link_compliance reaches 16 um
         pytest.xfail(f"known: the seven-joint demo's absolute fit with link_compliance did not converge "
