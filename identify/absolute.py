@@ -45,6 +45,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 import scipy.linalg
+import scipy.optimize
 
 from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
@@ -317,15 +318,30 @@ def _whitened(st: _Setup, r: np.ndarray, jac: np.ndarray | None):
 def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
                       model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
                       form: str = "exact", max_iter: int = 30,
-                      tracker_prior: Sequence[float] | None = None) -> AbsoluteFit:
+                      tracker_prior: Sequence[float] | None = None,
+                      excess_var: float | None = None) -> AbsoluteFit:
     """Compare the model with the absolute positions (and fit the absolute
     effects of ``model`` jointly with the rest); see the module docstring.
 
     ``tracker_prior``: where the tracker stands in base coordinates [m] as the
     cell knows it (cell.toml's ``[tracker] base_p_tracker``): a prior of
     :data:`TRACKER_PRIOR_STD_M` per axis on the registration when it is fitted,
-    and reported against the registration found."""
+    and reported against the registration found.
+
+    Readings that state their own uncertainty (``u95`` or ``sx, sy, sz``) and are not
+    repeated are weighted by it plus what the model leaves unexplained: each coordinate
+    by ``1 / (sigma_i^2 + s^2)``, ``s^2`` the excess variance that makes the weighted
+    residual its degrees of freedom (0 on a complete model; far above the readings' own
+    noise, the weights even out and a few very precise readings do not pull the fit);
+    ``excess_var`` fixes ``s^2`` [m²]. The noise floor is then what the stated noise
+    alone would leave."""
     ds0 = data if isinstance(data, StaticDataset) else build_dataset(data)
+    stated = ds0.abs_var is not None and ds0.sigma_tracker is None and is_absolute_only(ds0)
+    if stated and excess_var is None:      # a first fit with even weights, then s^2 from its residual
+        kwargs = dict(model=model, torque=torque, form=form, max_iter=max_iter, tracker_prior=tracker_prior)
+        first = identify_absolute(robot, ds0, excess_var=float(np.max(ds0.abs_var)) * 1e6, **kwargs)
+        s2 = excess_variance(first.residuals, ds0.abs_var, first.n_params)
+        return identify_absolute(robot, ds0, excess_var=s2, **kwargs)
     only = is_absolute_only(ds0)      # no loads: geometry, registration, the twist under self-weight
     names = tuple(dict.fromkeys(model if only else ["joint_stiffness", *model]))
     static_model, absolute = split_model(names)
@@ -369,6 +385,11 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     base_p, _ = _model(st0, fit.beta, np.zeros(3), np.zeros(3), np.zeros(0), jacobian=False)
     start = kabsch(base_p.reshape(-1, 3), y.reshape(-1, 3), ds0.abs_n.reshape(-1)) or reg
     chols, whitens, known = _noise(robot, ds, torque, fit.beta[:robot.n_joints], start.rotation, frames)
+    if stated:                  # the readings' own variance plus the excess, per coordinate
+        total = (ds0.abs_var + excess_var).reshape(ds.n_states, -1)
+        chols = tuple(np.apply_along_axis(np.diag, 1, np.sqrt(total)))
+        whitens = tuple(np.apply_along_axis(np.diag, 1, 1.0 / np.sqrt(total)))
+        known = True
     st = _Setup(robot, ds, bases, frames, kin_names, start.rotation, start.translation, whitens, chols, y,
                 kin.columns(kin_names, ds.markers))
     x_full = np.concatenate([fit.beta, np.zeros(6), np.zeros(len(kin_names))])
@@ -425,6 +446,13 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     a_raw = a_raw.reshape(-1, len(idx))
     trace_sigma = float(np.sum(np.asarray(st.chol) ** 2))
     expected = trace_sigma - float(np.trace(m_inv @ (a_raw.T @ a_raw)))
+    if stated:                  # E|r|^2 under the stated noise alone, the fit weighted with the excess in
+        v_read = ds0.abs_var.reshape(-1)
+        w = 1.0 / (v_read + excess_var)
+        awv = a_raw.T * (w * v_read)                       # A^T W Sigma
+        cross = float(np.trace(m_inv @ (awv @ a_raw)))      # tr(H Sigma)
+        quad = float(np.trace(m_inv @ ((awv * w) @ a_raw) @ m_inv @ (a_raw.T @ a_raw)))   # tr(H Sigma H^T)
+        expected = float(np.sum(v_read)) - 2.0 * cross + quad
     if not known:
         expected *= rss_w / max(n - p, 1)
     floor = float(np.sqrt(max(expected, 0.0) / n)) if known else None
@@ -519,6 +547,21 @@ def _with_prefit(tools: ToolPoints, robot: Robot, kin_names: Sequence[str], kv: 
             kv[k] += moved[name[3:]]["xyz".index(name[1])]
             kv_total[k] += moved[name[3:]]["xyz".index(name[1])]
     return kv, kv_total
+
+
+def excess_variance(residual: np.ndarray, variance: np.ndarray, n_params: int) -> float:
+    """The variance ``s^2`` [m²] that, added to each coordinate's stated variance, makes the
+    weighted residual sum its degrees of freedom: ``sum r^2 / (v + s^2) = n - p`` (0 when the
+    stated noise already explains the residual)."""
+    r2, v = np.asarray(residual).reshape(-1) ** 2, np.asarray(variance).reshape(-1)
+    dof = max(r2.size - n_params, 1)
+
+    def excess(s2: float) -> float:
+        return float(np.sum(r2 / (v + s2))) - dof
+
+    if excess(0.0) <= 0.0:
+        return 0.0
+    return float(scipy.optimize.brentq(excess, 0.0, float(np.max(r2)) * r2.size + float(np.max(v))))
 
 
 def _tracker_position(st: _Setup, x: np.ndarray, n_el: int) -> np.ndarray:

@@ -97,6 +97,9 @@ class StaticDataset:
     abs_xyz: np.ndarray | None = None  # (S, M, 3) mean absolute position per state and marker, tracker frame [m]
     abs_n: np.ndarray | None = None    # (S, M) readings averaged
     abs_t: np.ndarray | None = None    # (S, M) mean time of those readings [s], NaN if unknown
+    #: (S, M, 3) variance per coordinate of those mean readings from the readings' own stated
+    #: uncertainty (``u95`` or ``sx, sy, sz``), None without it [m²]
+    abs_var: np.ndarray | None = None
     #: rotation tracker <- base that dP was turned back by (identify/registration.py); None: dP as measured
     tracker_rotation: np.ndarray | None = None
     #: the tracker's noise law in force (model/tracker_noise.py): estimated from the repeats where
@@ -227,6 +230,7 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
     if u95 is not None:             # variance of the mean of the state's readings
         with np.errstate(invalid="ignore", divide="ignore"):
             var_of = group_sum(cell, (u95 / 1.96) ** 2, n_cells) / count.astype(float) ** 2
+    abs_var = _reading_variances(table, cell, count, n_cells)
 
     # deflections: every loaded state against its pose's reference, marker by marker
     loaded = np.flatnonzero(state_ref != np.arange(n_states))
@@ -257,7 +261,25 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
         abs_xyz=xyz_mean.reshape(n_states, n_markers, 3), abs_n=count.reshape(n_states, n_markers),
         abs_t=t_mean.reshape(n_states, n_markers).astype(float),
         tracker_noise=noise, abs_cov=abs_cov,
+        abs_var=None if abs_var is None else abs_var.reshape(n_states, n_markers, 3),
     )
+
+
+def _reading_variances(table: StaticTable, cell: np.ndarray, count: np.ndarray, n_cells: int) -> np.ndarray | None:
+    """(cells, 3) variance per coordinate of each cell's mean reading from the readings' own
+    uncertainties (``u95``: sigma = U95 / 1.96 on each coordinate; ``sx, sy, sz``: per axis), or
+    None unless every reading states a positive one (docs/formats.md §2)."""
+    u95 = table.optional("u95")
+    if u95 is not None:
+        sigma = np.repeat((u95 / 1.96)[:, None], 3, axis=1)
+    elif table.optional("sx") is not None:
+        sigma = np.column_stack([table.optional(c) for c in ("sx", "sy", "sz")])
+    else:
+        return None
+    if not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
+        return None
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return group_sum(cell, sigma ** 2, n_cells) / count.astype(float)[:, None] ** 2
 
 
 # =================================================================== results

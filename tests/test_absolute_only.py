@@ -191,3 +191,34 @@ def test_self_weight_stiffness_and_geometry_from_a_table_without_loads(sim_unloa
     assert "k1" in v.rigid and "rigid" in v.note()
     assert v.absolute_calibrated.rms < 2.0 * v.noise_floor and v.absolute_nominal.rms > 10 * v.noise_floor
     assert math.isfinite(v.absolute_calibrated.rms)
+
+
+def test_stated_uncertainties_weight_the_fit_and_give_the_floor(sim_unloaded, tmp_path, capsys):
+    from elastocal.formats.tables import write_static_table
+    from elastocal.identify.absolute import excess_variance
+    from elastocal.identify.static import build_dataset
+
+    truth, table = sim_unloaded
+    robot = bundled_robot()
+    sigma = build_dataset(table).sigma_tracker            # the simulated tracker's, from the repeats
+    first = np.unique(np.char.add(table.pose, table.marker), return_index=True)[1]
+    single = table.subset(np.isin(np.arange(len(table)), first))          # one reading per pose and marker
+    stated = dataclasses.replace(single, extra=tuple((c, np.full(len(single), sigma)) for c in ("sx", "sy", "sz")))
+    fit = identify_absolute(robot, stated, model=("joint_stiffness", *GEOMETRY))
+    assert fit.noise_floor is not None and fit.rms < 1.3 * fit.noise_floor, (fit.rms, fit.noise_floor)
+    rigid = identify_absolute(robot, stated, model=GEOMETRY)
+    assert rigid.rms > 3.0 * rigid.noise_floor
+    # the same readings without their uncertainty: no floor, and the diagnosis says so
+    (tmp_path / "robot.toml").write_text(robot.to_toml())
+    write_static_table(tmp_path / "with.csv", stated)
+    write_static_table(tmp_path / "without.csv", single)
+    for name, verdict in (("with.csv", "joint_stiffness"), ("without.csv", None)):
+        assert main(["diagnose", "--robot", str(tmp_path / "robot.toml"), "--static", str(tmp_path / name),
+                     "--json"]) == 0
+        obj = json.loads(capsys.readouterr().out)
+        assert obj["verdict"] == verdict, (name, obj["verdict"])
+    assert obj["noise_floor"] is None and "no noise floor is known" in obj["unexplained"]["sentences"][0]
+    # the excess variance: none when the stated noise explains the residual, the rest when it does not
+    r = np.random.default_rng(1).normal(0.0, 1e-5, 3000)
+    assert excess_variance(r, np.full(3000, 1e-10), 0) == 0.0
+    assert excess_variance(r, np.full(3000, 1e-12), 0) == pytest.approx(1e-10, rel=0.1)
