@@ -192,3 +192,34 @@ def test_the_robot_is_needed_and_the_uncertainty_flags_only_with_points(tmp_path
     assert "--u95: is for posture-per-row files" in capsys.readouterr().err
     assert not (tmp_path / "s.csv").exists()
 
+
+
+def test_seven_joints_with_a_prismatic_one_in_millimetres(tmp_path, capsys):
+    """The HH-150 on its track (7 joints, the first prismatic): the track's column in mm with
+    --unit mm, the arm's in degrees; the table has q1..q7 with the track in metres."""
+    robot = bundled_robot("hh150_track")
+    rng = np.random.default_rng(4)
+    q = rng.uniform(robot.lower, robot.upper, size=(5, 7))
+    names = ["track [mm]"] + [f"A{i} [deg]" for i in range(1, 7)]
+    path = tmp_path / "track.csv"
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow([*names, "x", "y", "z"])
+        for row in q:
+            p = robot.positions(robot.theta(row), ["R1"])[0]
+            writer.writerow([repr(float(row[0] * 1e3)), *(repr(float(v)) for v in np.degrees(row[1:])),
+                             *(repr(float(v)) for v in p * 1e3)])
+    out = tmp_path / "static.csv"
+    assert main(["import", str(path), "--robot", str(bundled_robot_path("hh150_track")), "--joints", ",".join(names),
+                 "--points", "R1=x,y,z", "--unit", "mm", "--angles", "deg", "--out", str(out)]) == 0
+    capsys.readouterr()
+    from elastocal.formats.tables import read_static_table
+
+    table = read_static_table(out, robot)
+    np.testing.assert_allclose(table.q, q, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(table.xyz, [robot.positions(robot.theta(row), ["R1"])[0] for row in q], rtol=0,
+                               atol=1e-12)
+    # the track's column in metres read as mm: a carriage beyond its 6 m
+    assert main(["import", str(path), "--robot", str(bundled_robot_path("hh150_track")), "--joints", ",".join(names),
+                 "--points", "R1=x,y,z", "--angles", "deg", "--out", str(tmp_path / "bad.csv")]) == 2
+    assert "joint 1 (T1)" in capsys.readouterr().err

@@ -48,7 +48,8 @@ def _track_robot():
 
 
 ROBOTS = {"hh150": lambda: DH, "hh150_urdf": lambda: bundled_robot("hh150_urdf"),
-          "calibrated": lambda: _calibrated(1), "track": _track_robot}
+          "calibrated": lambda: _calibrated(1), "track": _track_robot,
+          "hh150_track": lambda: bundled_robot("hh150_track")}
 
 
 def _frames(robot) -> list[tuple[str, str]]:
