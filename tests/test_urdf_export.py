@@ -146,12 +146,14 @@ def test_bad_limits_are_one_line_errors(key, value, match):
         parse_robot(text, source="r.toml")
 
 
-def test_the_robot_command_writes_the_calibrated_urdf_at_controller_angles(tmp_path, capsys):
-    """`elastocal robot --urdf` on a calibration with kinematic errors: both outputs give
-    the calibrated robot's positions at controller angles, the URDF in yourdfpy."""
+@pytest.mark.parametrize("which", ["hh150", "hh150_urdf"])
+def test_the_robot_command_writes_the_calibrated_urdf_at_controller_angles(tmp_path, capsys, which):
+    """`elastocal robot --urdf` on a calibration with kinematic errors (DH ones, or a URDF
+    robot's joint-origin errors): both outputs give the calibrated robot's positions at
+    controller angles, the URDF in yourdfpy."""
     from elastocal.formats.calibration import calibration_from_fit, write_calibration
 
-    robot = DH
+    robot = bundled_robot(which)
     names = kin.parameter_names(robot, robot.marker_names)
     rng = np.random.default_rng(2)
     values = {n: float(rng.normal(0.0, 1e-3)) for n in names}
