@@ -3,7 +3,7 @@ first round leaves a hidden effect open, one planned round of at most 6 poses, t
 both rounds; the same with a random round of the same count (poses from the same candidates, load
 forces of the same size in random rig directions); and complete cells (no hidden effect).
 
-    python benchmarks/discriminate_acceptance.py [--seeds 20] [--poses 6] [--effects link_compliance,backlash,...]
+    python benchmarks/discriminate_acceptance.py [--seeds 20] [--poses 6] [--scale 1] [--effects link_compliance,...]
 
 Prints one table row per case: how often diagnose names the hidden effect (or, for "none", stays
 null) after the first round alone, after the planned round, after the random round, and the
@@ -47,8 +47,23 @@ def _dbic(diag, effect: str) -> float:
     return next((c.delta_bic for c in diag.candidates if c.effect == effect), float("nan"))
 
 
-def one_seed(robot, hidden: str, seed: int, n_poses: int = N_POSES) -> dict:
-    truth = CellTruth().with_hidden(hidden)
+def _scaled(truth: CellTruth, hidden: str, scale: float) -> CellTruth:
+    """The hidden effect at ``scale`` times the simulator's typical size (smaller: harder to find)."""
+    from dataclasses import replace
+
+    if scale == 1.0 or hidden == "none":
+        return truth
+    if hidden == "link_compliance":
+        return replace(truth, link_compliance=truth.link_compliance * scale)
+    if hidden == "backlash":
+        return replace(truth, backlash=truth.backlash * scale)
+    if hidden == "nonlinear_stiffness":
+        return replace(truth, hardening_torque=truth.hardening_torque / scale)
+    raise ValueError(f"no scaling for {hidden}")
+
+
+def one_seed(robot, hidden: str, seed: int, n_poses: int = N_POSES, scale: float = 1.0) -> dict:
+    truth = _scaled(CellTruth().with_hidden(hidden), hidden, scale)
     first = simulate_static(robot, truth, seed=seed, plan=FIRST[hidden])
     d1 = diagnose_static(robot, first)
     targets = TARGETS if hidden == "none" else (hidden,)
@@ -74,6 +89,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--poses", type=int, default=N_POSES, help="poses of the planned and random rounds")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="the hidden effect at this times the simulator's typical size (default 1)")
     parser.add_argument("--effects", default="link_compliance,backlash,nonlinear_stiffness,none")
     args = parser.parse_args(argv)
     robot = load_robot(ROBOT)
@@ -82,7 +99,7 @@ def main(argv=None) -> int:
     print("| --- | --- | --- | --- | --- | --- |")
     for hidden in args.effects.split(","):
         started = time.monotonic()
-        rows = [one_seed(robot, hidden, s, args.poses) for s in range(args.seeds)]
+        rows = [one_seed(robot, hidden, s, args.poses, args.scale) for s in range(args.seeds)]
         n = len(rows)
         med = "-" if hidden == "none" else (f"{np.nanmedian([r['dbic_planned'] for r in rows]):.0f} / "
                                              f"{np.nanmedian([r['dbic_random'] for r in rows]):.0f}")
