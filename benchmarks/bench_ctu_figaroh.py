@@ -12,8 +12,8 @@ RMSE of the reflector's position [mm].
 * elastocal: ``identify`` with ``kinematic_errors,tracker_frame`` (the default model of a table
   without loads), then ``validate --keep-frame``; the identify time is the library call on the
   table already read (as FIGAROH's time below is its solve on the data already loaded).
-* FIGAROH: ``BaseCalibration`` on the same chain (elastocal's robot written as URDF, the chain
-  to the reflector's frame), ``calibration_level`` full_params and joint_offset, position
+* FIGAROH: ``BaseCalibration`` on the same chain (the chain
+  to the reflector's frame: elastocal's Pinocchio model of the chain), ``calibration_level`` full_params and joint_offset, position
   measurements of one marker; its time is ``initialize()`` (parameter selection) plus
   ``solve()``, its validation its own held-out metrics on validate.csv.
 
@@ -65,21 +65,21 @@ def run_elastocal(robot, train, held) -> tuple[float, float]:
 
 # ------------------------------------------------------------------ FIGAROH
 def figaroh_inputs(robot, folder: pathlib.Path, level: str) -> pathlib.Path:
-    """The URDF, the two CSV files in FIGAROH's layout and its unified config; returns the config."""
-    import pinocchio as pin
+    """The two CSV files in FIGAROH's layout and its unified config for elastocal's own Pinocchio model
+    of the chain (the reflector's frame as the tool frame); returns the config."""
+    from elastocal.model.robot import MARKER_PREFIX
 
-    (folder / "robot.urdf").write_text(robot.to_urdf(), encoding="utf-8")
-    model = pin.buildModelFromXML(robot.to_urdf())
+    model = robot.model
     joints = [model.names[i] for i in range(1, model.njoints)]
     for name in ("train", "validate"):
         table = read_static_table(DATA / f"{name}.csv", robot)
         with open(folder / f"{name}.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["x1", "y1", "z1", *joints])
-            theta = table.q + robot.offsets            # the URDF's joint variable (q + offset)
+            theta = table.q + robot.offsets            # the model's joint variable (q + offset)
             for xyz, th in zip(table.xyz, theta):
                 w.writerow([*map(repr, xyz.tolist()), *map(repr, th.tolist())])
-    marker = dict(robot.tool.flange_p_markers)["LR1"]
+    tool_frame = MARKER_PREFIX + "LR1"
     config = f"""
 robot:
   name: "{robot.name}"
@@ -95,7 +95,7 @@ tasks:
       outlier_threshold: 0.05
     kinematics:
       base_frame: "universe"
-      tool_frame: "{model.frames[-1].name}"
+      tool_frame: "{tool_frame}"
     measurements:
       markers:
         - name: "LR1"
@@ -103,7 +103,7 @@ tasks:
           measurable_dof: [true, true, true, false, false, false]
       poses:
         base_pose: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-        tool_pose: [{marker[0]!r}, {marker[1]!r}, {marker[2]!r}, 0.0, 0.0, 0.0]
+        tool_pose: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     data:
       source_file: "{folder / 'train.csv'}"
       validation_data_file: "{folder / 'validate.csv'}"
@@ -126,7 +126,7 @@ def run_figaroh(robot, folder: pathlib.Path, level: str) -> tuple[float, float |
             return self.apply_measurement_weighting(pee - self.PEE_measured)
 
     config = figaroh_inputs(robot, folder, level)
-    wrapper = pin.RobotWrapper(pin.buildModelFromUrdf(str(folder / "robot.urdf")))
+    wrapper = pin.RobotWrapper(robot.model)
     start = time.perf_counter()
     calibrator = Calibration(wrapper, str(config))
     # the tracker's frame and the reflector's mount are unknown: both estimated (as FIGAROH's examples set)

@@ -111,3 +111,33 @@ def absolute_html(absolute) -> str:
             f"<td>{pp[i]['rms'] * UM:.1f}</td><td>{pp[i]['max'] * UM:.1f}</td>" for pp in per) + "</tr>")
     out.append("".join(rows) + "</table>")
     return "\n".join(out)
+
+
+def absolute_only_page(robot, diag, inputs=()) -> str:
+    """The HTML report of a table without loads (diagnose/absolute_only.py): the verdict or what
+    stays unexplained, the candidates tested, and the absolute section."""
+    from elastocal.report.html import _CSS
+
+    title = f"elastocal report: {robot.name}"
+    body = [f"<h1>{html.escape(title)}</h1>"]
+    if inputs:
+        body.append('<p class="note">inputs: ' + ", ".join(f"<code>{html.escape(i)}</code>" for i in inputs) + "</p>")
+    body.append(f'<p class="note">a table without loads; model <code>{html.escape(",".join(diag.model))}</code> '
+                "against the absolute positions.</p>")
+    verdict = diag.verdict
+    body.append(f"<p><b>Verdict:</b> {html.escape(verdict) if verdict else 'none'}</p>")
+    for sentence in diag.unexplained():
+        body.append(f"<p>{html.escape(sentence)}</p>")
+    rows = ["<table><tr><th>candidate</th><th>rms after [µm]</th><th>ΔBIC</th><th>p</th><th>significant</th>"
+            "<th>evidence</th></tr>"]
+    for c in diag.absolute.candidates:
+        rows.append(f"<tr><td>{html.escape(c.effect)}</td><td>{c.rms_after * UM:.1f}</td><td>{c.delta_bic:.1f}</td>"
+                    f"<td>{c.p_value:.2g}</td><td>{'yes' if c.significant else 'no'}</td>"
+                    f"<td>{html.escape(c.evidence)}</td></tr>")
+    body.append("<h2>Candidate effects</h2>" + "".join(rows) + "</table>")
+    body += [f'<p class="note">not tested: {html.escape(n.effect)}: {html.escape(n.reason)}</p>'
+             for n in diag.not_testable]
+    body.append(absolute_html(diag.absolute))
+    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>\n" + "\n".join(body)
+            + "\n</body></html>\n")

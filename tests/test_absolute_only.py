@@ -158,6 +158,12 @@ def test_diagnose_finds_the_sag_under_self_weight_and_says_when_no_floor_is_know
     obj = json.loads(capsys.readouterr().out)
     assert obj["model"] == ["kinematic_errors", "tracker_frame"] and obj["verdict"] == "joint_stiffness"
     assert obj["final"]["residual"]["rms"] < 1.3 * obj["final"]["noise_floor"]
+    # the report of the same table: the verdict and the absolute section
+    assert main(["report", "--robot", str(tmp_path / "robot.toml"), "--static", str(tmp_path / "abs.csv"),
+                 "--out", str(tmp_path / "r.html"), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    page = (tmp_path / "r.html").read_text()
+    assert rep["verdict"] == "joint_stiffness" and "Absolute positions" in page and "joint_stiffness" in page
     # the measured arm: one reading per pose, no floor from repeats: no verdict, and it says why
     assert main(["diagnose", "--robot", str(CTU / "robot.toml"), "--static", str(CTU / "train.csv"), "--json"]) == 0
     ctu_obj = json.loads(capsys.readouterr().out)

@@ -47,9 +47,21 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.diagnose.absolute_only import AbsoluteOnlyDiagnosis
     from elastocal.report.html import render_report
 
-    if isinstance(static, AbsoluteOnlyDiagnosis):
-        raise InputError("the HTML report of a table without loads is not written yet: elastocal diagnose gives "
-                         "its diagnosis, elastocal validate its errors", source=args.static or "--static")
+    if isinstance(static, AbsoluteOnlyDiagnosis):          # a table without loads: the absolute section alone
+        from elastocal.report.absolute import absolute_only_page
+
+        if args.add is not None:
+            raise InputError("a table without loads shows its candidates in the absolute section; no --add",
+                             source="--add")
+        names = ([args.robot] if args.robot else []) + [str(f) for f in inputs.files]
+        page = absolute_only_page(inputs.robot, static, names)
+        with outputs:
+            outputs.temp(out).write_text(page, encoding="utf-8")
+        if args.json:
+            print(json.dumps({"out": str(out), "verdict": static.verdict, "bytes": len(page.encode("utf-8"))}))
+        else:
+            print(f"report written to {out} (verdict: {static.verdict or 'none'})")
+        return 0
     add = args.add
     if add is not None and static is not None and add not in {c.effect for c in static.candidates}:
         reason = next((n.reason for n in static.not_testable if n.effect == add), "not a candidate")
