@@ -7,9 +7,21 @@ log analysed alone and in a fleet gives the same numbers.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import numpy as np
+
 from elastocal.errors import InputError
-from elastocal.formats.calibration import is_stiffness_name
+from elastocal.formats.calibration import (
+    CalibratedParameter,
+    Calibration,
+    Residual,
+    is_stiffness_name,
+    make_calibration,
+)
+from elastocal.identify.absolute import ABSOLUTE_EFFECTS, AbsoluteFit
 from elastocal.model.effects import ALL_EFFECTS, get_effect
+from elastocal.model.kinds import TorqueSource
 
 
 def absolute_or_static(robot, table, model: tuple[str, ...], torque: str, form: str, *, tracker_prior=None):
@@ -24,39 +36,116 @@ def absolute_or_static(robot, table, model: tuple[str, ...], torque: str, form: 
     return identify_static(robot, ds, model=model, torque=torque, form=form)
 
 
+@dataclass(frozen=True, eq=False)
+class Identification:
+    """What ``elastocal identify`` finds in the tables, typed: the static (or absolute) fit, the
+    runs' fit, the readings left out. The ``--json`` object (:meth:`to_json`) and the calibration
+    file (:meth:`calibration`) are both made from it; neither is made from the other."""
+
+    model: tuple[str, ...]
+    #: the static or absolute fit (None: run data only)
+    fit: object | None
+    #: the run-data fit (identify/runs.py RunFit; None without runs)
+    runs: object | None
+    #: static readings far off their repeats (identify/outliers.py), excluded or not
+    outliers: tuple = ()
+    #: where the tracker position the absolute fit's registration was held to came from (cell.toml)
+    prior_source: str | None = None
+
+    def parameters(self) -> tuple[CalibratedParameter, ...]:
+        """Every parameter found, in the ``--json`` object's order: the static fit's with each joint
+        stiffness that is not a result marked (identify/evidence.py), then the runs' (a run
+        parameter the static fit also gives takes that one's place)."""
+        from elastocal.identify.evidence import stiffness_problem
+
+        out: dict[str, CalibratedParameter] = {}
+        if self.fit is not None:
+            for p in self.fit.parameters:
+                why = stiffness_problem(float(p.value), float(p.std or 0.0)) if is_stiffness_name(p.name) else None
+                out[p.name] = CalibratedParameter(p.name, p.value, p.std, p.unit, determined=False if why else None,
+                                                  note=why)
+        if self.runs is not None:
+            for p in self.runs.parameters:
+                out[p.name] = CalibratedParameter(p.name, p.value, p.std, p.unit)
+        return tuple(out.values())
+
+    def _residuals(self) -> tuple[Residual, Residual | None]:
+        """The fitted data's residual [m] (run data only: the torques' [N·m]) and the absolute one."""
+        if self.fit is None:
+            r = self.runs
+            peak = float(np.max(np.abs(r.residuals))) if r.residuals.size else float("nan")
+            return Residual(rms=r.rms, max=peak, n=int(r.residuals.size), noise_floor=r.noise_floor), None
+        fit = self.fit
+        if not isinstance(fit, AbsoluteFit):
+            return Residual(rms=fit.rms, max=fit.max, n=fit.n, noise_floor=fit.noise_floor), None
+        static = fit.static                           # the deflection fit the absolute one started from
+        absolute = Residual(rms=fit.rms, max=fit.max, n=fit.n, noise_floor=fit.noise_floor)
+        if any(m in ABSOLUTE_EFFECTS for m in fit.model):
+            deflection = Residual(rms=fit.deflection_rms, max=fit.deflection_max,
+                                  n=int(fit.deflection_residuals.size), noise_floor=static.noise_floor)
+        else:
+            deflection = Residual(rms=static.rms, max=static.max, n=static.n, noise_floor=static.noise_floor)
+        return deflection, absolute
+
+    def calibration(self, robot_name: str, data_paths=(), *, created: str | None = None,
+                    robot_description: str | None = None) -> Calibration:
+        """The calibration (docs/formats.md §4) of these results and the files they came from."""
+        residual, absolute = self._residuals()
+        if self.fit is None:
+            torque = TorqueSource.CURRENT
+        else:
+            torque = (self.fit.static if isinstance(self.fit, AbsoluteFit) else self.fit).torque
+        return make_calibration(robot_name, model=self.model, torque=torque, parameters=self.parameters(),
+                                residual=residual, absolute_residual=absolute, data_paths=data_paths,
+                                created=created, robot_description=robot_description)
+
+    def to_json(self) -> dict:
+        """The ``identify --json`` object (docs/cli.md)."""
+        if self.fit is None:
+            return self.runs.to_json()
+        obj = self.fit.to_json()
+        obj["model"] = list(self.model)
+        obj["outliers"] = [o.to_json() for o in self.outliers]
+        if self.prior_source is not None and "prior" in obj.get("registration", {}):
+            obj["registration"]["prior"]["source"] = self.prior_source
+        if self.runs is not None:
+            rj = self.runs.to_json()
+            obj["parameters"].update(rj["parameters"])
+            obj["torque_residual"] = rj["residual"]
+            obj["torque_noise_floor"] = rj["noise_floor"]
+        return obj
+
+
 def identify_data(robot, static, runs, model: tuple[str, ...], torque: str, form: str, *,
-                  exclude_outliers: bool = False, tracker_prior=None) -> tuple[dict, object | None]:
-    """The ``identify --json`` object for the tables, and the static fit if any.
-    ``outliers`` lists the static readings far off their repeats (identify/outliers.py);
-    with ``exclude_outliers`` the fit leaves them out."""
+                  exclude_outliers: bool = False, tracker_prior=None,
+                  prior_source: str | None = None) -> Identification:
+    """What ``identify`` finds in the tables (:class:`Identification`). ``outliers`` lists the
+    static readings far off their repeats (identify/outliers.py); with ``exclude_outliers`` the
+    fit leaves them out. ``tracker_prior``: where the tracker stands in base coordinates [m]
+    (cell.toml's, ``prior_source`` naming where it was read)."""
     from elastocal.identify.outliers import without_outliers
 
     if static is None:
         from elastocal.identify import runs as run_ident  # run data: compensator, friction
 
         result = run_ident.identify_runs(robot, runs, model=model)
-        return result.to_json(), None
+        return Identification(model=tuple(result.model), fit=None, runs=result)
     from elastocal.identify.runs import RUN_EFFECTS
 
     run_model = tuple(m for m in model if m in RUN_EFFECTS)
     static_model = tuple(m for m in model if m not in RUN_EFFECTS or runs is None)
     table, excluded = without_outliers(static) if exclude_outliers else (static, ())
     fit = absolute_or_static(robot, table, static_model, torque, form, tracker_prior=tracker_prior)
-    obj = fit.to_json()
-    obj["model"] = list(model)
-    obj["outliers"] = [o.to_json() for o in (*excluded, *fit.dataset.outliers)]
-    if runs is not None:
+    run_fit = None
+    if runs is not None and run_model:
         from elastocal.identify import runs as run_ident
 
-        if run_model:    # the sweeps placed with the static fit's stiffness
-            k = [p.value for p in fit.parameters if is_stiffness_name(p.name)]
-            result = run_ident.identify_runs(robot, runs, model=("joint_stiffness", *run_model),
-                                             stiffness=k if len(k) == robot.n_joints else None)
-            rj = result.to_json()
-            obj["parameters"].update(rj["parameters"])
-            obj["torque_residual"] = rj["residual"]
-            obj["torque_noise_floor"] = rj["noise_floor"]
-    return obj, fit
+        # the sweeps placed with the static fit's stiffness
+        k = [p.value for p in fit.parameters if is_stiffness_name(p.name)]
+        run_fit = run_ident.identify_runs(robot, runs, model=("joint_stiffness", *run_model),
+                                          stiffness=k if len(k) == robot.n_joints else None)
+    return Identification(model=tuple(model), fit=fit, runs=run_fit,
+                          outliers=(*excluded, *fit.dataset.outliers), prior_source=prior_source)
 
 
 def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: str, form: str, *,

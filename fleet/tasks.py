@@ -175,14 +175,14 @@ def _parameters(params: Mapping[str, Any]) -> tuple[tuple[str, float, float | No
 
 def _identify(task: FleetTask, data: _Data) -> dict:
     from elastocal.errors import InputError
-    from elastocal.formats.calibration import calibration_from_fit
     from elastocal.diagnose.pipeline import identify_data
 
     if data.static is None and data.runs is None:
         raise InputError("the log holds neither a static experiment nor runs", source=task.path)
-    obj, _ = identify_data(data.robot, data.static, data.runs, task.model, task.torque, task.form,
+    result = identify_data(data.robot, data.static, data.runs, task.model, task.torque, task.form,
                            exclude_outliers=task.exclude_outliers, tracker_prior=data.tracker_prior)
-    cal = calibration_from_fit(data.robot.name, obj, data.files)
+    obj = result.to_json()
+    cal = result.calibration(data.robot.name, data.files)
     return {"parameters": _parameters(obj["parameters"]), "residual_rms": obj["residual"]["rms"],
             "noise_floor": obj.get("noise_floor"), "calibration": cal}
 

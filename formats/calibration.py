@@ -17,7 +17,7 @@ import hashlib
 import json
 import math
 import pathlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping, Sequence
 
 from elastocal.errors import InputError
@@ -211,9 +211,30 @@ class Calibration:
         return out
 
 
+def make_calibration(robot_name: str, *, model: Sequence[str], torque: str,
+                     parameters: Sequence[CalibratedParameter], residual: Residual,
+                     absolute_residual: Residual | None = None, data_paths: Sequence[str | pathlib.Path] = (),
+                     created: str | None = None, robot_description: str | None = None) -> Calibration:
+    """A Calibration from a fit's typed results and the files it used; each parameter checked
+    and in its SI unit as the reader would have it (what the reader would refuse is not written)."""
+    created = created or _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+    data = tuple(DataFile(path=str(p), sha256=file_sha256(p)) for p in data_paths)
+    source = str(data_paths[0]) if data_paths else "the fit"
+    checked = []
+    for p in parameters:
+        try:
+            checked.append(_checked(p, source))
+        except InputError as exc:
+            raise InputError(f"the fit gives {p.name}: {exc.detail}; not a calibration (the robot description's "
+                             "torque constants and geometry, the data's units?)", source=source) from None
+    return Calibration(robot=robot_name, created=created, model=tuple(model), torque=torque,
+                       parameters=tuple(checked), residual=residual, data=data, absolute_residual=absolute_residual,
+                       robot_description=robot_description)
+
+
 def calibration_from_fit(robot_name: str, fit_json: dict, data_paths: Sequence[str | pathlib.Path] = (),
                          created: str | None = None, robot_description: str | None = None) -> Calibration:
-    """A Calibration from an ``identify --json`` object and the files it used."""
+    """A Calibration from an ``identify --json`` object (a file's, at the edge) and the files it used."""
     created = created or _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
     res = fit_json["residual"]
     residual = Residual(rms=res.get("rms"), max=res.get("max"), n=res.get("n"),
@@ -310,8 +331,6 @@ def _number_or_none(p: dict, key: str) -> float | None:
 def _parameter(name: str, p: object, src: str) -> CalibratedParameter:
     """One parameter, checked and in its SI unit: a finite value, a std >= 0 (or none), a known unit
     (a value given in another unit of the same kind, N*m/deg for N*m/rad, is converted)."""
-    from elastocal.model.units import UnitError, conversion, parse_unit
-
     where = f"parameters.{name}"
     if not isinstance(p, dict):
         raise InputError(f"expected an object with value, std and unit, got {p!r}", source=src, column=where)
@@ -323,9 +342,29 @@ def _parameter(name: str, p: object, src: str) -> CalibratedParameter:
                          column=f"{where}.{exc.args[0]}") from None
     if value is None:
         raise InputError(f"parameter {name} has no finite value", source=src, column=where)
-    if std is not None and std < 0:
-        raise InputError(f"a standard deviation is >= 0, got {std!r}", source=src, column=f"{where}.std")
     unit = p.get("unit")
+    if unit is not None and not isinstance(unit, str):
+        raise InputError(f"expected a unit text, got {unit!r}", source=src, column=f"{where}.unit")
+    determined, note = p.get("determined"), p.get("note")
+    if determined is not None and not isinstance(determined, bool):
+        raise InputError(f"expected true or false, got {determined!r}", source=src, column=f"{where}.determined")
+    if note is not None and not isinstance(note, str):
+        raise InputError(f"expected a text, got {note!r}", source=src, column=f"{where}.note")
+    return _checked(CalibratedParameter(name=name, value=value, std=std, unit=unit, determined=determined,
+                                        note=note, extra=_extra(p, CalibratedParameter.FIELDS)), src)
+
+
+def _checked(p: CalibratedParameter, src: str) -> CalibratedParameter:
+    """``p`` checked and in its SI unit: a finite value, a std >= 0 (or none), a known unit (a value
+    given in another unit of the same kind, N*m/deg for N*m/rad, is converted)."""
+    from elastocal.model.units import UnitError, conversion, parse_unit
+
+    name, value, std, unit = p.name, float(p.value), p.std, p.unit
+    where = f"parameters.{name}"
+    if not math.isfinite(value):
+        raise InputError(f"parameter {name} has no finite value", source=src, column=where)
+    if std is not None and not (std >= 0):
+        raise InputError(f"a standard deviation is >= 0, got {std!r}", source=src, column=f"{where}.std")
     target = parameter_unit(name)
     if unit is not None and target is not None and isinstance(unit, str) and name[-1].isdigit():
         # a per-joint parameter of a prismatic joint (k7 in N/m): its own unit
@@ -336,8 +375,6 @@ def _parameter(name: str, p: object, src: str) -> CalibratedParameter:
         except UnitError:
             pass
     if unit is not None:
-        if not isinstance(unit, str):
-            raise InputError(f"expected a unit text, got {unit!r}", source=src, column=f"{where}.unit")
         try:
             factor = conversion(unit, target) if target is not None else (parse_unit(unit), 1.0)[1]
         except UnitError as exc:
@@ -354,13 +391,7 @@ def _parameter(name: str, p: object, src: str) -> CalibratedParameter:
         raise InputError(f"{value:g} is not a plausible value", source=src, column=f"{where}.value")
     if std is not None and not std <= MAX_VALUE:
         raise InputError(f"{std:g} is not a plausible standard deviation", source=src, column=f"{where}.std")
-    determined, note = p.get("determined"), p.get("note")
-    if determined is not None and not isinstance(determined, bool):
-        raise InputError(f"expected true or false, got {determined!r}", source=src, column=f"{where}.determined")
-    if note is not None and not isinstance(note, str):
-        raise InputError(f"expected a text, got {note!r}", source=src, column=f"{where}.note")
-    return CalibratedParameter(name=name, value=float(value), std=std, unit=unit, determined=determined, note=note,
-                               extra=_extra(p, CalibratedParameter.FIELDS))
+    return replace(p, value=float(value), std=std, unit=unit)
 
 
 def read_calibration(path: str | pathlib.Path) -> Calibration:

@@ -145,7 +145,8 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     from elastocal.compensation.model import CompensationModel
     from elastocal.compensation.trajectory import compensate_path
     from elastocal.compensation.validate import YANG_WRENCH, validate_on_sim
-    from elastocal.formats.calibration import calibration_from_fit, write_calibration
+    from elastocal.diagnose.pipeline import Identification
+    from elastocal.formats.calibration import write_calibration
     from elastocal.identify.absolute import identify_absolute
     from elastocal.diagnose.static import diagnose_static
     from elastocal.report.html import render_report
@@ -231,9 +232,10 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     print("  worst poses before: " + ", ".join(f"{p['pose']} ({p['max'] * 1e3:.2f} mm)" for p in worst))
     report = out / "report.html"
     write_text_atomic(report, render_report(robot_log, diag, inputs=[str(log)]))
-    obj = geo.to_json()
+    calibration = Identification(model=geo.model, fit=geo, runs=None).calibration(
+        robot.name, [log], robot_description=robot_log.to_toml())
     with atomic(out / "cal.json") as tmp:
-        write_calibration(tmp, calibration_from_fit(robot.name, obj, [log], robot_description=robot_log.to_toml()))
+        write_calibration(tmp, calibration)
     print(f"  report: {report}; calibration: {out / 'cal.json'}")
 
     # 5. compensated trajectory on the simulated cell

@@ -18,9 +18,9 @@ from elastocal.commands._inputs import (
 from elastocal.commands._outputs import Outputs
 from elastocal.commands._format import format_fit
 from elastocal.errors import InputError
-from elastocal.formats.calibration import calibration_from_fit, write_calibration
+from elastocal.formats.calibration import write_calibration
 from elastocal.model.effects import parse_model
-from elastocal.diagnose.pipeline import identify_data
+from elastocal.diagnose.pipeline import Identification, identify_data
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,11 +32,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *,
-                    exclude_outliers: bool = False, tracker_prior=None) -> tuple[dict, object | None]:
-    """The identify --json object for the inputs, and the static fit if any
-    (:func:`elastocal.diagnose.pipeline.identify_data`)."""
+                    exclude_outliers: bool = False, prior=None) -> Identification:
+    """What identify finds in the inputs (:func:`elastocal.diagnose.pipeline.identify_data`);
+    ``prior``: the cell's tracker position (commands/_inputs.py's tracker_prior)."""
     return identify_data(inputs.robot, inputs.static, inputs.runs, model, torque, form,
-                         exclude_outliers=exclude_outliers, tracker_prior=tracker_prior)
+                         exclude_outliers=exclude_outliers,
+                         tracker_prior=None if prior is None else prior.base_p_tracker,
+                         prior_source=None if prior is None else prior.source)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -49,13 +51,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("the log holds neither a static experiment nor runs", source=args.log or "--static")
     model = table_model(args, inputs, model)
     prior = tracker_prior(args, inputs)
-    obj, fit = identify_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers,
-                               tracker_prior=None if prior is None else prior.base_p_tracker)
-    if prior is not None and "prior" in obj.get("registration", {}):
-        obj["registration"]["prior"]["source"] = prior.source
+    result = identify_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers,
+                             prior=prior)
+    obj = result.to_json()
     if args.out:
-        calibration = calibration_from_fit(inputs.robot.name, obj, inputs.files,
-                                           robot_description=inputs.robot.to_toml())
+        calibration = result.calibration(inputs.robot.name, inputs.files, robot_description=inputs.robot.to_toml())
         bad = calibration.undetermined()
         if bad:   # a stiffness the data do not determine is written marked, never as a finding
             args.notes.append(f"elastocal identify: note: {', '.join(bad)} not determined by these data, marked "
