@@ -97,7 +97,16 @@ class Identification:
             torque = (self.fit.static if isinstance(self.fit, AbsoluteFit) else self.fit).torque
         return make_calibration(robot_name, model=self.model, torque=torque, parameters=self.parameters(),
                                 residual=residual, absolute_residual=absolute, data_paths=data_paths,
-                                created=created, robot_description=robot_description)
+                                created=created, robot_description=robot_description,
+                                unidentifiable=self.unidentifiable())
+
+    def unidentifiable(self) -> tuple[str, ...]:
+        """The parameters the data cannot separate (not held: the calibration reads them as absent)."""
+        if self.fit is None:
+            return tuple(self.runs.unidentifiable)
+        if isinstance(self.fit, AbsoluteFit):
+            return tuple(self.fit.unidentifiable or self.fit.static.unidentifiable)
+        return tuple(self.fit.unidentifiable)
 
     def to_json(self) -> dict:
         """The ``identify --json`` object (docs/cli.md)."""

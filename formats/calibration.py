@@ -214,7 +214,8 @@ class Calibration:
 def make_calibration(robot_name: str, *, model: Sequence[str], torque: str,
                      parameters: Sequence[CalibratedParameter], residual: Residual,
                      absolute_residual: Residual | None = None, data_paths: Sequence[str | pathlib.Path] = (),
-                     created: str | None = None, robot_description: str | None = None) -> Calibration:
+                     created: str | None = None, robot_description: str | None = None,
+                     unidentifiable: Sequence[str] = ()) -> Calibration:
     """A Calibration from a fit's typed results and the files it used; each parameter checked
     and in its SI unit as the reader would have it (what the reader would refuse is not written)."""
     created = created or _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
@@ -229,7 +230,7 @@ def make_calibration(robot_name: str, *, model: Sequence[str], torque: str,
                              "torque constants and geometry, the data's units?)", source=source) from None
     return Calibration(robot=robot_name, created=created, model=tuple(model), torque=torque,
                        parameters=tuple(checked), residual=residual, data=data, absolute_residual=absolute_residual,
-                       robot_description=robot_description)
+                       robot_description=robot_description, unidentifiable=tuple(unidentifiable))
 
 
 def calibration_from_fit(robot_name: str, fit_json: dict, data_paths: Sequence[str | pathlib.Path] = (),
