@@ -234,7 +234,7 @@ def test_the_demo_chain_runs_on_the_track_cell(tmp_path):
         # with the geometry found, compensation removes the process-load error as on the six-axis cell
         assert comp["exact"]["max"] < 0.05 * comp["uncompensated"]["max"]
     else:
-        # seen in 4 of 7 runs (seed 2, 8 or 12 poses): the joint fit of geometry, registration and the
+        # seen in 4 of 8 runs (seed 2, 8 or 12 poses): the joint fit of geometry, registration and the
         # selected link-compliance components ends above the nominal geometry's error (0.8 mm where the
         # floor is 3.5 um), while identify on the same log without link_compliance reaches 16 um
         # (the compensation, made with that geometry, then leaves up to 8 % of the path error)
