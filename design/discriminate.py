@@ -42,7 +42,7 @@ import numpy as np
 from elastocal.errors import InputError
 from elastocal.design.candidates import Workspace, load_directions, sample_candidates
 from elastocal.diagnose.verdict import VERDICT_DELTA_BIC
-from elastocal.identify.design_matrix import planned_dataset, regressor
+from elastocal.identify.design_matrix import planned_dataset, refusals, regressor
 from elastocal.identify.static import StaticDataset
 from elastocal.model.effects import ALL_EFFECTS, get_effect
 from elastocal.model.robot import DEFAULT_PRIOR_STIFFNESS, Robot
@@ -330,11 +330,20 @@ def plan_discrimination(robot: Robot, given: GivenData, targets: Sequence[str], 
     largest size) that makes every target decisive against the model and its rivals."""
     if n_poses < 1 or loads_per_pose < 1:
         raise InputError("poses and loads per pose must be at least 1", argument="poses")
-    rivals = rival_pool(given.model, targets)
-    pr = _Problem(robot, given, targets, rivals)
     rng = np.random.default_rng(seed)
     cands = sample_candidates(robot, n_candidates, rng, workspace, markers)
     forces = workspace.f_max_n * load_directions(workspace.directions, robot.gravity)
+    # what no candidate experiment can show (the torque source's refusals) is neither target nor rival
+    pool = planned_dataset(robot, np.repeat(cands.q, len(forces), axis=0),
+                           [np.concatenate([f, np.zeros(3)])[None, :] for _ in cands.q for f in forces], markers,
+                           repeats=repeats, sigma_tracker=given.sigma_tracker, sigma_current=given.sigma_current)
+    refused = refusals(robot, pool, (*targets, *rival_pool(given.model, targets)))
+    for t in targets:
+        if t in refused:
+            raise InputError(f"{t}: no pose and load of the workspace can show it: {refused[t]}",
+                             argument="discriminate")
+    rivals = tuple(r for r in rival_pool(given.model, targets) if r not in refused)
+    pr = _Problem(robot, given, targets, rivals)
     items = _item_information(pr, cands.q, forces, markers, repeats)
     pr.set_reachable(pr.m_given + items.sum(axis=(0, 1)))
     chosen = _greedy(pr, items, n_poses, loads_per_pose)

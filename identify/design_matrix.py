@@ -81,3 +81,18 @@ def regressor(robot: Robot, ds: StaticDataset, effects: Sequence[str], *, torque
     ctx = _context(pr, _torques(pr, None), beta)
     _, a, _ = _evaluate(pr, beta, _bases(pr, ctx), exact=False)
     return a.reshape(ds.n_deflections, 3, -1), param_names
+
+
+def refusals(robot: Robot, ds: StaticDataset, effects: Sequence[str], *, torque: str = "current") -> dict[str, str]:
+    """The effects of ``effects`` these data cannot show at all, with each effect's own reason
+    (``Effect.static_refusal``: static friction is no part of a current-based model; backlash
+    needs a load that reverses a torque)."""
+    effs = tuple(get_effect(n) for n in dict.fromkeys(["joint_stiffness", *effects]))
+    pr = _Problem(robot, ds, effs, torque, "first-order", False, ())
+    ctx = _context(pr, _torques(pr, None))
+    out = {}
+    for eff in effs:
+        reason = eff.static_refusal(ctx) if eff.static_refusal is not None else None
+        if reason:
+            out[eff.name] = reason
+    return out
