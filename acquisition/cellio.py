@@ -86,6 +86,10 @@ class CellIO(abc.ABC):
         """Samples acquired over the next ``duration_s`` (drives, and the tracker
         measuring ``markers``); returns after about ``duration_s``."""
 
+    def begin_reading(self, marker: str) -> None:
+        """A static reading of ``marker`` starts now: its window opens when this returns (the
+        tracker has taken aim at the marker, so nothing read before belongs to the reading)."""
+
     def motion_reported(self) -> str | None:
         """What says the robot moves (e.g. "the cell controller reports a motion"), None when
         nothing does; the joints' own speeds are judged from the samples."""

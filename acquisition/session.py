@@ -408,6 +408,7 @@ class Session:
         and the cell has settled again, for at most :data:`BEAM_WAIT_S`; then :class:`BeamBroken`."""
         first_miss = None
         while True:
+            self.io.begin_reading(marker)
             t0 = self.io.clock()
             samples = self.poll([marker], reading_s)
             t1 = self.io.clock()

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import pathlib
 import threading
+import time
 from importlib import resources
 from typing import Sequence
 
@@ -33,6 +34,9 @@ import canopen
 from elastocal.drivers.can_loopback import INTERFACE as CAN_LOOPBACK, open_can_bus
 from elastocal.sims.canbus import BusStats, SimCanBus
 from elastocal.sims.world import SimWorld, WorldSample
+
+#: a SYNC's bus time older than this is not taken for the world's clock (a world on another clock)
+SYNC_AGE_NS = 50_000_000
 
 #: python-can interfaces that carry frames between processes as UDP datagrams (stamped on arrival,
 #: our own frames looped back)
@@ -255,6 +259,8 @@ class SimCanopenNetwork:
         if len(self.drives) != len(drives):
             raise ValueError("two simulated drives share a node id")
         self.world = drives[0].world if drives else None
+        #: wall clock minus the world's clock [s]: CAN timestamps are wall seconds
+        self._wall_offset_s = time.time() - time.monotonic()
         if interface == "virtual":
             bus_kwargs.setdefault("preserve_timestamps", True)
         inner = open_can_bus(interface, channel, **bus_kwargs)
@@ -301,8 +307,13 @@ class SimCanopenNetwork:
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
         if self.world is None:
             return
-        # one world sample and one unit conversion per SYNC for all drives
-        latched = {d.node_id for d, values in zip(self._sync_drives, self._sync_units(self.world.sample()))
+        # one world sample and one unit conversion per SYNC for all drives, at the SYNC's time on the bus (the
+        # host stamps its cycle just before it): which reading a sample belongs to does not hang on how late
+        # this thread runs
+        now_ns = self.world.now_ns()
+        sync_ns = int(round((timestamp - self._wall_offset_s) * 1e9)) if timestamp else now_ns
+        t_ns = sync_ns if 0 <= now_ns - sync_ns < SYNC_AGE_NS else now_ns   # else: not the world's clock
+        latched = {d.node_id for d, values in zip(self._sync_drives, self._sync_units(self.world.sample(t_ns)))
                    if d.latch(values)}
         for d, pdo in self._sync_tpdos:          # lowest COB-ID first, as arbitration orders them
             if d.node_id in latched:

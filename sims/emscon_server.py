@@ -142,6 +142,7 @@ class _Session:
             self.reflector_id = match[0][0]
             if match[0][1] in s.markers:
                 self.marker = match[0][1]
+                s.world.select_marker(self.marker)     # a new reading begins (sims/world.py)
             self.answer(es.SetReflectorCT)
         elif isinstance(p, es.GetEnvironmentParamsCT):
             rt = es.GetEnvironmentParamsRT()

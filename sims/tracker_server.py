@@ -113,6 +113,7 @@ class _Session:
             if not valid_name(name) or name not in self.tracker.markers:
                 return encode_line(f"ERR 2 unknown target {name[:32]}")
             self.target = name
+            self.tracker.world.select_marker(name)      # a new reading begins (sims/world.py)
             return encode_line(f"OK TARGET {name}")
         if cmd == "MEAS?" and len(words) == 1:
             if self._streamer is not None:

@@ -4,8 +4,18 @@
 coordinates ``q`` (moving toward a requested pose at a finite speed, on a
 straight joint-space line), the external wrench on the load point (the load the
 operator hangs), and time (``time.monotonic_ns``, t = 0 at creation). Its
-physics is :class:`elastocal.sims.cell.SimCell`; its noise comes from one
-seeded ``numpy.random.Generator``.
+physics is :class:`elastocal.sims.cell.SimCell`.
+
+Its noise is a function of the seed and of what happened, not of the wall
+clock: the world counts *readings* (a new one begins when the robot starts a
+motion, when a load changes and when a tracker takes aim at a marker,
+:meth:`select_marker`), and at rest every device reads the same noise for the
+whole reading, drawn from ``numpy.random.default_rng((seed, device, reading))``
+(the drives' currents one device, the tracker one per marker). So the average
+of a reading does not depend on how many samples the wall clock let into it,
+and two runs of one procedure with one seed read the same numbers. During a
+motion the noise is drawn per sample (seeded by the sample's time as well):
+nothing static is averaged there.
 
 The whole API:
 
@@ -29,6 +39,7 @@ interpolated in time, so devices can be read at 1 kHz.
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 import time
@@ -43,6 +54,10 @@ from elastocal.sims.cell import CellTruth, Equilibrium, SimCell
 #: grid spacing of a planned motion along its largest joint move [rad]
 PLAN_STEP_RAD = 0.004
 PLAN_MAX_POINTS = 301
+
+#: the devices whose noise the world draws (the second entry of each generator's seed)
+NOISE_DRIVES = 1
+NOISE_TRACKER = 2
 
 
 @dataclass(frozen=True)
@@ -114,7 +129,10 @@ class SimWorld:
         self.run_speed_rad_s = float(run_speed_rad_s)
         self._clock_ns = clock_ns
         self._t0_ns = clock_ns()
-        self._rng = np.random.default_rng(seed)
+        self._seed = int(seed) & (2 ** 64 - 1)      # SeedSequence takes non-negative integers
+        #: start time of each reading (module docstring), ascending
+        self._reading_starts = [self._t0_ns]
+        self._rest_noise: dict[tuple, np.ndarray] = {}
         self._lock = threading.RLock()
         self._idle = threading.Condition(self._lock)
         self._planning = False
@@ -201,6 +219,7 @@ class SimWorld:
             raise
         with self._lock:
             t = self._clock_ns()
+            self._new_reading_locked(t)
             segments = []
             for seg in planned:
                 seg = replace(seg, t0_ns=t)
@@ -246,6 +265,7 @@ class SimWorld:
             reference = self._reference
         eq = self.cell.equilibrium(q, w, reference=reference)
         with self._lock:
+            self._new_reading_locked(self._clock_ns())
             self._wrench = w
             self._set_rest(self._rest_q, eq)
 
@@ -255,6 +275,40 @@ class SimWorld:
     def wrench(self) -> np.ndarray:
         with self._lock:
             return self._wrench.copy()
+
+    # ----------------------------------------------------------- noise
+    def select_marker(self, marker: str) -> None:
+        """A tracker takes aim at ``marker``: a new reading begins (module docstring)."""
+        if marker not in self.markers:
+            raise InputError(f"unknown marker {marker!r}; the cell has {', '.join(self.markers)}")
+        with self._lock:
+            self._new_reading_locked(self._clock_ns())
+
+    def _new_reading_locked(self, t_ns: int) -> None:
+        self._reading_starts.append(max(t_ns, self._reading_starts[-1]))
+        self._rest_noise = {}
+
+    def reading_at(self, t_ns: int) -> int:
+        """The index of the reading under way at ``t_ns`` (0: the first, from the world's creation)."""
+        with self._lock:
+            return max(bisect.bisect_right(self._reading_starts, t_ns) - 1, 0)
+
+    def _noise(self, device: tuple[int, ...], sigma: float, size: int, t_ns: int, moving: bool) -> np.ndarray:
+        """The noise ``device`` reads at ``t_ns``: one draw per reading at rest, one per sample in motion."""
+        reading = self.reading_at(t_ns)
+        key = (*device, reading) if not moving else (*device, reading, int(t_ns) & (2 ** 64 - 1))
+        if not moving:
+            with self._lock:
+                cached = self._rest_noise.get(key)
+            if cached is not None:
+                return cached
+        noise = np.random.default_rng((self._seed, *key)).normal(0.0, sigma, size=size)
+        if not moving:
+            noise.flags.writeable = False
+            with self._lock:
+                if reading == len(self._reading_starts) - 1:     # only the reading under way is kept
+                    self._rest_noise[key] = noise
+        return noise
 
     # ----------------------------------------------------------- state
     def _set_rest(self, q: np.ndarray, eq: Equilibrium) -> None:
@@ -316,12 +370,13 @@ class SimWorld:
                     t = seg.t0_ns
                 else:
                     # SimCell.read_currents(self._rest_eq, rng), with the noise-free currents computed once
-                    noise = self._rng.normal(0.0, self.cell.truth.current_noise_a, size=self.robot.n_joints)
+                    noise = self._noise((NOISE_DRIVES,), self.cell.truth.current_noise_a, self.robot.n_joints, t,
+                                        moving=False)
                     return WorldSample(t, self._rest_q_ro, self._zero_speed, self._rest_currents + noise, False)
             s = seg.s_at(t)
             q = seg.q0 + (seg.q1 - seg.q0) * s
             i = _interp_rows(seg.s_grid, seg.currents, s)
-            noise = self._rng.normal(0.0, self.cell.truth.current_noise_a, size=self.robot.n_joints)
+            noise = self._noise((NOISE_DRIVES,), self.cell.truth.current_noise_a, self.robot.n_joints, t, moving=True)
             return WorldSample(t, q, seg.dq, i + noise, True)
 
     def equilibrium_at(self, t_ns: int | None = None) -> Equilibrium:
@@ -346,15 +401,17 @@ class SimWorld:
         if marker not in self.markers:
             raise InputError(f"unknown marker {marker!r}; the cell has {', '.join(self.markers)}")
         t = self._clock_ns() if t_ns is None else t_ns
+        device = (NOISE_TRACKER, self.markers.index(marker))
+        truth = self.cell.truth
         with self._lock:
             if self._segment_at(t) is None and not self._moving_locked(t):
                 # at rest: SimCell.read_tracker with the noise-free positions computed once per pose
                 if self._rest_markers is None:
                     p = self.cell.marker_positions(self._rest_eq, self.markers)
                     self._rest_markers = {m: p[i:i + 1] for i, m in enumerate(self.markers)}
-                truth = self.cell.truth
                 p = self._rest_markers[marker] + truth.drift_velocity * self.t_s(t)
-                return self.cell.to_tracker(p + self._rng.normal(0.0, truth.tracker_noise_m, size=p.shape))[0]
+                noise = self._noise(device, truth.tracker_noise_m, 3, t, moving=False)
+                return self.cell.to_tracker(p + noise)[0]
         eq = self.equilibrium_at(t)
-        with self._lock:
-            return self.cell.read_tracker(eq, [marker], self.t_s(t), self._rng)[0]
+        rng = np.random.default_rng((self._seed, *device, self.reading_at(t), int(t) & (2 ** 64 - 1)))
+        return self.cell.read_tracker(eq, [marker], self.t_s(t), rng)[0]

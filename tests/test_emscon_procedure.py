@@ -48,14 +48,15 @@ def test_static_procedure_through_emscon_identifies_the_line_trackers_stiffness(
     names = [f"k{j}" for j in range(1, 7)]
     k_line, k_em = line.values(names), em.values(names)
     truth = np.array(CellTruth().stiffness)
-    assert np.all(np.abs(k_em - truth) / truth < np.array([0.02] * 3 + [0.05] * 3)), (k_em, truth)
-    # Same seed, same plan; the noise the two runs draw is not the same draw (the simulated drives are
-    # sampled on the wall clock), so the two fits agree within the std of their difference: every joint
-    # within 2.6 std (99 %) and all six together by chi-square (6 dof, 99 %: 16.8). Measured on this
-    # machine (2026-12-01): |z| = 0.69, 0.40, 0.70, 0.67, 0.97, 0.62, i.e. all within 1 std.
+    # against the truth within the fit's own uncertainty: every joint within 3.3 std (99.9 %)
+    assert np.all(np.abs(k_em - truth) < 3.3 * em.stds(names)), ((k_em - truth) / em.stds(names))
+    # Same seed, same plan: the simulated devices draw each reading's noise from the seed and the
+    # reading's index, not from the wall clock (sims/world.py), so both trackers read the same noise and
+    # the two fits agree far inside the std of their difference (with noise per sample they differed by
+    # about one std): what differs is the protocol and the number of samples in a window
     std_diff = np.hypot(em.stds(names), line.stds(names))
     z = (k_em - k_line) / std_diff
-    assert np.all(np.abs(z) < 2.6) and np.sum(z ** 2) < 16.8, z
+    assert np.all(np.abs(z) < 1e-3), z
     # the weather the tracker measured through rides on every tracker sample of the log
     with open(em_log, "rb") as f:
         msgs = [json.loads(m.data) for _, ch, m in make_reader(f).iter_messages(topics=["/tracker"])]

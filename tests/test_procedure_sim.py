@@ -154,3 +154,35 @@ def test_friction_pair_and_sweep_run_as_taught_paths_on_simulated_devices(tmp_pa
     plus, minus = runs.run == "sweep-1+", runs.run == "sweep-1-"
     assert np.ptp(runs.q[plus][:, 1]) == pytest.approx(0.25, abs=3e-3) and np.ptp(runs.q[plus][:, 0]) < 1e-6
     assert set(runs.direction[plus | minus]) == {"+", "-"}
+
+
+def test_static_procedure_reads_the_same_numbers_twice_with_one_seed(tmp_path):
+    """The simulated devices draw each reading's noise once, from the seed and the reading's index
+    (sims/world.py), and every reading starts with the tracker's aim (DriverCellIO.begin_reading):
+    however many samples the wall clock lets into a window, and however busy the machine, two runs
+    of one plan on one seed give one static table. (With noise drawn per sample, the means differ by
+    the noise over a few samples: micrometres, not the last bit.)"""
+    from dataclasses import replace
+
+    robot = bundled_robot()
+    poses = random_poses(robot, 2, np.random.default_rng(4))
+    plan = parse_plan(plan_toml(poses=poses, loads=(LoadSpec("L1", mass_kg=80.0),), markers=("R1", "R2"),
+                                repeats=2, reading_s=0.03,
+                                settle=SettleSpec(spread_m=20e-6, window_s=0.15, timeout_s=10.0)))
+    tables = []
+    for k in range(2):
+        config = example_cell_config(can_channel=f"repeat-{k}", move_speed_rad_s=2.0, seed=7)
+        config = replace(config, drives=tuple(replace(d, rate_hz=200.0) for d in config.drives))
+        log = tmp_path / f"run{k}.mcap"
+        with SimulatedCell(config) as sim:
+            assert run_calibration(sim.config, plan, log, yes=True, world=sim.world).status == "completed"
+        tables.append(load_log(log)[1])
+    a, b = tables
+    assert len(a.pose) == len(b.pose) == 2 * 2 * 2 * 2
+    assert list(a.pose) == list(b.pose) and list(a.marker) == list(b.marker)
+    # means of identical samples: equal to the last bits (a count of 2 or 3 may round differently)
+    np.testing.assert_allclose(a.xyz, b.xyz, rtol=1e-13, atol=0)
+    np.testing.assert_allclose(a.currents, b.currents, rtol=1e-12, atol=1e-15)
+    # and yet noisy: repeats of one marker differ by the tracker's noise (10 µm), not by nothing
+    first = (a.marker == "R1") & (a.pose == a.pose[0]) & (a.load == a.load[0])
+    assert first.sum() == 2 and 1e-6 < np.linalg.norm(np.diff(a.xyz[first], axis=0)) < 1e-4

@@ -31,12 +31,13 @@ def robot():
     return bundled_robot()
 
 
-def make(robot, noise_a=0.0, **sim):
+def make(robot, noise_a=0.0, noise_m=0.0, **sim):
     clock = Clock()
-    cfg = SimConfig(current_noise_a=noise_a, tracker_noise_m=0.0, start_q=START, **sim)
+    cfg = SimConfig(current_noise_a=noise_a, tracker_noise_m=noise_m, start_q=START, **sim)
     world = SimWorld.from_config(robot, cfg)
     world._clock_ns = clock            # drive time by hand in these tests
     world._t0_ns = clock()
+    world._reading_starts = [clock()]
     return world, clock
 
 
@@ -143,7 +144,34 @@ def test_noise_is_seeded(robot):
     first = a.sample().currents_a
     np.testing.assert_array_equal(first, b.sample().currents_a)
     assert not np.array_equal(first, c.sample().currents_a)
+    np.testing.assert_array_equal(first, a.sample().currents_a)       # one draw for the whole reading
+    a.select_marker(a.markers[0])
     assert not np.array_equal(first, a.sample().currents_a)           # fresh noise per reading
     exact = a.cell.currents(a.cell.equilibrium(START))
-    spread = np.std([a.sample().currents_a - exact for _ in range(400)])
+
+    def next_reading():
+        a.select_marker(a.markers[0])
+        return a.sample().currents_a - exact
+    spread = np.std([next_reading() for _ in range(400)])
     assert spread == pytest.approx(0.02, rel=0.1)
+
+
+def test_noise_follows_the_readings_not_the_order_of_the_devices(robot):
+    """Each device's noise is its own function of the seed and the reading: how often and in which
+    order the other devices read (the wall clock's doing in a served cell) changes nothing."""
+    a, _ = make(robot, noise_a=0.02, noise_m=1e-5, seed=5)
+    b, _ = make(robot, noise_a=0.02, noise_m=1e-5, seed=5)
+    marker = a.markers[0]
+    rows_a, rows_b = [], []
+    for k in range(5):
+        a.select_marker(marker)
+        b.select_marker(marker)
+        for _ in range(k + 1):               # a reads its tracker and drives more often than b
+            a.read_tracker(marker)
+            a.sample()
+        rows_a.append((a.sample().currents_a, a.read_tracker(marker)))
+        rows_b.append((b.sample().currents_a, b.read_tracker(marker)))
+    for (ia, pa), (ib, pb) in zip(rows_a, rows_b):
+        np.testing.assert_array_equal(ia, ib)
+        np.testing.assert_array_equal(pa, pb)
+    assert len({tuple(p) for _, p in rows_a}) == 5         # each reading its own draw
