@@ -319,7 +319,7 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
                       model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
                       form: str = "exact", max_iter: int = 30,
                       tracker_prior: Sequence[float] | None = None,
-                      excess_var: float | None = None) -> AbsoluteFit:
+                      excess_var: float | None = None, sag_theta: np.ndarray | None = None) -> AbsoluteFit:
     """Compare the model with the absolute positions (and fit the absolute
     effects of ``model`` jointly with the rest); see the module docstring.
 
@@ -334,11 +334,16 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     residual its degrees of freedom (0 on a complete model; far above the readings' own
     noise, the weights even out and a few very precise readings do not pull the fit);
     ``excess_var`` fixes ``s^2`` [m²]. The noise floor is then what the stated noise
-    alone would leave."""
+    alone would leave.
+
+    On a table without loads the twist under the robot's own weight is exact: the weight's
+    torques are taken at the sagged configuration (``sag_theta``, (S, N) link-side angles),
+    found by refitting once from the first fit's sag."""
     ds0 = data if isinstance(data, StaticDataset) else build_dataset(data)
     stated = ds0.abs_var is not None and ds0.sigma_tracker is None and is_absolute_only(ds0)
     if stated and excess_var is None:      # a first fit with even weights, then s^2 from its residual
-        kwargs = dict(model=model, torque=torque, form=form, max_iter=max_iter, tracker_prior=tracker_prior)
+        kwargs = dict(model=model, torque=torque, form=form, max_iter=max_iter, tracker_prior=tracker_prior,
+                      sag_theta=sag_theta)
         first = identify_absolute(robot, ds0, excess_var=float(np.max(ds0.abs_var)) * 1e6, **kwargs)
         s2 = excess_variance(first.residuals, ds0.abs_var, first.n_params)
         return identify_absolute(robot, ds0, excess_var=s2, **kwargs)
@@ -369,7 +374,7 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     pr = _Problem(robot, ds, effects, torque, form, "complementary_stiffness" in static_model, frames, work)
     if fit.beta_names:
-        tau = _torques(pr, None)
+        tau = _torques(pr, sag_theta if only else None)
         iterative = any(e.iterative for e in effects)
         bases = _absolute_bases(pr, _context(pr, tau, fit.beta if iterative else None))
     else:                             # a rigid model: no elastic parameters
@@ -497,6 +502,11 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
             else:
                 unident.append(name)
         absorbed = dict(ident.absorbed_by) if ident is not None else {}
+    if only and fit.beta_names and sag_theta is None and np.any(beta):
+        # the weight's torques at the configuration it sags to (the first pass took them at the commanded one)
+        sag = pr.nominal_theta + bases[0] @ beta
+        return identify_absolute(robot, ds0, model=model, torque=torque, form=form, max_iter=max_iter,
+                                 tracker_prior=tracker_prior, excess_var=excess_var, sag_theta=sag)
     return AbsoluteFit(
         model=names, static=fit, parameters=tuple(params), unidentifiable=tuple(unident), absorbed_by=absorbed,
         identifiable=ident, registration=registration, kinematic_names=kin_names,

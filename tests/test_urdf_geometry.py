@@ -150,8 +150,8 @@ def test_urdf_self_weight_stiffness_with_the_geometry():
 @pytest.mark.heavy
 @pytest.mark.parametrize("stiffness", [False, True])
 def test_urdf_geometry_intervals_cover_over_100_seeds(stiffness):
-    """Measured: geometry alone 95.9 % of 2700 intervals; with the self-weight springs the geometry
-    and the springs together 92.1 % of 3100."""
+    """Measured: the geometry's intervals cover 95.9 % of 2700 alone, 93.3 % of 2700 beside the
+    self-weight springs."""
     inside = []
     for seed in range(100):
         _, z = fit_and_z(1000 + seed, stiffness=stiffness)
@@ -161,9 +161,9 @@ def test_urdf_geometry_intervals_cover_over_100_seeds(stiffness):
 
 
 @pytest.mark.heavy
-@pytest.mark.xfail(strict=True, reason="measured: the self-weight stiffness intervals of k2..k5 cover 85 % of 400 "
-                                       "over 100 seeds, not 95 %: not yet explained")
 def test_urdf_self_weight_stiffness_intervals_cover_over_100_seeds():
+    """Measured: k2..k5 within their 95 % intervals 92.0 % of 400 (85 % before the weight's torques
+    were taken at the sagged configuration: k2 was biased by 1.3 standard deviations)."""
     inside = []
     for seed in range(100):
         _, z = fit_and_z(1000 + seed, stiffness=True)
