@@ -101,7 +101,9 @@ def _spec(args: argparse.Namespace) -> PlantSpec:
 
 
 def cell_toml(name: str) -> str:
-    return f'[cell]\nname = "{name}"\nrobot = "hh150"\nhistory = "history.sqlite"\n'
+    import tomli_w
+
+    return tomli_w.dumps({"cell": {"name": name, "robot": "hh150", "history": "history.sqlite"}})
 
 
 def run(args: argparse.Namespace) -> int:
