@@ -37,7 +37,6 @@ import time
 import numpy as np
 
 from elastocal.diagnose.pipeline import identify_data
-from elastocal.formats.calibration import calibration_from_fit
 from elastocal.formats.robot_toml import load_robot
 from elastocal.formats.tables import read_static_table
 from elastocal.identify.accuracy import validate
@@ -56,9 +55,9 @@ def norm_rmse_mm(residual: np.ndarray) -> float:
 def run_elastocal(robot, train, held) -> tuple[float, float]:
     """(identify wall time [s], validation norm RMSE [mm])."""
     start = time.perf_counter()
-    obj, _ = identify_data(robot, train, None, MODEL, "current", "exact")
+    ident = identify_data(robot, train, None, MODEL, "current", "exact")
     seconds = time.perf_counter() - start
-    cal = calibration_from_fit(robot.name, obj)
+    cal = ident.calibration(robot.name)
     v = validate(robot, cal, held, keep_frame=True)
     return seconds, norm_rmse_mm(v.absolute_residual)
 

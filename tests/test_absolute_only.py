@@ -50,13 +50,14 @@ def test_ctu_tables_are_the_alternate_split_of_586_right_arm_poses(ctu):
 
 def test_ctu_geometry_fit_on_half_validates_on_the_other_half_within_2_30_mm(ctu, tmp_path):
     robot, train, held = ctu
-    obj, fit = identify_data(robot, train, None, GEOMETRY, "current", "exact")
+    ident = identify_data(robot, train, None, GEOMETRY, "current", "exact")
+    obj = ident.to_json()
     assert obj["model"] == list(GEOMETRY) and "k1" not in obj["parameters"]
     # joint 1's zero, the base offsets: absorbed by the registration, named, never guessed
     assert {"dq1", "da1", "dd1", "dalpha1"} <= set(obj["unidentifiable"])
     assert "rz" in obj["absorbed_by"]["dq1"]
     assert obj["residual"] == obj["absolute_residual"]          # no deflections: the positions are the data
-    cal = calibration_from_fit(robot.name, obj, [CTU / "train.csv"])
+    cal = ident.calibration(robot.name, [CTU / "train.csv"])
     write_calibration(tmp_path / "cal.json", cal)
     v = validate(robot, read_calibration(tmp_path / "cal.json"), held, keep_frame=True)
     nominal, calibrated = norm_rmse(v.nominal_residual), norm_rmse(v.absolute_residual)
