@@ -50,7 +50,7 @@ import scipy.optimize
 from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
-from elastocal.model.effects import get_effect
+from elastocal.model.effects import absolute_effects, get_effect
 from elastocal.identify.registration import Registration, kabsch, register
 from elastocal.identify.toolpoints import ToolPoints, find_tool_points, fit_tool_points, needs_prefit, usable
 from elastocal.model.robot import MARKER_PREFIX, Robot
@@ -70,7 +70,7 @@ from elastocal.identify.absolute_only import absolute_only_start, is_absolute_on
 from elastocal.formats.tables import StaticTable
 
 #: effects only absolute positions show (docs/cli.md, effect table)
-ABSOLUTE_EFFECTS = ("kinematic_errors", "tracker_frame")
+ABSOLUTE_EFFECTS = absolute_effects()
 FRAME_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 #: std per axis of a prior tracker position (cell.toml's base_p_tracker: a tape measure) [m]
 TRACKER_PRIOR_STD_M = 0.1

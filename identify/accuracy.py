@@ -29,7 +29,7 @@ from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
 from elastocal.formats.calibration import Calibration
-from elastocal.model.effects import get_effect
+from elastocal.model.effects import absolute_effects, get_effect
 from elastocal.identify.registration import Registration, kabsch, nominal_positions
 from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.static import (
@@ -45,7 +45,7 @@ from elastocal.formats.tables import StaticTable
 
 #: effects of a measuring session: not carried to other data
 SESSION_EFFECTS = ("thermal_drift",)
-ABSOLUTE_EFFECTS = ("kinematic_errors", "tracker_frame")
+ABSOLUTE_EFFECTS = absolute_effects()
 
 
 @dataclass(frozen=True)

@@ -53,6 +53,12 @@ def run_effects(part: str | None = None) -> tuple[str, ...]:
                  and (part is None or get_effect(n).run_part == part))
 
 
+def absolute_effects() -> tuple[str, ...]:
+    """Names of the effects only absolute positions show, in the table's order; each effect
+    module declares it (``Effect.absolute_only``)."""
+    return tuple(n for n in ALL_EFFECTS if get_effect(n).absolute_only)
+
+
 #: the default model of an absolute-only table (docs/cli.md "Absolute-only tables")
 ABSOLUTE_ONLY_MODEL = ("kinematic_errors", "tracker_frame")
 

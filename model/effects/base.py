@@ -194,6 +194,9 @@ class Effect:
     #: pairs, :mod:`elastocal.identify.friction`), "sweep" (joint-2 sweep means,
     #: :mod:`elastocal.identify.compensator`), or None (run data cannot show it)
     run_part: Optional[str] = None
+    #: only absolute positions show it (deflections cancel it): the absolute fit
+    #: (identify/absolute.py) identifies it jointly with the registration
+    absolute_only: bool = False
     #: "uv/vu" effects: (speed |dq| [rad/s], load torque [N·m]) of one joint's matched
     #: samples -> this effect's column of the friction regression (per unit parameter);
     #: the friction fits and the run diagnosis take their columns from here

@@ -27,6 +27,7 @@ EFFECT = Effect(
     parameters=(),
     units=(),
     seen_in=("static", "runs"),
+    absolute_only=True,
     explanation="joint zeros, link lengths and twists differ from the drawing",
     evidence="absolute position errors of millimetres that follow the pose while the deflections fit",
     static_refusal=_refusal,

@@ -25,6 +25,7 @@ EFFECT = Effect(
     parameters=("rx", "ry", "rz", "tx", "ty", "tz"),
     units=("rad",) * 3 + ("m",) * 3,
     seen_in=("static", "runs"),
+    absolute_only=True,
     explanation="the tracker's placement relative to the robot base, identified with the rest of the model",
     evidence="absolute positions off by a rigid motion",
     static_refusal=_refusal,
