@@ -162,6 +162,9 @@ class Diagnosis:
     outliers: tuple = ()
     #: the comparison with the absolute positions (diagnose/absolute.py); None without them
     absolute: object | None = None
+    #: every side (deflections, absolute positions) that stays above its floor, in that order
+    #: (diagnose/unexplained.py): the one ``unexplained`` object of the JSON and the text
+    unexplained_sides: tuple = ()
 
     @property
     def noise_floor(self) -> float | None:
@@ -195,12 +198,22 @@ class Diagnosis:
                       "residual": {"rms": self.final.rms, "max": self.final.max, "n": self.final.n, "unit": "m"},
                       "noise_floor": self.final.noise_floor if self.noise_known else None,
                       "excess_p_value": self.excess_p_value},
-            "unexplained": None if self.unexplained_detail is None else {
-                **self.unexplained_detail.to_json(), "sentences": list(self.unexplained)},
+            "unexplained": self.unexplained_json(),
             "outliers": [o.to_json() for o in self.outliers],
             "where": self.where.to_json(),
             **self._absolute_json(),
         }
+
+    def unexplained_json(self) -> dict | None:
+        """The one ``unexplained`` object (diagnose/unexplained.py): the first side above its floor
+        at the top level, every side in ``sides``, the sentences; null when nothing stays."""
+        from elastocal.diagnose.unexplained import unexplained_json
+
+        if self.unexplained_sides:
+            return unexplained_json(self.unexplained_sides, self.unexplained)
+        if self.unexplained_detail is None:
+            return None
+        return {**self.unexplained_detail.to_json(), "sentences": list(self.unexplained)}
 
     def _absolute_json(self) -> dict:
         """absolute_residual, absolute_noise_floor and the absolute candidates (docs/cli.md)."""
@@ -422,10 +435,38 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
         extra = absolute_unexplained(abs_diag) if noise_known else None
         if extra:
             unexplained = (*unexplained, extra)
-    return Diagnosis(model=(*base.model, *absolute_model), torque=torque, form=form, fit=base,
+    sides = _unexplained_sides(detail, where_final, abs_diag if noise_known else None)
+    abs_side = next((sd for sd in sides if sd.side == "absolute" and sd.where is not None), None)
+    if abs_side is not None and unexplained:       # the absolute sentence says where it sits
+        w = abs_side.where
+        unexplained = (*unexplained[:-1], f"{unexplained[-1]}; it sits in {w.words} ({100 * w.share:.0f} % of "
+                                          f"the excess in {100 * w.fraction:.0f} % of the readings)")
+    return Diagnosis(unexplained_sides=sides, model=(*base.model, *absolute_model), torque=torque, form=form, fit=base,
                      candidates=tuple(candidates),
                      not_testable=tuple(skipped_first), verdict=verdict, final=final, excess_p_value=excess,
                      unexplained=unexplained, where=where, where_final=where_final, noise_known=noise_known,
                      steps=steps, unexplained_detail=detail, outliers=(*excluded, *ds.outliers), absolute=abs_diag)
 
 
+
+
+def _unexplained_sides(detail, where, abs_diag) -> tuple:
+    """The sides that stay above their floor (diagnose/unexplained.py), each located
+    (diagnose/locate.py): the deflections' excess, then the absolute positions'."""
+    from elastocal.diagnose.locate import absolute_readings, deflection_readings, locate, strongest
+    from elastocal.diagnose.unexplained import SideUnexplained
+
+    sides = []
+    if detail is not None:
+        readings = deflection_readings(where)
+        sides.append(SideUnexplained("deflections", detail.rms, detail.noise_floor, detail.unit, detail.follows,
+                                     tuple((e, s, True) for e, s in detail.explained),
+                                     None if readings is None else strongest(locate(readings))))
+    if abs_diag is not None and not abs_diag.at_floor:
+        f = abs_diag.final
+        readings = absolute_readings(f)
+        named = bool(abs_diag.named_steps)
+        sides.append(SideUnexplained("absolute", f.rms, f.noise_floor, "m", (),
+                                     tuple((st.effect, st.explained, named) for st in abs_diag.steps),
+                                     None if readings is None else strongest(locate(readings))))
+    return tuple(sides)

@@ -80,11 +80,14 @@ class CalibratedParameter:
     #: identify's mark (identify/evidence.py): False for a stiffness the data did not determine
     #: (None: the file says nothing, i.e. determined)
     determined: bool | None = None
-    #: why it is not determined
+    #: why it is not determined (or why it is sensitive)
     note: str | None = None
     extra: tuple[tuple[str, str], ...] = field(default=(), repr=False)
+    #: identify's mark: True for a parameter the absolute fit moved by more than 2 std from the
+    #: deflection-only fit while leaving an unexplained residual (identify/evidence.py); None: no mark
+    sensitive: bool | None = None
 
-    FIELDS = ("value", "std", "unit", "determined", "note")
+    FIELDS = ("value", "std", "unit", "determined", "note", "sensitive")
 
     @property
     def is_result(self) -> bool:
@@ -106,6 +109,8 @@ class CalibratedParameter:
             out["determined"] = self.determined
         if self.note is not None:
             out["note"] = self.note
+        if self.sensitive is not None:
+            out["sensitive"] = self.sensitive
         return _with_extra(out, self.extra)
 
 
@@ -351,8 +356,12 @@ def _parameter(name: str, p: object, src: str) -> CalibratedParameter:
         raise InputError(f"expected true or false, got {determined!r}", source=src, column=f"{where}.determined")
     if note is not None and not isinstance(note, str):
         raise InputError(f"expected a text, got {note!r}", source=src, column=f"{where}.note")
+    sensitive = p.get("sensitive")
+    if sensitive is not None and not isinstance(sensitive, bool):
+        raise InputError(f"expected true or false, got {sensitive!r}", source=src, column=f"{where}.sensitive")
     return _checked(CalibratedParameter(name=name, value=value, std=std, unit=unit, determined=determined,
-                                        note=note, extra=_extra(p, CalibratedParameter.FIELDS)), src)
+                                        note=note, extra=_extra(p, CalibratedParameter.FIELDS),
+                                        sensitive=sensitive), src)
 
 
 def _checked(p: CalibratedParameter, src: str) -> CalibratedParameter:

@@ -46,6 +46,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 import scipy.optimize
+import scipy.stats
 
 from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
@@ -74,6 +75,9 @@ ABSOLUTE_EFFECTS = absolute_effects()
 FRAME_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 #: std per axis of a prior tracker position (cell.toml's base_p_tracker: a tape measure) [m]
 TRACKER_PRIOR_STD_M = 0.1
+#: the fit leaves an unexplained residual above this x its floor at this p (diagnose's rule, stepwise.py)
+UNEXPLAINED_RATIO = 1.3
+UNEXPLAINED_P = 1e-3
 #: the tracker noise assumed for weights when the table holds no repeated readings [m]
 UNIT_NOISE_M = 1e-5
 
@@ -119,6 +123,13 @@ class AbsoluteFit:
     tracker_prior: np.ndarray | None = None
     #: the tool-point pre-fit the full model started from (None: robot.toml's markers)
     tool_prefit: ToolPoints | None = None
+    #: (S, M, 3, p) Jacobian of the predicted positions (tracker frame) in the fitted parameters
+    #: at the solution, their names and values: what each parameter explains, reading by reading
+    design: np.ndarray | None = field(default=None, repr=False)
+    design_names: tuple[str, ...] = ()
+    design_values: np.ndarray | None = field(default=None, repr=False)
+    #: (S, 3M, 3M) noise covariance of each state's mean readings (tracker frame) [m²]
+    state_cov: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def residuals(self) -> np.ndarray:
@@ -134,6 +145,28 @@ class AbsoluteFit:
             if p.name == name:
                 return p
         raise KeyError(name)
+
+    @property
+    def unexplained_ratio(self) -> float | None:
+        """rms over the floor when the fit (with absolute effects) leaves significantly more than
+        noise (above UNEXPLAINED_RATIO x the floor, chi-square p below UNEXPLAINED_P), else None."""
+        if self.noise_floor is None or not self.noise_floor > 0 or not any(m in ABSOLUTE_EFFECTS for m in self.model):
+            return None
+        p = scipy.stats.chi2.sf(self.rss_whitened, max(self.n - self.n_params, 1))
+        ratio = self.rms / self.noise_floor
+        return ratio if ratio > UNEXPLAINED_RATIO and p < UNEXPLAINED_P else None
+
+    def sensitivities(self) -> tuple:
+        """The parameters this fit moves by more than 2 std from the deflection-only fit while it
+        leaves an unexplained residual (identify/evidence.py ``sensitive_parameters``)."""
+        from elastocal.identify.evidence import sensitive_parameters
+
+        ratio = self.unexplained_ratio
+        if ratio is None:
+            return ()
+        defl = {p.name: (p.value, p.std) for p in self.static.parameters}
+        return sensitive_parameters(defl, {p.name: (p.value, p.std) for p in self.parameters if p.name in defl},
+                                    ratio)
 
     def calibrated_robot(self, robot: Robot) -> Robot:
         """The robot with the identified kinematic corrections (the nominal one without them)."""
@@ -174,10 +207,13 @@ class AbsoluteFit:
         """The ``identify --json`` object (docs/cli.md), deflection residual included."""
         out = self.static.to_json()
         out["model"] = list(self.model)
-        from elastocal.identify.evidence import mark_stiffness
+        from elastocal.identify.evidence import mark_sensitive, mark_stiffness
 
-        out["parameters"] = mark_stiffness({p.name: {"value": p.value, "std": p.std, "unit": p.unit}
-                                            for p in self.parameters})
+        marks = self.sensitivities()
+        out["parameters"] = mark_sensitive(mark_stiffness({p.name: {"value": p.value, "std": p.std, "unit": p.unit}
+                                                           for p in self.parameters}), marks)
+        if marks:
+            out["sensitive"] = [m.to_json() for m in marks]
         if is_absolute_only(self.static.dataset):    # no deflections: the absolute positions are the data
             out["residual"] = {"rms": self.rms, "max": self.max, "n": self.n, "unit": "m"}
             out["noise_floor"] = self.noise_floor
@@ -517,7 +553,9 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
         deflection_max=float(np.max(np.abs(d_res))) if d_res.size else 0.0,
         rss_whitened=rss_w, n_params=p, iterations=iterations,
         tracker_prior=None if tracker_prior is None else np.asarray(tracker_prior, dtype=float),
-        tool_prefit=tools)
+        tool_prefit=tools,
+        design=jac[..., idx], design_names=tuple(all_names[i] for i in idx), design_values=x_full[idx].copy(),
+        state_cov=np.einsum("sij,skj->sik", np.asarray(st.chol), np.asarray(st.chol)))
 
 
 def _tool_prefit(robot: Robot, ds: StaticDataset, nominal: Registration | None, *,

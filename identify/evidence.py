@@ -127,3 +127,62 @@ def mark_stiffness(parameters: dict) -> dict:
                 p = {**p, "determined": False, "note": why}
         out[name] = p
     return out
+
+
+#: a parameter that moves by more than this many std between the deflection-only and the absolute
+#: fit, while the absolute fit leaves an unexplained residual, is marked sensitive
+SENSITIVE_SIGMAS = 2.0
+
+
+@dataclass(frozen=True)
+class Sensitivity:
+    """A parameter that the absolute fit moves while it leaves a residual it cannot explain."""
+
+    name: str
+    deflection_value: float
+    deflection_std: float
+    absolute_value: float
+    absolute_std: float
+    z: float                  # (absolute - deflection) / sqrt(std_d² + std_a²)
+    sentence: str
+
+    def to_json(self) -> dict:
+        return {"parameter": self.name, "deflection": {"value": self.deflection_value, "std": self.deflection_std},
+                "absolute": {"value": self.absolute_value, "std": self.absolute_std}, "z": self.z,
+                "sensitive": True, "sentence": self.sentence}
+
+
+def sensitive_parameters(deflection: dict, absolute: dict, ratio: float) -> tuple[Sensitivity, ...]:
+    """The parameters (name -> (value, std)) that move by more than SENSITIVE_SIGMAS combined std
+    between the deflection-only fit and the absolute fit, which leaves ``ratio`` x its floor."""
+    out = []
+    for name, (va, sa) in absolute.items():
+        if name not in deflection:
+            continue
+        vd, sd = deflection[name]
+        scale = float(np.hypot(sd, sa))
+        if not (np.isfinite(scale) and scale > 0):
+            continue
+        z = (va - vd) / scale
+        if abs(z) <= SENSITIVE_SIGMAS:
+            continue
+        rel = f" ({100 * (va - vd) / vd:+.1f} %)" if vd else ""
+        out.append(Sensitivity(name, vd, sd, va, sa, float(z),
+                               f"{name} moves by {z:+.1f} std{rel} between the deflection-only fit ({vd:.5g}) and "
+                               f"the absolute fit ({va:.5g}), which leaves {ratio:.2f}x its noise floor "
+                               "unexplained: the absolute fit's value is not a finding, the deflection-only "
+                               "one is the safer"))
+    return tuple(out)
+
+
+def mark_sensitive(parameters: dict, marks: "tuple[Sensitivity, ...]") -> dict:
+    """``identify --json`` parameters with each sensitive one marked ``"sensitive": true`` and its
+    sentence in ``"note"`` (optional fields)."""
+    by = {m.name: m for m in marks}
+    out = {}
+    for name, p in parameters.items():
+        if name in by:
+            note = by[name].sentence if not p.get("note") else f"{p['note']}; {by[name].sentence}"
+            p = {**p, "sensitive": True, "note": note}
+        out[name] = p
+    return out

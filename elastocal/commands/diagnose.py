@@ -17,6 +17,7 @@ from elastocal.commands._inputs import (
 )
 from elastocal.model.effects import parse_model
 from elastocal.diagnose.pipeline import diagnose_data, diagnosis_json
+from elastocal.diagnose.unexplained import unexplained_lines
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -133,7 +134,12 @@ def format_static(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str
             + ("" if floor is None else f" (floor {_um(diag.final.noise_floor)})"))
     if diag.unexplained_detail is not None:
         lines.append(f"  {diag.unexplained_detail.summary()}.")
+    obj = diag.unexplained_json()          # the text from the JSON's very object
+    lines += [f"  {line}" for line in unexplained_lines(obj)]
+    said = {s for side in (obj or {}).get("sides", []) for s in side.get("follows", [])}
     for u in diag.unexplained:
+        if obj and obj.get("sides") and (u in said or u.startswith("absolute positions stay")):
+            continue
         lines.append(f"  unexplained: {u}")
     for o in diag.outliers:
         lines.append(f"  outlier: line {o.line} (pose {o.pose}, load {o.load}, marker {o.marker}) is "
