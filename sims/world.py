@@ -11,6 +11,8 @@ clock: the world counts *readings* (a new one begins when the robot starts a
 motion, when a load changes and when a tracker takes aim at a marker,
 :meth:`select_marker`), and at rest every device reads the same noise for the
 whole reading, drawn from ``numpy.random.default_rng((seed, device, reading))``
+(the reading as (rest, marker, k): the k-th aim at the marker since the last
+move or load change)
 (the drives' currents one device, the tracker one per marker). So the average
 of a reading does not depend on how many samples the wall clock let into it,
 and two runs of one procedure with one seed read the same numbers. During a
@@ -130,8 +132,13 @@ class SimWorld:
         self._clock_ns = clock_ns
         self._t0_ns = clock_ns()
         self._seed = int(seed) & (2 ** 64 - 1)      # SeedSequence takes non-negative integers
-        #: start time of each reading (module docstring), ascending
+        #: start time of each reading (module docstring), ascending, and its key: (rest, marker, k), the rest
+        #: counting moves and load changes, k the marker's k-th aim in that rest (marker 1.., 0: no aim yet). Local
+        #: keys, not one running count: a reading the procedure takes again (a drive lost samples on a busy
+        #: host) changes its own draw, not every draw after it
         self._reading_starts = [self._t0_ns]
+        self._reading_keys: list[tuple[int, int, int]] = [(0, 0, 0)]
+        self._aims: dict[int, int] = {}
         self._rest_noise: dict[tuple, np.ndarray] = {}
         self._lock = threading.RLock()
         self._idle = threading.Condition(self._lock)
@@ -282,21 +289,27 @@ class SimWorld:
         if marker not in self.markers:
             raise InputError(f"unknown marker {marker!r}; the cell has {', '.join(self.markers)}")
         with self._lock:
-            self._new_reading_locked(self._clock_ns())
+            self._new_reading_locked(self._clock_ns(), self.markers.index(marker) + 1)
 
-    def _new_reading_locked(self, t_ns: int) -> None:
+    def _new_reading_locked(self, t_ns: int, marker: int | None = None) -> None:
+        """A new reading from ``t_ns``: a tracker's aim at ``marker`` (its index + 1), or a new rest (None)."""
+        rest = self._reading_keys[-1][0]
+        if marker is None:
+            rest, marker, self._aims = rest + 1, 0, {}
+        self._aims[marker] = k = self._aims.get(marker, 0) + 1
         self._reading_starts.append(max(t_ns, self._reading_starts[-1]))
+        self._reading_keys.append((rest, marker, k))
         self._rest_noise = {}
 
-    def reading_at(self, t_ns: int) -> int:
-        """The index of the reading under way at ``t_ns`` (0: the first, from the world's creation)."""
+    def reading_at(self, t_ns: int) -> tuple[int, int, int]:
+        """The key of the reading under way at ``t_ns``: (rest, marker, k) (see ``__init__``)."""
         with self._lock:
-            return max(bisect.bisect_right(self._reading_starts, t_ns) - 1, 0)
+            return self._reading_keys[max(bisect.bisect_right(self._reading_starts, t_ns) - 1, 0)]
 
     def _noise(self, device: tuple[int, ...], sigma: float, size: int, t_ns: int, moving: bool) -> np.ndarray:
         """The noise ``device`` reads at ``t_ns``: one draw per reading at rest, one per sample in motion."""
         reading = self.reading_at(t_ns)
-        key = (*device, reading) if not moving else (*device, reading, int(t_ns) & (2 ** 64 - 1))
+        key = (*device, *reading) if not moving else (*device, *reading, int(t_ns) & (2 ** 64 - 1))
         if not moving:
             with self._lock:
                 cached = self._rest_noise.get(key)
@@ -306,7 +319,7 @@ class SimWorld:
         if not moving:
             noise.flags.writeable = False
             with self._lock:
-                if reading == len(self._reading_starts) - 1:     # only the reading under way is kept
+                if reading == self._reading_keys[-1]:     # only the reading under way is kept
                     self._rest_noise[key] = noise
         return noise
 
@@ -413,5 +426,5 @@ class SimWorld:
                 noise = self._noise(device, truth.tracker_noise_m, 3, t, moving=False)
                 return self.cell.to_tracker(p + noise)[0]
         eq = self.equilibrium_at(t)
-        rng = np.random.default_rng((self._seed, *device, self.reading_at(t), int(t) & (2 ** 64 - 1)))
+        rng = np.random.default_rng((self._seed, *device, *self.reading_at(t), int(t) & (2 ** 64 - 1)))
         return self.cell.read_tracker(eq, [marker], self.t_s(t), rng)[0]
