@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from elastocal.compensation.chain import Angles, BatchedChain, ChainState, log6_local
-from elastocal.errors import InputError
+from elastocal.errors import Arg, InputError
 from elastocal.formats.calibration import Calibration
 from elastocal.model.robot import LOAD_FRAME, Robot
 
@@ -144,13 +144,13 @@ def refuse_unmodelled(cal: Calibration, without: str | None, *, source: str) -> 
     unknown = sorted(names - set(cal.model))
     if unknown:
         raise InputError(f"{', '.join(unknown)} not in the calibration's model ({', '.join(cal.model)})",
-                         source="--without")
+                         argument="without")
     refused = {e: p for e, p in unmodelled.items() if e not in names}
     if refused:
         what = "; ".join(f"{e} ({', '.join(p) or 'no parameters'})" for e, p in refused.items())
-        raise InputError(f"the calibration holds {what}, which compensation does not model: the compensated path "
-                         f"would leave {'their' if len(refused) > 1 else 'its'} deflection uncorrected; give "
-                         f"--without {','.join(refused)} to compensate the rest knowingly", source=source)
+        raise InputError((f"the calibration holds {what}, which compensation does not model: the compensated path "
+                          f"would leave {'their' if len(refused) > 1 else 'its'} deflection uncorrected; give ",
+                          Arg("without", ",".join(refused)), " to compensate the rest knowingly"), source=source)
     return unmodelled
 
 
