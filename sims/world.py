@@ -12,12 +12,12 @@ motion, when a load changes and when a tracker takes aim at a marker,
 :meth:`select_marker`), and at rest every device reads the same noise for the
 whole reading, drawn from ``numpy.random.default_rng((seed, device, reading))``
 (the reading as (rest, marker, k): the k-th aim at the marker since the last
-move or load change)
-(the drives' currents one device, the tracker one per marker). So the average
-of a reading does not depend on how many samples the wall clock let into it,
-and two runs of one procedure with one seed read the same numbers. During a
-motion the noise is drawn per sample (seeded by the sample's time as well):
-nothing static is averaged there.
+move or load change) (the drives' currents one device, the tracker one per
+marker). So the average of a reading does not depend on how many samples the
+wall clock let into it, and two runs of one procedure with one seed read the
+same numbers. During a motion and before a rest's first aim (settling; a cell
+whose tracker its own software reads) no reading is under way: the noise is
+drawn per sample, seeded by the sample's time as well.
 
 The whole API:
 
@@ -309,6 +309,9 @@ class SimWorld:
     def _noise(self, device: tuple[int, ...], sigma: float, size: int, t_ns: int, moving: bool) -> np.ndarray:
         """The noise ``device`` reads at ``t_ns``: one draw per reading at rest, one per sample in motion."""
         reading = self.reading_at(t_ns)
+        # before the first aim of a rest (settling; a cell whose tracker its own software reads) no reading is
+        # under way: a draw per sample, as in motion
+        moving = moving or reading[1] == 0
         key = (*device, *reading) if not moving else (*device, *reading, int(t_ns) & (2 ** 64 - 1))
         if not moving:
             with self._lock:

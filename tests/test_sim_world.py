@@ -140,7 +140,12 @@ def test_run_currents_include_friction_from_motion_currents(robot):
 def test_noise_is_seeded(robot):
     a, _ = make(robot, noise_a=0.02, seed=11)
     b, _ = make(robot, noise_a=0.02, seed=11)
-    c, _ = make(robot, noise_a=0.02, seed=12)
+    c, clock = make(robot, noise_a=0.02, seed=12)
+    before = c.sample().currents_a                  # no reading under way yet: a draw per sample
+    clock.advance(0.001)
+    assert not np.array_equal(before, c.sample().currents_a)
+    for w in (a, b, c):
+        w.select_marker(w.markers[0])
     first = a.sample().currents_a
     np.testing.assert_array_equal(first, b.sample().currents_a)
     assert not np.array_equal(first, c.sample().currents_a)
