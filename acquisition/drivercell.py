@@ -49,11 +49,6 @@ class SimWorldLoads:
             self._world.set_load(wrench)
 
 
-#: pause between one static reading's window and the next reading's aim [s]: longer than a drive
-#: cycle takes from its stamp to its SYNC on the bus, however busy the host
-READING_GAP_S = 0.01
-
-
 class DriverCellIO(CellIO):
     """The procedure's view of a cell whose devices are already open.
 
@@ -157,12 +152,11 @@ class DriverCellIO(CellIO):
     # ------------------------------------------------------------ sampling
     def begin_reading(self, marker: str) -> None:
         """Aim the tracker at ``marker`` even when it already is: every reading starts with its own
-        aim, a moment after the last reading's window closed (:data:`READING_GAP_S`), so a simulated
-        cell draws each reading's noise once for the whole reading (sims/world.py) and no sample of
-        one reading falls into the next; a real tracker just stays on the marker."""
+        aim (the session has every drive sample of the last window in by then), so a simulated cell
+        draws each reading's noise once for the whole reading (sims/world.py) and no sample of one
+        reading falls into the next; a real tracker just stays on the marker."""
         if self._tracker is None:
             return
-        time.sleep(READING_GAP_S)
         self._tracker.select(marker)
         self._selected = marker
 

@@ -383,6 +383,8 @@ class Session:
         for _ in range(1 + READING_RETRIES):
             windows = []
             for r, m in todo:  # a laser tracker measures one reflector at a time
+                if windows:     # the last window's drive samples in before the next reading starts (begin_reading)
+                    self.drain(windows[-1][3])
                 windows.append((r, m, *self._reading_window(pose, load_id, m, reading_s)))
             self.drain(windows[-1][3])
             todo = []
