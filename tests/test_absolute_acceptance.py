@@ -26,6 +26,9 @@ from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import simulate_static
 
+#: statistics over seeds (about 35 s together): run with -m heavy, as CI does
+pytestmark = pytest.mark.heavy
+
 ROBOT = bundled_robot()
 FULL = ("joint_stiffness", "kinematic_errors", "tracker_frame")
 KINEMATIC = CellTruth().with_hidden("kinematic_errors")

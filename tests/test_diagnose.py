@@ -61,6 +61,7 @@ def test_hidden_effect_is_named_and_adding_it_reaches_the_noise_floor(hidden, se
     assert [c.delta_bic for c in diag.candidates] == sorted(c.delta_bic for c in diag.candidates)
 
 
+@pytest.mark.heavy   # statistics over 20 seeds
 def test_complete_data_give_no_verdict_in_at_least_19_of_20_seeds():
     verdicts = []
     for seed in range(100, 120):

@@ -20,7 +20,7 @@ from elastocal.sims.serve import example_cell_config
 from elastocal.sims.static import random_poses
 
 #: these tests run simulated devices in wall-clock time (tests/conftest.py)
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.heavy]   # a whole procedure through emScon in wall-clock time: 30 s
 
 
 def _run(tmp_path, name, tracker_url, channel):

@@ -115,6 +115,7 @@ def identified(plant, tmp_path_factory):
     return read_table(out)
 
 
+@pytest.mark.heavy   # a process pool over dozens of logs: about a minute
 def test_forty_inputs_one_row_each_in_path_order_broken_ones_with_their_error(plant, identified):
     rows = identified
     assert len(rows) == 40
@@ -160,6 +161,7 @@ def test_rows_are_exactly_what_identify_prints_for_each_log(plant, identified, c
     assert rows[str(folder)]["k3"] == obj["parameters"]["k3"]["value"]
 
 
+@pytest.mark.heavy   # a process pool over dozens of logs: about a minute
 def test_one_worker_and_the_process_pool_give_identical_results(plant, identified, tmp_path, capsys):
     one = tmp_path / "one.parquet"
     code, out, err = _fleet(capsys, "identify", plant, "--out", one, "--workers", "1")

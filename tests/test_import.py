@@ -224,6 +224,7 @@ def test_u95_weights_the_fit(tmp_path):
     assert 0.6 < rms(z) < 1.6, rms(z)
 
 
+@pytest.mark.heavy   # a whole procedure on simulated devices in wall-clock time
 def test_a_procedure_whose_tracker_its_own_software_reads(tmp_path, capsys):
     """No [tracker] in cell.toml: the guided procedure settles on the drives and logs its reading
     windows; the tracker software's export (here: the simulated tracker read at the windows' times,

@@ -10,6 +10,7 @@ is tested on a copy of the tree with a deliberate upward import.
 from __future__ import annotations
 
 import ast
+import functools
 import pathlib
 import shutil
 import sys
@@ -63,11 +64,18 @@ def modules(root: pathlib.Path) -> dict[str, pathlib.Path]:
     return out
 
 
+@functools.lru_cache(maxsize=None)
+def _parsed(text: str) -> ast.Module:
+    """A module's syntax tree, parsed once per text (the copies of the tree share them; the
+    walk below only reads it)."""
+    return ast.parse(text)
+
+
 def imports(name: str, path: pathlib.Path, known: dict[str, pathlib.Path]) -> set[tuple[int, str]]:
     """(line, imported elastocal module) of every import statement in the file.
     ``from elastocal.design import search`` imports the module ``elastocal.design.search``;
     ``from elastocal.design.search import plan_experiment`` the module ``elastocal.design.search``."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    tree = _parsed(path.read_text(encoding="utf-8"))
     package = name if path.stem == "__init__" else name.rpartition(".")[0]
     found = set()
     for node in ast.walk(tree):

@@ -80,6 +80,7 @@ def test_hung_weights_only_hardening_is_not_backlash():
         assert "T1" in cands["nonlinear_stiffness"].unidentifiable
 
 
+@pytest.mark.heavy   # two hidden effects over several seeds: 20 s
 def test_sim_hides_base_tilt_and_nonlinear_stiffness(tmp_path, capsys):
     for hidden, names in (("base_tilt", {"cl0x", "cl0y"}), ("nonlinear_stiffness", {"T1", "T6"})):
         out = tmp_path / hidden
