@@ -269,20 +269,10 @@ def tracker_position_from_log(contents: LogContents) -> tuple[float, float, floa
     without a cell file records an empty one). Only this key is read: the rest of
     the cell file was the recording's business. A key that is there but not three
     finite numbers is an error naming the log."""
-    if contents.cell is None or not contents.cell.text.strip():
-        return None
     import math
 
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
-    try:
-        doc = tomllib.loads(contents.cell.text.removeprefix("\ufeff"))
-    except tomllib.TOMLDecodeError:
-        return None
-    tracker = doc.get("tracker")
-    if not isinstance(tracker, dict) or "base_p_tracker" not in tracker:
+    tracker = _cell_tracker_table(contents)
+    if tracker is None or "base_p_tracker" not in tracker:
         return None
     v = tracker["base_p_tracker"]
     if not (isinstance(v, list) and len(v) == 3 and all(
@@ -296,20 +286,10 @@ def tracker_noise_from_log(contents: LogContents):
     """The tracker noise law the cell.toml the log carries states (``[tracker] noise``,
     model/tracker_noise.py), or None when it does not say (as :func:`tracker_position_from_log`);
     a table that is there but malformed is an error naming the log."""
-    if contents.cell is None or not contents.cell.text.strip():
-        return None
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
     from elastocal.model.tracker_noise import parse_tracker_noise
 
-    try:
-        doc = tomllib.loads(contents.cell.text.removeprefix("\ufeff"))
-    except tomllib.TOMLDecodeError:
-        return None
-    tracker = doc.get("tracker")
-    if not isinstance(tracker, dict) or "noise" not in tracker:
+    tracker = _cell_tracker_table(contents)
+    if tracker is None or "noise" not in tracker:
         return None
     return parse_tracker_noise(tracker["noise"], source=f"{contents.path} ({lf.TOPIC_CELL})")
 
@@ -358,3 +338,18 @@ def _rows(table) -> int:
     return 0 if table is None else len(table)
 
 
+def _cell_tracker_table(contents: LogContents) -> dict | None:
+    """The ``[tracker]`` table of the cell.toml a log carries, or None when the log carries no
+    cell document, an empty one, text that is no TOML, or no such table."""
+    if contents.cell is None or not contents.cell.text.strip():
+        return None
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    try:
+        doc = tomllib.loads(contents.cell.text.removeprefix("\ufeff"))
+    except tomllib.TOMLDecodeError:
+        return None
+    tracker = doc.get("tracker")
+    return tracker if isinstance(tracker, dict) else None

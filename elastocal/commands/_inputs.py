@@ -77,6 +77,19 @@ def _position(text: str) -> tuple[float, float, float]:
     return tuple(values)
 
 
+
+def calibration_robot(args: argparse.Namespace, calibration) -> Robot:
+    """The robot a calibration is applied to: ``--robot`` when given, else the description the
+    calibration file carries (``robot_description``); refused in one line when neither is there."""
+    from elastocal.formats.robot_toml import parse_robot
+
+    if args.robot:
+        return load_robot(args.robot)
+    if calibration.robot_description:
+        return parse_robot(calibration.robot_description, source=f"{args.calibration} (robot_description)")
+    raise InputError("the calibration holds no robot description; give the nominal one with --robot",
+                     source="--robot")
+
 def tracker_prior(args: argparse.Namespace, inputs: "Inputs | None" = None) -> TrackerPrior | None:
     """The tracker position prior: ``--tracker-position``, else ``--cell``'s [tracker]
     base_p_tracker, else the one of the cell.toml the log carries; None when nobody says."""

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from elastocal.commands._inputs import calibration_robot
 from elastocal.errors import InputError
 
 
@@ -33,7 +34,6 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.commands._outputs import Outputs
     from elastocal.identify.accuracy import calibrated_robot
     from elastocal.formats.calibration import read_calibration
-    from elastocal.formats.robot_toml import load_robot, parse_robot
     from elastocal.model.urdf_export import controller_urdf_robot
 
     outputs = Outputs(force=args.force, inputs=[(args.calibration, "--calibration"), (args.robot, "--robot")])
@@ -41,13 +41,7 @@ def run(args: argparse.Namespace) -> int:
     if args.urdf:
         outputs.add(args.urdf, "--urdf")
     calibration = read_calibration(args.calibration)
-    if args.robot:
-        robot = load_robot(args.robot)
-    elif calibration.robot_description:
-        robot = parse_robot(calibration.robot_description, source=f"{args.calibration} (robot_description)")
-    else:
-        raise InputError("the calibration holds no robot description; give the nominal one with --robot",
-                         source="--robot")
+    robot = calibration_robot(args, calibration)
     if robot.name != calibration.robot:
         raise InputError(f"the calibration is of robot {calibration.robot!r}, not {robot.name!r}", source="--robot")
     if "kinematic_errors" not in calibration.model:

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from elastocal.commands._inputs import add_tracker_arguments, prior_line, tracker_prior
+from elastocal.commands._inputs import add_tracker_arguments, calibration_robot, prior_line, tracker_prior
 from elastocal.errors import InputError
 
 
@@ -35,17 +35,10 @@ def _row(name: str, stats) -> str:
 def run(args: argparse.Namespace) -> int:
     from elastocal.identify.accuracy import validate
     from elastocal.formats.calibration import file_sha256, read_calibration
-    from elastocal.formats.robot_toml import load_robot, parse_robot
     from elastocal.formats.tables import read_static_table
 
     calibration = read_calibration(args.calibration)
-    if args.robot:
-        robot = load_robot(args.robot)
-    elif calibration.robot_description:
-        robot = parse_robot(calibration.robot_description, source=f"{args.calibration} (robot_description)")
-    else:
-        raise InputError("the calibration holds no robot description; give the nominal one with --robot",
-                         source="--robot")
+    robot = calibration_robot(args, calibration)
     table = read_static_table(args.static, robot)
     if not len(table):
         raise InputError("the table holds no readings", source=args.static)
