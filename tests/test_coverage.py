@@ -1,5 +1,6 @@
 """Over 400 seeds of complete data: the GLS fit's 95 % intervals cover the true
-stiffness 95 +- 3 % of the time, its variance reaches the Cramér-Rao bound,
+stiffness 95 +- 3 % of the time, its variance reaches the Cramér-Rao bound (within three
+times the sampling std of a variance over 400 seeds),
 the errors-in-variables bias from current noise stays below 0.2 std, and the
 residual sits at the noise floor (median rms/floor 1 +- 0.05), with and
 without rows that share one current reading (issue 18 part 6).
@@ -49,7 +50,9 @@ def test_intervals_cover_truth_and_the_variance_reaches_the_bound(shared):
     coverage = (np.abs(z) < 1.959964).mean(axis=0)
     assert np.all(np.abs(coverage - 0.95) <= 0.03), coverage
     var_over_crb = z_crb.var(axis=0)
-    assert np.all(var_over_crb <= 1.1), var_over_crb
+    # a variance from N seeds has a relative std of sqrt(2 / (N - 1)) (0.071 at 400): three of it,
+    # so that six parameters at the bound pass and a fit 25 % above it fails
+    assert np.all(var_over_crb <= 1.0 + 3.0 * np.sqrt(2.0 / (N_SEEDS - 1))), var_over_crb
     bias = z.mean(axis=0)                     # errors-in-variables bias, in std
     assert np.all(np.abs(bias) < 0.2), bias
     assert abs(float(np.median(ratio)) - 1.0) <= 0.05, np.median(ratio)
