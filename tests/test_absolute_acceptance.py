@@ -27,7 +27,7 @@ from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import simulate_static
 
 #: statistics over seeds (about 35 s together): run with -m heavy, as CI does
-pytestmark = pytest.mark.heavy
+pytestmark = [pytest.mark.heavy, pytest.mark.acceptance]
 
 ROBOT = bundled_robot()
 FULL = ("joint_stiffness", "kinematic_errors", "tracker_frame")

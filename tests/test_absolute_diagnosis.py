@@ -95,6 +95,9 @@ def test_a_knocked_reflector_is_named_with_the_time_of_the_knock():
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_acceptance_outside_vocabulary_and_knocked_reflector_over_seeds():
     """10 seeds each: the gear error always ends unexplained with no named absolute step above
     2x the floor and no thermal_drift; the knocked reflector is named with its time in >= 9."""
@@ -110,6 +113,9 @@ def test_acceptance_outside_vocabulary_and_knocked_reflector_over_seeds():
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_a_real_drift_still_holds_across_the_data():
     """Kinematic errors and a real tracker drift: both are steps, named (the split test passes)."""
     from elastocal.diagnose.absolute import diagnose_absolute

@@ -91,6 +91,7 @@ def _masked(text: str) -> str:
 
 
 @pytest.mark.heavy                 # two demos: over a minute
+@pytest.mark.acceptance            # still differs in a last digit when the machine is busy (docs/demo.md)
 def test_demo_prints_the_same_numbers_for_the_same_seed(tmp_path, capsys):
     """The simulated devices draw their noise per reading, from the seed (sims/world.py), and the
     procedure's readings each start with the tracker's aim: however many samples the wall clock lets

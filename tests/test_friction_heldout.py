@@ -63,6 +63,9 @@ def test_the_generator_draws_a_new_cell_per_seed_and_repeats_one_seed():
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_twenty_held_out_seeds():
     rel, z = [], []
     for seed in range(1, 21):

@@ -34,6 +34,9 @@ def test_current_based_exact_recovers_stiffness(seed):
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_reported_std_matches_spread_over_20_seeds():
     ks, stds, ratios = [], [], []
     for seed in range(100, 120):

@@ -47,6 +47,9 @@ def wobbling_reflector(table, seed: int, size_m: float = 25e-6):
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_an_effect_outside_every_named_one_ends_unexplained_in_9_of_10_seeds():
     outcomes = []
     for seed in range(10):
@@ -63,6 +66,9 @@ def test_an_effect_outside_every_named_one_ends_unexplained_in_9_of_10_seeds():
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_a_named_step_that_leaves_the_residual_above_the_floor_is_no_verdict():
     # link compliance on top of the wobbling reflector: the step is real but the
     # final model stays above the floor, so the verdict is null and the text says
@@ -126,6 +132,9 @@ def test_shared_current_readings_count_once():
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 @pytest.mark.parametrize("shared", (False, True))
 def test_complete_fits_sit_at_the_floor_with_and_without_shared_readings(shared):
     ratios = [identify_static(ROBOT, simulate_static(ROBOT, CellTruth(), seed=seed,
@@ -136,6 +145,9 @@ def test_complete_fits_sit_at_the_floor_with_and_without_shared_readings(shared)
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_complete_data_with_shared_readings_give_no_verdict():
     verdicts = [diagnose_static(ROBOT, simulate_static(ROBOT, CellTruth(), seed=seed,
                                                        plan=StaticPlan(shared_currents=True))).verdict
@@ -144,6 +156,9 @@ def test_complete_data_with_shared_readings_give_no_verdict():
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_diagnose_json_has_steps_final_and_unexplained(tmp_path, capsys):
     out = tmp_path / "two"
     assert main(["sim", "static", "--hidden", "link_compliance,thermal_drift", "--seed", "2", "--out",

@@ -79,6 +79,9 @@ def test_markers_off_by_tens_of_centimetres_are_found_before_the_full_model(seed
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_found_over_many_seeds():
     """30 seeds, markers 10-30 cm off: every fit within 0.01 std of the fit knowing the markers."""
     worst = [_same_as_knowing_the_markers(seed) for seed in range(3, 33)]

@@ -192,6 +192,9 @@ N_SEEDS = 100
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_stiffness_and_registration_intervals_cover_the_truth_over_seeds():
     """100 seeds of the default experiment on the track cell: the 95 % intervals of k1..k7 and of
     the registration rx..tz cover the truth 95 +- 4 % of the time (pooled over the 13
@@ -212,6 +215,9 @@ def test_stiffness_and_registration_intervals_cover_the_truth_over_seeds():
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 @pytest.mark.slow
 def test_the_demo_chain_runs_on_the_track_cell(tmp_path):
     """`elastocal demo --robot hh150_track`: seven simulated drives on the CAN bus, the guided procedure

@@ -133,6 +133,9 @@ def _true_floor(diag, law: TrackerNoise) -> float:
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_acceptance_range_law_and_no_missing_effect_over_40_seeds():
     """Issue's acceptance: range-dependent tracker noise, nothing missing: verdict null, no
     outliers in >= 95 % of 40 seeds, the floor within 0.8-1.25x what the true law leaves."""

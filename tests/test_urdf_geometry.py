@@ -148,6 +148,9 @@ def test_urdf_self_weight_stiffness_with_the_geometry():
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 @pytest.mark.parametrize("stiffness", [False, True])
 def test_urdf_geometry_intervals_cover_over_100_seeds(stiffness):
     """Measured: the geometry's intervals cover 95.9 % of 2700 alone, 93.3 % of 2700 beside the
@@ -161,6 +164,9 @@ def test_urdf_geometry_intervals_cover_over_100_seeds(stiffness):
 
 
 @pytest.mark.heavy
+
+
+@pytest.mark.acceptance
 def test_urdf_self_weight_stiffness_intervals_cover_over_100_seeds():
     """Measured: k2..k5 within their 95 % intervals 92.0 % of 400 (85 % before the weight's torques
     were taken at the sagged configuration: k2 was biased by 1.3 standard deviations)."""
