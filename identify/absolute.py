@@ -55,18 +55,9 @@ from elastocal.model.effects import absolute_effects, get_effect
 from elastocal.identify.registration import Registration, kabsch, register
 from elastocal.identify.toolpoints import ToolPoints, find_tool_points, fit_tool_points, needs_prefit, usable
 from elastocal.model.robot import MARKER_PREFIX, Robot
-from elastocal.identify.static import (
-    Parameter,
-    StaticDataset,
-    StaticFit,
-    _absolute_bases,
-    _context,
-    _kinematics,
-    _Problem,
-    _torques,
-    build_dataset,
-    identify_static,
-)
+from elastocal.identify.dataset import StaticDataset, build_dataset
+from elastocal.identify.static import Parameter, StaticFit, identify_static
+from elastocal.identify.staticmodel import Problem, absolute_bases, kinematics, state_torques, static_context
 from elastocal.identify.absolute_only import absolute_only_start, is_absolute_only
 from elastocal.formats.tables import StaticTable
 
@@ -280,7 +271,7 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
         if not jacobian:
             pos[s] = robot.positions(robot.theta_links(theta, dlink[s]), markers, links=True, data=data)
             continue
-        p, j10 = _kinematics(robot, robot.theta_links(theta, dlink[s]), st.frames, data)
+        p, j10 = kinematics(robot, robot.theta_links(theta, dlink[s]), st.frames, data)
         pos[s] = p
         j_el = (j10[:, :, robot.actuated_in_link_model] @ b_theta[s]
                 + j10[:, :, robot.springs_in_link_model] @ b_links[s])
@@ -328,7 +319,7 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
         if sig_i is not None:
             pi = int(ds.state_pose[s])
             if pi not in jac_pose:
-                _, j10 = _kinematics(robot, robot.theta_links(robot.theta(ds.q[pi])), frames, data)
+                _, j10 = kinematics(robot, robot.theta_links(robot.theta(ds.q[pi])), frames, data)
                 jac_pose[pi] = np.einsum("ij,mjk->mik", rot, j10[:, :, robot.actuated_in_link_model]).reshape(
                     3 * nm, robot.n_joints)
             g = jac_pose[pi] * (compliance * robot.torque_constants)
@@ -408,11 +399,11 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     ds = fit.dataset
     effects = fit.effects or tuple(get_effect(n, robot) for n in static_model)   # as fitted (selected components)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
-    pr = _Problem(robot, ds, effects, torque, form, "complementary_stiffness" in static_model, frames, work)
+    pr = Problem(robot, ds, effects, torque, form, frames, work)
     if fit.beta_names:
-        tau = _torques(pr, sag_theta if only else None)
+        tau = state_torques(pr, sag_theta if only else None)
         iterative = any(e.iterative for e in effects)
-        bases = _absolute_bases(pr, _context(pr, tau, fit.beta if iterative else None))
+        bases = absolute_bases(pr, static_context(pr, tau, fit.beta if iterative else None))
     else:                             # a rigid model: no elastic parameters
         bases = (np.zeros((ds.n_states, robot.n_joints, 0)),
                  np.zeros((ds.n_states, len(robot.springs_in_link_model), 0)),

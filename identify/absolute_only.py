@@ -25,7 +25,9 @@ import numpy as np
 from elastocal.errors import EffectRefused
 from elastocal.model.effects import get_effect
 from elastocal.model.robot import MARKER_PREFIX, Robot
-from elastocal.identify.static import StaticDataset, StaticFit, _context, _Problem, _torques
+from elastocal.identify.dataset import StaticDataset
+from elastocal.identify.static import StaticFit
+from elastocal.identify.staticmodel import Problem, state_torques, static_context
 
 #: effects an absolute-only table can show beside the geometry and the registration
 SELF_WEIGHT_EFFECTS = ("joint_stiffness",)
@@ -62,15 +64,15 @@ def absolute_only_start(robot: Robot, ds: StaticDataset, static_model: Sequence[
     ds = self_weight_dataset(ds)
     effects = tuple(get_effect(n, robot) for n in static_model)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
-    pr = _Problem(robot, ds, effects, SELF_WEIGHT_TORQUE, "exact", False, frames)
+    pr = Problem(robot, ds, effects, SELF_WEIGHT_TORQUE, "exact", frames)
     names = tuple(p for eff in effects for p in eff.parameters)
     unident: list[str] = []
     if static_model:
-        tau = _torques(pr, None)
+        tau = state_torques(pr, None)
         span = np.ptp(tau, axis=0)
         weak = span < MIN_TORQUE_SPAN * max(float(span.max()), 1e-300)
         unident = [f"k{j + 1}" for j in np.flatnonzero(weak)]
-        ctx = _context(pr, tau)
+        ctx = static_context(pr, tau)
     else:
         ctx = None
     n = len(names)

@@ -32,15 +32,8 @@ from elastocal.formats.calibration import Calibration
 from elastocal.model.effects import absolute_effects, get_effect
 from elastocal.identify.registration import Registration, kabsch, nominal_positions
 from elastocal.model.robot import MARKER_PREFIX, Robot
-from elastocal.identify.static import (
-    StaticDataset,
-    _absolute_bases,
-    _context,
-    _Problem,
-    _torques,
-    absolute_positions,
-    build_dataset,
-)
+from elastocal.identify.dataset import StaticDataset, build_dataset
+from elastocal.identify.staticmodel import Problem, absolute_bases, absolute_positions, state_torques, static_context
 from elastocal.formats.tables import StaticTable
 
 #: effects of a measuring session: not carried to other data
@@ -192,10 +185,10 @@ def _predicted(robot: Robot, calibration: Calibration, ds: StaticDataset) -> tup
     if torque == "current" and not ds.has_currents:
         raise InputError("a current-based calibration with joint stiffness needs the currents i1..iN in every "
                          "row", source=ds.source)
-    pr = _Problem(rob, ds, effects, torque, "exact", "complementary_stiffness" in model, frames)
-    tau = _torques(pr, None)
+    pr = Problem(rob, ds, effects, torque, "exact", frames)
+    tau = state_torques(pr, None)
     iterative = any(e.iterative for e in effects)
-    bases = _absolute_bases(pr, _context(pr, tau, beta if iterative else None))
+    bases = absolute_bases(pr, static_context(pr, tau, beta if iterative else None))
     return absolute_positions(rob, ds, frames, beta, bases, pr.data), rigid
 
 

@@ -19,14 +19,8 @@ import numpy as np
 
 from elastocal.model.effects import get_effect
 from elastocal.model.robot import MARKER_PREFIX, Robot
-from elastocal.identify.static import (
-    StaticDataset,
-    _bases,
-    _context,
-    _evaluate,
-    _Problem,
-    _torques,
-)
+from elastocal.identify.dataset import StaticDataset
+from elastocal.identify.staticmodel import Problem, evaluate, state_torques, static_bases, static_context
 
 
 def planned_dataset(robot: Robot, q: np.ndarray, wrenches: Sequence[np.ndarray], markers: Sequence[str], *,
@@ -59,8 +53,8 @@ def planned_dataset(robot: Robot, q: np.ndarray, wrenches: Sequence[np.ndarray],
         defl_dt=np.full(n_d, np.nan), defl_t=np.full(n_d, np.nan), sigma_tracker=sigma_tracker,
         sigma_current=sigma_current, tracker_rotation=np.eye(3))
     if robot.has_torque_constants:      # the currents the drives will show: gravity and load through xi
-        pr = _Problem(robot, ds, (), "force", "first-order", False, ())
-        tau = _torques(pr, None)
+        pr = Problem(robot, ds, (), "force", "first-order", ())
+        tau = state_torques(pr, None)
         from dataclasses import replace
 
         ds = replace(ds, state_currents=tau / robot.torque_constants)
@@ -75,11 +69,11 @@ def regressor(robot: Robot, ds: StaticDataset, effects: Sequence[str], *, torque
     names = tuple(dict.fromkeys(["joint_stiffness", *effects]))
     effs = tuple(get_effect(n) for n in names)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
-    pr = _Problem(robot, ds, effs, torque, "first-order", "complementary_stiffness" in names, frames)
+    pr = Problem(robot, ds, effs, torque, "first-order", frames)
     param_names = tuple(p for e in effs for p in e.parameters)
     beta = np.zeros(len(param_names)) if beta is None else np.asarray(beta, dtype=float)
-    ctx = _context(pr, _torques(pr, None), beta)
-    _, a, _ = _evaluate(pr, beta, _bases(pr, ctx), exact=False)
+    ctx = static_context(pr, state_torques(pr, None), beta)
+    _, a, _ = evaluate(pr, beta, static_bases(pr, ctx), exact=False)
     return a.reshape(ds.n_deflections, 3, -1), param_names
 
 
@@ -88,8 +82,8 @@ def refusals(robot: Robot, ds: StaticDataset, effects: Sequence[str], *, torque:
     (``Effect.static_refusal``: static friction is no part of a current-based model; backlash
     needs a load that reverses a torque)."""
     effs = tuple(get_effect(n) for n in dict.fromkeys(["joint_stiffness", *effects]))
-    pr = _Problem(robot, ds, effs, torque, "first-order", False, ())
-    ctx = _context(pr, _torques(pr, None))
+    pr = Problem(robot, ds, effs, torque, "first-order", ())
+    ctx = static_context(pr, state_torques(pr, None))
     out = {}
     for eff in effs:
         reason = eff.static_refusal(ctx) if eff.static_refusal is not None else None

@@ -165,6 +165,9 @@ class Effect:
     #: (beta names, beta, covariance, this effect's slice) -> (reported values, stds), for
     #: reported values that need other parameters of the model (nonlinear_stiffness: T = c / phi)
     report_with_model: Optional[Callable] = None
+    #: the model takes the force-based torques at the deflected configuration (not only the
+    #: exact form does): a force-based fit recomputes them as it iterates (identify/staticmodel.py)
+    torque_at_deflection: bool = False
     #: the static basis depends on the current estimate (StaticContext.estimate):
     #: the fit rebuilds it at every iteration
     iterative: bool = False

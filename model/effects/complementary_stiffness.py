@@ -28,6 +28,7 @@ EFFECT = Effect(
     explanation="a heavily loaded arm's geometry shifts, so the same force gives other joint torques",
     evidence="force-based residual that grows with load outside the good (q2, q3) region",
     static_refusal=_refusal,
+    torque_at_deflection=True,
     static_model="force-based torques J_f(theta)^T W - g(theta) evaluated at the deflected configuration "
                  "(first order: K = K_theta - K_c)",
     run_model="not in the torque model",
