@@ -20,6 +20,7 @@ from elastocal.formats.textfiles import read_text_file
 from elastocal.model.compensator import GEOMETRY_KEYS, PARAMETER_NAMES, CompensatorSpec
 from elastocal.model.kinds import CompensatorKind, JointKind
 from elastocal.model.robot import JointSpec, Robot, ToolSpec
+from elastocal.model.tracker_noise import TrackerNoise, parse_tracker_noise, tracker_noise_doc
 from elastocal.model.urdf import UrdfChain, UrdfSource, urdf_chain
 
 try:  # Python 3.11+
@@ -36,7 +37,9 @@ MAX_GRAVITY_M_S2 = 20.0
 
 #: the keys robot.toml knows (docs/formats.md §1 plus elastocal's optional keys)
 TOP_KEYS = ("name", "convention", "gravity", "urdf", "urdf_xml", "base_link", "tip_link", "joint", "tool",
-            "compensator")
+            "compensator", "tracker")
+#: robot.toml's [tracker] table: the tracker noise law a dataset's description may state
+TRACKER_KEYS = ("noise",)
 JOINT_KEYS = ("name", "type", "a", "alpha", "d", "theta", "beta", "offset", "lower", "upper", "torque_constant",
               "mass", "com", "stiffness", "velocity", "effort")
 TOOL_KEYS = ("load_point", "markers", "flange")
@@ -128,7 +131,17 @@ def parse_robot(text: str, *, source: str = "<robot.toml>", base_dir: pathlib.Pa
         chain = urdf_chain(urdf, _urdf_joint_names(tables, source=source), source=source)
     joints = tuple(_joint(t, i, chain, source=source) for i, t in enumerate(tables, start=1))
     return Robot(name=str(name), joints=joints, gravity=gravity, tool=_tool(tool, source=source),
-                 compensator=_compensator(doc, source=source), source=source, urdf=urdf)
+                 compensator=_compensator(doc, source=source), source=source, urdf=urdf,
+                 tracker_noise=_tracker_noise(doc, source=source))
+
+
+def _tracker_noise(doc: Mapping, *, source: str) -> TrackerNoise | None:
+    """robot.toml's ``[tracker] noise`` (the syntax of cell.toml's, docs/cell-config.md), or None."""
+    if "tracker" not in doc:
+        return None
+    tracker = _table(doc["tracker"], source=source, column="tracker")
+    check_known_keys(tracker, TRACKER_KEYS, source=source, where="tracker")
+    return parse_tracker_noise(tracker["noise"], source=source) if "noise" in tracker else None
 
 
 def _urdf_joint_names(tables: list, *, source: str) -> list[str]:
@@ -420,6 +433,10 @@ def robot_toml(robot: Robot) -> str:
         lines += ["", "[compensator]", f'kind = "{c.kind.value}"', f"joint = {c.joint}"]
         lines += [f"{k} = {_num(v)}" for k, v in c.geometry]
         lines += [f"{k} = {_num(v)}" for k, v in c.nominal]
+    if robot.tracker_noise is not None:
+        n = tracker_noise_doc(robot.tracker_noise)
+        lines += ["", "[tracker]", f"noise = {{ along = {_vec(n['along'])}, across = {_vec(n['across'])}, "
+                  f"k = {_num(n['k'])} }}"]
     return "\n".join(lines) + "\n"
 
 

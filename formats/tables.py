@@ -17,7 +17,7 @@ import io
 import math
 import operator
 import pathlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Iterable, Iterator, Sequence
 
 import numpy as np
@@ -441,6 +441,8 @@ def parse_static_table(text: str, robot: Robot | None = None, *, source: str = "
     if table is None:
         table = _parse_static_rows(rows, robot, extra_cols)
     _check_static_structure(table)
+    if robot is not None and robot.tracker_noise is not None:     # robot.toml's law; a cell.toml's replaces it
+        table = replace(table, tracker_noise=robot.tracker_noise)
     return table
 
 

@@ -54,6 +54,7 @@ from elastocal.identify.blas import one_blas_thread
 from elastocal.model.effects import absolute_effects, get_effect
 from elastocal.identify.registration import Registration, kabsch, register
 from elastocal.identify.toolpoints import ToolPoints, find_tool_points, fit_tool_points, needs_prefit, usable
+from elastocal.model.kinds import NoiseSource
 from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.dataset import StaticDataset, build_dataset
 from elastocal.identify.static import Parameter, StaticFit, identify_static
@@ -302,9 +303,11 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
 def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray, rot: np.ndarray,
            frames: Sequence[str]) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], bool]:
     """Per-state Cholesky factors of the covariance of the mean readings (tracker
-    frame), and whether the noise level is known (repeated readings)."""
-    known = ds.sigma_tracker is not None
-    sig_t = ds.sigma_tracker if known else UNIT_NOISE_M
+    frame), and whether the noise level is known: from the repeats, else the readings' own
+    uncertainty columns, else the tracker's law (``ds.noise_source``)."""
+    columns = ds.noise_source is NoiseSource.UNCERTAINTY_COLUMNS and ds.abs_var is not None
+    known = ds.sigma_tracker is not None or columns
+    sig_t = ds.sigma_tracker if ds.sigma_tracker is not None else UNIT_NOISE_M
     nm = len(ds.markers)
     law = ds.abs_cov if known else None      # the tracker's law: each reading at its range and beam
     sig_i = ds.sigma_current if (known and torque == "current" and ds.sigma_current is not None) else None
@@ -314,7 +317,8 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
     for s in range(ds.n_states):
         cov = np.zeros((3 * nm, 3 * nm))
         for m in range(nm):
-            cov[3 * m:3 * m + 3, 3 * m:3 * m + 3] += (sig_t ** 2 / ds.abs_n[s, m] * np.eye(3) if law is None
+            cov[3 * m:3 * m + 3, 3 * m:3 * m + 3] += (np.diag(ds.abs_var[s, m]) if columns else
+                                                      sig_t ** 2 / ds.abs_n[s, m] * np.eye(3) if law is None
                                                       else law[s, m])
         if sig_i is not None:
             pi = int(ds.state_pose[s])
@@ -367,7 +371,7 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     torques are taken at the sagged configuration (``sag_theta``, (S, N) link-side angles),
     found by refitting once from the first fit's sag."""
     ds0 = data if isinstance(data, StaticDataset) else build_dataset(data)
-    stated = ds0.abs_var is not None and ds0.sigma_tracker is None and is_absolute_only(ds0)
+    stated = ds0.noise_source is NoiseSource.UNCERTAINTY_COLUMNS and is_absolute_only(ds0)
     if stated and excess_var is None:      # a first fit with even weights, then s^2 from its residual
         kwargs = dict(model=model, torque=torque, form=form, max_iter=max_iter, tracker_prior=tracker_prior,
                       sag_theta=sag_theta)

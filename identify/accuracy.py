@@ -31,6 +31,7 @@ from elastocal.identify.blas import one_blas_thread
 from elastocal.formats.calibration import Calibration
 from elastocal.model.effects import absolute_effects, get_effect
 from elastocal.identify.registration import Registration, kabsch, nominal_positions
+from elastocal.model.kinds import NoiseSource
 from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.dataset import StaticDataset, build_dataset
 from elastocal.identify.staticmodel import Problem, absolute_bases, absolute_positions, state_torques, static_context
@@ -201,7 +202,7 @@ def _noise_floor(robot: Robot, calibration: Calibration, ds: StaticDataset, rota
     """sqrt(trace(Σ)/n) of the mean readings (identify/absolute.py's noise model)."""
     from elastocal.identify.absolute import _noise
 
-    if ds.sigma_tracker is None:
+    if ds.noise_source is NoiseSource.NONE:
         return None
     compliance = calibration_compliance(robot, calibration)[0]
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)

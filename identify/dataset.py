@@ -15,6 +15,7 @@ import numpy as np
 from elastocal.errors import InputError
 from elastocal.formats.tables import StaticTable
 from elastocal.identify.grouping import combine, first_seen, group_count, group_sum, sums_per_group
+from elastocal.model.kinds import NoiseSource
 from elastocal.model.tracker_noise import TrackerNoise
 
 
@@ -68,6 +69,14 @@ class StaticDataset:
     #: (S, M, 3, 3) covariance of each state's mean reading of each marker under that law,
     #: tracker frame [m²]; None without a law
     abs_cov: np.ndarray | None = None
+    #: where the noise level comes from (repeats, the uncertainty columns, a law, none); None:
+    #: from the fields (repeats when ``sigma_tracker`` is set, else the columns when ``abs_var`` is)
+    noise_source: NoiseSource | None = None
+
+    def __post_init__(self) -> None:
+        if self.noise_source is None:
+            object.__setattr__(self, "noise_source", NoiseSource.REPEATS if self.sigma_tracker is not None else
+                               NoiseSource.UNCERTAINTY_COLUMNS if self.abs_var is not None else NoiseSource.NONE)
 
     @property
     def n_states(self) -> int:
@@ -118,7 +127,8 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
     (identify/grouping.py): no Python loop per row, state or marker."""
     from elastocal.identify.outliers import find_outliers, outlier_mask, tracker_noise_of
 
-    noise = tracker_noise_of(table, tracker_noise if tracker_noise is not None else table.tracker_noise)
+    stated_law = tracker_noise if tracker_noise is not None else table.tracker_noise
+    noise = tracker_noise_of(table, stated_law)
     outliers = find_outliers(table, noise=noise)
     bad = outlier_mask(len(table), outliers)
     pose_code, pose_first = first_seen(table.pose)
@@ -200,13 +210,19 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
     c1, c0 = d_state * n_markers + d_marker, d_ref * n_markers + d_marker
     sigma_tracker = float(np.sqrt(dev_sq_p / dof_p)) if dof_p else None
     sigma_current = np.sqrt(dev_sq_i / dof_i) if dof_i else None
+    # the noise level: the repeats, else the readings' own uncertainty, else the law (docs/cli.md)
+    source = (NoiseSource.REPEATS if sigma_tracker is not None else
+              NoiseSource.UNCERTAINTY_COLUMNS if abs_var is not None else
+              NoiseSource.TRACKER_LAW if noise is not None else NoiseSource.NONE)
     abs_cov = None
     if noise is not None:          # each mean reading's covariance under the law
         finite = np.all(np.isfinite(xyz_mean), axis=1)
+        if source is NoiseSource.REPEATS and noise is stated_law:
+            noise = _at_repeats_level(noise, xyz_mean[finite & (n_good > 1)], sigma_tracker)
         abs_cov = np.full((n_cells, 3, 3), np.nan)
         abs_cov[finite] = noise.covariance(xyz_mean[finite]) / count[finite][:, None, None]
         abs_cov = abs_cov.reshape(n_states, n_markers, 3, 3)
-        if sigma_tracker is None:  # no repeats: the law sets the level
+        if source is NoiseSource.TRACKER_LAW:  # no repeats, no stated uncertainty: the law sets the level
             sigma_tracker = noise.rms_sigma(xyz_mean[finite])
     return StaticDataset(
         source=table.source, pose_ids=pose_ids, q=q, markers=markers,
@@ -221,8 +237,17 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
         abs_xyz=xyz_mean.reshape(n_states, n_markers, 3), abs_n=count.reshape(n_states, n_markers),
         abs_t=t_mean.reshape(n_states, n_markers).astype(float),
         tracker_noise=noise, abs_cov=abs_cov,
-        abs_var=None if abs_var is None else abs_var.reshape(n_states, n_markers, 3),
+        abs_var=None if abs_var is None else abs_var.reshape(n_states, n_markers, 3), noise_source=source,
     )
+
+
+def _at_repeats_level(law: TrackerNoise, repeated_xyz: np.ndarray, sigma: float) -> TrackerNoise:
+    """A law the cell states, where the table's repeats are too few to estimate one: its shape
+    (along and across the beam, over range) with the level of the repeats, which come first."""
+    if not len(repeated_xyz):
+        return law
+    level = law.rms_sigma(repeated_xyz)
+    return law.scaled(sigma / level, source=f"{law.source}, scaled to the repeats' level") if level > 0 else law
 
 
 def _reading_variances(table: StaticTable, cell: np.ndarray, count: np.ndarray, n_cells: int) -> np.ndarray | None:

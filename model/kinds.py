@@ -75,3 +75,15 @@ class CompensatorKind(str, Enum):
 
     def __str__(self) -> str:
         return self.value
+
+
+class NoiseSource(str, Enum):
+    """Where a static table's tracker noise level comes from, in the order the contract takes
+    them (docs/cli.md, "Absolute-only tables"): repeated readings, else the readings' own
+    ``u95`` or ``sx, sy, sz`` columns, else a tracker noise law named in cell.toml or
+    robot.toml, else none (no floor: the verdict says so)."""
+
+    REPEATS = "repeats"
+    UNCERTAINTY_COLUMNS = "uncertainty_columns"
+    TRACKER_LAW = "tracker_law"
+    NONE = "none"

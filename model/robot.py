@@ -34,6 +34,7 @@ import pinocchio as pin
 from elastocal.errors import InputError
 from elastocal.model.compensator import CompensatorSpec
 from elastocal.model.kinds import JointKind
+from elastocal.model.tracker_noise import TrackerNoise
 from elastocal.model.urdf import UrdfSource, urdf_chain
 
 LOAD_FRAME = "load_point"
@@ -220,6 +221,9 @@ class Robot:
     compensator: CompensatorSpec | None = None
     source: str = "<robot>"
     urdf: UrdfSource | None = None           # the URDF the geometry comes from (None: the DH table)
+    #: the tracker noise law robot.toml's ``[tracker] noise`` states (a dataset shipped with its
+    #: description alone); a cell.toml's law comes before it (docs/formats.md §1)
+    tracker_noise: TrackerNoise | None = None
     model: pin.Model = field(init=False, repr=False)
     link_model: pin.Model = field(init=False, repr=False)
     #: links whose distal ends carry link_model's passive springs (module docstring)

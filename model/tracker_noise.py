@@ -61,6 +61,11 @@ class TrackerNoise:
         return cls(along[0] / coverage, along[1] / coverage, across[0] / coverage, across[1] / coverage,
                    source=source)
 
+    def scaled(self, factor: float, *, source: str) -> "TrackerNoise":
+        """The same law (its shape along and across the beam, over range) times ``factor``."""
+        return TrackerNoise(self.along_m * factor, self.along_per_m * factor, self.across_m * factor,
+                            self.across_per_m * factor, source=source)
+
     def sigma_along(self, range_m: np.ndarray | float) -> np.ndarray:
         """Standard uncertainty along the beam at range ``range_m`` [m]."""
         return self.along_m + self.along_per_m * np.asarray(range_m, dtype=float)

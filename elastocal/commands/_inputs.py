@@ -189,8 +189,8 @@ def load_inputs(args: argparse.Namespace) -> Inputs:
         robot, static, runs, tracker = load_log_noted(args, args.log, with_tracker=True)
         if args.robot:
             robot = load_robot(args.robot)
-        return Inputs(robot, _with_cell_noise(args, static), runs, (pathlib.Path(args.log),),
-                      pathlib.Path(args.log), tracker)
+        return Inputs(robot, _with_cell_noise(args, _with_robot_noise(robot, static)), runs,
+                      (pathlib.Path(args.log),), pathlib.Path(args.log), tracker)
     if not args.robot:
         raise InputError("missing --robot robot.toml (or give a log)", source="--robot")
     if not args.static and not args.runs:
@@ -200,6 +200,13 @@ def load_inputs(args: argparse.Namespace) -> Inputs:
     runs = read_run_table(args.runs, robot) if args.runs else None
     files = tuple(pathlib.Path(p) for p in (args.static, args.runs) if p)
     return Inputs(robot, _with_cell_noise(args, static), runs, files)
+
+
+def _with_robot_noise(robot: Robot, static: StaticTable | None) -> StaticTable | None:
+    """The static table with robot.toml's ``[tracker] noise`` law when no cell.toml named one."""
+    if static is None or static.tracker_noise is not None or robot.tracker_noise is None:
+        return static
+    return replace(static, tracker_noise=robot.tracker_noise)
 
 
 def _with_cell_noise(args: argparse.Namespace, static: StaticTable | None) -> StaticTable | None:
