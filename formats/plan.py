@@ -15,6 +15,8 @@ import pathlib
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
+import tomli_w
+
 from elastocal.errors import InputError
 from elastocal.model.robot import Robot
 from elastocal.formats.textfiles import read_text_file
@@ -427,8 +429,38 @@ def load_plan(path: str | pathlib.Path) -> Plan:
 
 
 # ------------------------------------------------------------------ writing
-def _toml_list(values: Sequence) -> str:
-    return "[" + ", ".join(repr(float(v)) if not isinstance(v, str) else f'"{v}"' for v in values) + "]"
+def _floats(values: Sequence) -> list[float]:
+    return [float(v) for v in values]
+
+
+def _load_table(spec: LoadSpec) -> dict:
+    t: dict = {"id": spec.id}
+    if spec.mass_kg is not None:
+        t["mass_kg"] = float(spec.mass_kg)
+    else:
+        t["force_n"] = _floats(spec.force_n)
+        if any(spec.moment_nm):
+            t["moment_nm"] = _floats(spec.moment_nm)
+    if spec.description:
+        t["description"] = spec.description
+    return t
+
+
+def _static_table(items: Sequence[tuple[str, Sequence[float]]], markers: Sequence[str], repeats: int,
+                  reading_s: float, speed_rad_s: float, pose_loads: Mapping[str, Sequence[str]] | None) -> dict:
+    poses = []
+    for pid, q in items:
+        pose: dict = {"id": pid, "q": _floats(q)}
+        if pose_loads is not None and pid in pose_loads:
+            pose["loads"] = [str(x) for x in pose_loads[pid]]
+        poses.append(pose)
+    return {"markers": [str(m) for m in markers], "repeats": int(repeats), "reading_s": float(reading_s),
+            "speed_rad_s": float(speed_rad_s), "pose": poses}
+
+
+def _friction_table(f: FrictionSpec) -> dict:
+    return {"id": f.id, "from": _floats(f.start), "to": _floats(f.end), "speeds_rad_s": _floats(f.speeds_rad_s),
+            "loads": [str(x) for x in f.loads], "repeats": int(f.repeats), **({"marker": f.marker} if f.marker else {})}
 
 
 def plan_toml(*, poses: Sequence[Sequence[float]] | Mapping[str, Sequence[float]], loads: Sequence[LoadSpec],
@@ -443,68 +475,46 @@ def plan_toml(*, poses: Sequence[Sequence[float]] | Mapping[str, Sequence[float]
     reads it back. ``pose_loads`` gives some poses their own loaded states
     (pose id -> load ids; the others get every load). ``expected``: what the planner
     predicts, written as the informational ``[expected]`` table (numbers and strings,
-    one level of sub-tables). For the demo, the ``plan`` command and tests."""
-    lines = [f'name = "{name}"']
+    one level of sub-tables). For the demo, the ``plan`` command and tests. Written
+    by tomli-w."""
+    doc: dict = {"name": name}
     if procedures is not None:
-        lines.append(f"procedures = {_toml_list(procedures)}")
+        doc["procedures"] = [str(p) for p in procedures]
     s = settle or SettleSpec()
-    lines += ["", "[settle]", f"speed_rad_s = {s.speed_rad_s!r}", f"spread_m = {s.spread_m!r}",
-              f"window_s = {s.window_s!r}", f"timeout_s = {s.timeout_s!r}"]
-    for spec in loads:
-        lines += ["", "[[load]]", f'id = "{spec.id}"']
-        if spec.mass_kg is not None:
-            lines.append(f"mass_kg = {spec.mass_kg!r}")
-        else:
-            lines.append(f"force_n = {_toml_list(spec.force_n)}")
-            if any(spec.moment_nm):
-                lines.append(f"moment_nm = {_toml_list(spec.moment_nm)}")
-        if spec.description:
-            lines.append(f'description = "{spec.description}"')
+    doc["settle"] = {"speed_rad_s": float(s.speed_rad_s), "spread_m": float(s.spread_m),
+                     "window_s": float(s.window_s), "timeout_s": float(s.timeout_s)}
+    if loads:
+        doc["load"] = [_load_table(spec) for spec in loads]
     items = list(poses.items()) if isinstance(poses, Mapping) else [(f"P{k}", q) for k, q in enumerate(poses, 1)]
     if items:
-        lines += ["", "[static]", f"markers = {_toml_list(markers)}", f"repeats = {repeats}",
-                  f"reading_s = {reading_s!r}", f"speed_rad_s = {speed_rad_s!r}"]
-        for pid, q in items:
-            lines += ["", "[[static.pose]]", f'id = "{pid}"', f"q = {_toml_list(q)}"]
-            if pose_loads is not None and pid in pose_loads:
-                lines.append(f"loads = {_toml_list(pose_loads[pid])}")
-    for f in friction:
-        lines += ["", "[[friction]]", f'id = "{f.id}"', f"from = {_toml_list(f.start)}", f"to = {_toml_list(f.end)}",
-                  f"speeds_rad_s = {_toml_list(f.speeds_rad_s)}", f"loads = {_toml_list(f.loads)}",
-                  f"repeats = {f.repeats}"]
-        if f.marker:
-            lines.append(f'marker = "{f.marker}"')
+        doc["static"] = _static_table(items, markers, repeats, reading_s, speed_rad_s, pose_loads)
+    if friction:
+        doc["friction"] = [_friction_table(f) for f in friction]
     if sweep is not None:
-        lines += ["", "[sweep]", f"q = {_toml_list(sweep.q)}", f"q2_from = {sweep.q2_from!r}",
-                  f"q2_to = {sweep.q2_to!r}", f"speed_rad_s = {sweep.speed_rad_s!r}", f"repeats = {sweep.repeats}",
-                  f'load = "{sweep.load}"']
-        if sweep.marker:
-            lines.append(f'marker = "{sweep.marker}"')
+        doc["sweep"] = {"q": _floats(sweep.q), "q2_from": float(sweep.q2_from), "q2_to": float(sweep.q2_to),
+                        "speed_rad_s": float(sweep.speed_rad_s), "repeats": int(sweep.repeats), "load": sweep.load,
+                        **({"marker": sweep.marker} if sweep.marker else {})}
     if check is not None:
-        lines += ["", "[check]", f"poses = {_toml_list(check.poses)}", f'load = "{check.load}"']
-        if check.friction:
-            lines.append(f'friction = "{check.friction}"')
+        doc["check"] = {"poses": [str(p) for p in check.poses], "load": check.load,
+                        **({"friction": check.friction} if check.friction else {})}
+    text = tomli_w.dumps(doc)
     if expected:
-        lines += _expected_lines(expected)
-    return "\n".join(lines) + "\n"
+        # last, so that the comment stands just above the table it explains
+        text += ("\n# [expected]: what the planner predicts; the procedures ignore it\n"
+                 + tomli_w.dumps({"expected": _expected_document(expected)}))
+    return text
 
 
-def _toml_value(v) -> str:
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, bool):
-        return "true" if v else "false"
+def _plain(v):
+    """A value tomli-w writes: numpy numbers as Python's, sequences as lists."""
+    if isinstance(v, (str, bool)):
+        return v
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    return repr(float(v)) if isinstance(v, float) else str(int(v))
+        return [_plain(x) for x in v]
+    return float(v) if isinstance(v, float) else int(v)
 
 
-def _expected_lines(expected: Mapping[str, object]) -> list[str]:
-    """The ``[expected]`` table: plain keys first, then one sub-table per mapping."""
-    lines = ["", "[expected]            # what the planner predicts; the procedures ignore it"]
-    lines += [f"{k} = {_toml_value(v)}" for k, v in expected.items() if not isinstance(v, Mapping)]
-    for k, v in expected.items():
-        if isinstance(v, Mapping):
-            lines += ["", f"[expected.{k}]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in v.items()
-                                                if vv is not None]
-    return lines
+def _expected_document(expected: Mapping[str, object]) -> dict:
+    """The ``[expected]`` table: plain keys, and one sub-table per mapping (its None values left out)."""
+    return {k: ({kk: _plain(vv) for kk, vv in v.items() if vv is not None} if isinstance(v, Mapping) else _plain(v))
+            for k, v in expected.items()}

@@ -15,6 +15,8 @@ import math
 import pathlib
 from typing import Mapping
 
+import tomli_w
+
 from elastocal.errors import InputError, check_known_keys
 from elastocal.formats.textfiles import read_text_file
 from elastocal.model.compensator import GEOMETRY_KEYS, PARAMETER_NAMES, CompensatorSpec
@@ -380,6 +382,11 @@ def _num(x: float) -> str:
     return repr(float(x))
 
 
+def _text(key: str, value: str) -> str:
+    """``key = "value"``, quoted and escaped as TOML wants."""
+    return tomli_w.dumps({key: value}).rstrip("\n")
+
+
 def _vec(v) -> str:
     return "[" + ", ".join(_num(x) for x in v) + "]"
 
@@ -392,22 +399,27 @@ def _urdf_lines(robot: Robot) -> list[str]:
                and not any(ord(c) < 32 and c not in "\t\r\n" or ord(c) == 127 for c in xml))
     inline = (f"urdf_xml = '''\n{xml}'''" if literal       # a TOML multi-line literal string
               else f"urdf_xml = {json.dumps(xml, ensure_ascii=True)}")   # valid TOML basic string
-    lines = [f'name = "{robot.name}"', f"gravity = {_vec(robot.gravity)}"]
+    lines = [_text("name", robot.name), f"gravity = {_vec(robot.gravity)}"]
     if urdf.base_link:
-        lines.append(f"base_link = {json.dumps(urdf.base_link)}")
+        lines.append(_text("base_link", urdf.base_link))
     return lines + [inline, ""]
 
 
 def robot_toml(robot: Robot) -> str:
-    """The description as robot.toml text (docs/formats.md §1)."""
+    """The description as robot.toml text (docs/formats.md §1).
+
+    Written line by line, not by tomli-w: a calibration file embeds this text as
+    its ``robot_description``, so its bytes are part of every calibration file made
+    so far, and tomli-w would spread each 3-vector over five lines. Text values
+    (names, links) are quoted and escaped by tomli-w."""
     if robot.urdf is None:
-        lines = [f'name = "{robot.name}"', 'convention = "modified-dh"', f"gravity = {_vec(robot.gravity)}", ""]
+        lines = [_text("name", robot.name), 'convention = "modified-dh"', f"gravity = {_vec(robot.gravity)}", ""]
     else:
         lines = _urdf_lines(robot)
     for j in robot.joints:
         lines += ["[[joint]]"]
         if j.name:
-            lines.append(f'name = "{j.name}"')
+            lines.append(_text("name", j.name))
         if j.kind is JointKind.PRISMATIC:
             lines.append('type = "prismatic"')
         if robot.urdf is None:
@@ -425,7 +437,7 @@ def robot_toml(robot: Robot) -> str:
         lines.append("")
     lines += ["[tool]"]
     if robot.urdf is not None and robot.urdf.tip_link:
-        lines.append(f'flange = "{robot.urdf.tip_link}"')
+        lines.append(_text("flange", robot.urdf.tip_link))
     lines += [f"load_point = {_vec(robot.tool.flange_p_load)}", "[tool.markers]"]
     lines += [f"{name} = {_vec(p)}" for name, p in robot.tool.flange_p_markers]
     if robot.compensator is not None:

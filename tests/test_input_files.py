@@ -445,3 +445,32 @@ def test_fields_it_does_not_know_are_kept_and_the_history_keeps_the_whole_calibr
         h.add_calibration(cal, time_ns=1)
         recorded = h.current().calibration
     assert recorded == cal and recorded.to_json() == cal.to_json()
+
+
+def test_plan_toml_reads_back_what_it_was_given():
+    """plan.toml written by tomli-w: every section and a description with quotes and a
+    backslash (text a hand-written template pasted unescaped) read back as given."""
+    from elastocal.formats.plan import CheckSpec, FrictionSpec, SettleSpec, SweepSpec, parse_plan
+
+    q = [(0.2, 0.3, -0.4, 0.3, 1.0, 0.2), (0.1, 0.5, -0.2, 0.0, 0.8, -0.1)]
+    loads = (LoadSpec("L1", mass_kg=60.0, description='a "60 kg" plate \\ bolted'),
+             LoadSpec("L2", force_n=(-635.0, 635.0, -635.0), moment_nm=(0.0, 12.5, 0.0)))
+    settle = SettleSpec(speed_rad_s=0.004, spread_m=3e-5, window_s=0.25, timeout_s=30.0)
+    friction = (FrictionSpec("F1", start=q[0], end=q[1], speeds_rad_s=(0.1, 0.3), loads=("0", "L1"), repeats=2,
+                             marker="R1"),)
+    sweep = SweepSpec(q=q[0], q2_from=-0.5, q2_to=0.7, speed_rad_s=0.2, repeats=2, load="L1", marker="R2")
+    check = CheckSpec(poses=("A",), load="L2", friction="F1")
+    text = plan_toml(poses={"A": q[0], "B": q[1]}, loads=loads, markers=("R1", "R2"), name='cell "7"', repeats=4,
+                     reading_s=0.1, speed_rad_s=0.25, settle=settle, friction=friction, sweep=sweep, check=check,
+                     procedures=("static", "friction", "sweep", "check"), pose_loads={"B": ("L2",)},
+                     expected={"evidence": np.float64(12.5), "poses": np.int64(2), "sub": {"k2": 1.5, "gone": None}})
+    plan = parse_plan(text)
+    assert plan.name == 'cell "7"' and plan.settle == settle and plan.loads == loads
+    assert [(p.id, p.q, p.loads) for p in plan.static.poses] == [("A", q[0], ("L1", "L2")), ("B", q[1], ("L2",))]
+    assert (plan.static.markers, plan.static.repeats, plan.static.reading_s, plan.static.speed_rad_s) == \
+        (("R1", "R2"), 4, 0.1, 0.25)
+    assert plan.friction == friction and plan.sweep == sweep and plan.check == check
+    assert plan.procedures == ("static", "friction", "sweep", "check")
+    import tomllib
+
+    assert tomllib.loads(text)["expected"] == {"evidence": 12.5, "poses": 2, "sub": {"k2": 1.5}}

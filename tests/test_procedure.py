@@ -263,20 +263,21 @@ def test_plan_file_errors_name_file_and_key(tmp_path):
     assert parse_plan(good).static.poses[0].q == Q_A
     cases = [
         (good.replace('id = "L1"', 'id = "0"'), "load[1].id"),
-        (good.replace("q = [0.2,", "q = [20.0,"), "degrees"),
-        (good.replace('markers = ["R1"]', 'markers = "R1"'), "static.markers"),
+        (good.replace("q = [\n    0.2,", "q = [\n    20.0,"), "degrees"),
+        (good.replace('markers = [\n    "R1",\n]', 'markers = "R1"'), "static.markers"),
         (good + '\n[check]\nposes = ["P9"]\nload = "L1"\n', "unknown pose 'P9'"),
-        (good.replace("mass_kg = 60.0", "mass_kg = 60.0\nforce_n = [1.0, 2.0, 3.0]"), "either mass_kg"),
+        (good.replace("mass_kg = 60.0", "mass_kg = 60.0, force_n = [1.0, 2.0, 3.0]"), "either mass_kg"),
         (good.replace("repeats = 3", "repeats = 0"), "static.repeats"),
         (good + "\n[speling]\n", "unknown key"),
         ("name = [", "not valid TOML"),
     ]
     for text, expected in cases:
+        assert text != good
         with pytest.raises(InputError, match=expected.replace("[", r"\[").replace("]", r"\]")) as exc:
             parse_plan(text, source="plan.toml")
         assert str(exc.value).startswith("plan.toml")
     path = tmp_path / "plan.toml"
-    path.write_text(good.replace('markers = ["R1"]', 'markers = ["R9"]'))
+    path.write_text(good.replace('markers = [\n    "R1",', 'markers = [\n    "R9",'))
     with pytest.raises(InputError, match="unknown marker 'R9'"):
         load_plan(path).validate_for(bundled_robot())
     with pytest.raises(InputError, match="cannot read"):
