@@ -30,13 +30,12 @@ from dataclasses import dataclass
 from elastocal.errors import Arg, InputError
 from elastocal.formats.tables import check_header
 from elastocal.formats.textfiles import read_text_file
+from elastocal.model.units import unit_table
 
-#: length unit -> metres
-LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "cm": 1e-2, "in": 0.0254, "inch": 0.0254,
-                "ft": 0.3048}
-#: pressure unit -> hPa
-PRESSURE_UNITS = {"hpa": 1.0, "mbar": 1.0, "kpa": 10.0, "pa": 0.01, "mmhg": 1.333224, "inhg": 33.8639,
-                  "psi": 68.9476}
+#: length unit -> metres and pressure unit -> hPa, from elastocal's one unit table; a
+#: tracker's export writes them in any case (MM, mmHg), so they are looked up lower-case
+LENGTH_UNITS = {sym.lower(): f for sym, f in unit_table("m").items()}
+PRESSURE_UNITS = {sym.lower(): f for sym, f in unit_table("hPa").items()}
 #: the farthest a tracker measures [m], and the least spread a real cell's points have [m]
 MAX_RANGE_M = 160.0
 MIN_SPREAD_M = 0.05

@@ -27,7 +27,13 @@ _SYMBOLS: dict[str, tuple[float, tuple[int, ...]]] = {
     "µrad": (1e-6, (0, 0, 0, 0, 1)), "deg": (math.pi / 180, (0, 0, 0, 0, 1)),
     "arcmin": (math.pi / 10800, (0, 0, 0, 0, 1)), "arcsec": (math.pi / 648000, (0, 0, 0, 0, 1)),
     "Nm": (1.0, (1, 2, -2, 0, 0)), "kNm": (1e3, (1, 2, -2, 0, 0)),
+    "in": (0.0254, (0, 1, 0, 0, 0)), "inch": (0.0254, (0, 1, 0, 0, 0)), "ft": (0.3048, (0, 1, 0, 0, 0)),
 }
+_PA = (1, -1, -2, 0, 0)
+#: pressures as a tracker's weather station quotes them, in hPa (so that x hPa reads back as exactly x)
+_SYMBOLS.update({sym: (hpa * 100.0, _PA) for sym, hpa in (
+    ("hPa", 1.0), ("mbar", 1.0), ("kPa", 10.0), ("Pa", 0.01), ("mmHg", 1.333224), ("inHg", 33.8639),
+    ("psi", 68.9476))})
 _NONE = ("", "-", "1")
 _TOKEN = re.compile(r"\s*(?:(?P<sym>[A-Za-zµ]+)(?:\^(?P<pow>[+-]?\d+))?|(?P<op>[*·/()])|(?P<one>1))")
 
@@ -105,3 +111,10 @@ def conversion(unit: str, target: str) -> float:
     if d_from != d_to:
         raise UnitError(f"{unit!r} is not a unit of the same kind as {target!r}")
     return f_from / f_to
+
+
+def unit_table(target: str) -> dict[str, float]:
+    """Every known symbol of ``target``'s dimension -> the factor that turns a value in it
+    into ``target`` (``unit_table("m")["mm"] == 1e-3``), in the order the symbols are declared."""
+    f_to, d_to = parse_unit(target)
+    return {sym: f / f_to for sym, (f, d) in _SYMBOLS.items() if d == d_to}
