@@ -23,6 +23,7 @@ import numpy as np
 from elastocal.compensation.chain import Angles, BatchedChain, ChainState, log6_local
 from elastocal.errors import Arg, InputError
 from elastocal.formats.calibration import Calibration
+from elastocal.model.kinds import CompensatorKind
 from elastocal.model.robot import LOAD_FRAME, Robot
 
 #: fixed-point tolerance on the joint angles [rad]
@@ -96,7 +97,7 @@ class CompensationModel:
             else:
                 nominal = spec.nominal_parameters()
                 comp = None if nominal is None else (float(nominal[0]), float(nominal[1]))
-            other = ("K_c", "s0") if spec.kind == "hydropneumatic" else ("C", "l_c")
+            other = ("K_c", "s0") if spec.kind == CompensatorKind.HYDROPNEUMATIC else ("C", "l_c")
             if any(cal.has(n) for n in other):
                 raise InputError(f"compensator parameters {', '.join(other)} do not fit the robot's "
                                  f"{spec.kind} compensator", source=source, column="parameters")

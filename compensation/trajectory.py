@@ -47,8 +47,9 @@ import numpy as np
 
 from elastocal.compensation.model import CompensationModel, StaticKernel
 from elastocal.errors import InputError
+from elastocal.model.kinds import KinematicForm
 
-FORMS = ("exact", "first-order")
+FORMS = tuple(f.value for f in KinematicForm)
 REFERENCES = ("unloaded", "rigid", "nominal")
 
 
@@ -56,7 +57,7 @@ REFERENCES = ("unloaded", "rigid", "nominal")
 class CompensatedPath:
     """A compensated joint path."""
 
-    form: str
+    form: KinematicForm
     reference: str
     q_planned: np.ndarray       # (n, N) [rad; m for a prismatic joint]
     wrench: np.ndarray          # (n, 6) process wrench on the load point [N, N·m]
@@ -75,7 +76,7 @@ class CompensatedPath:
         return len(self.q_planned)
 
 
-def _check_inputs(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, form: str,
+def _check_inputs(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, form: KinematicForm,
                   reference: str) -> tuple[np.ndarray, np.ndarray]:
     if form not in FORMS:
         raise InputError(f"form must be one of {', '.join(FORMS)}, got {form!r}", argument="form")
@@ -106,8 +107,8 @@ def default_reference(model: CompensationModel) -> str:
     return "nominal" if model.nominal is not None else "unloaded"
 
 
-def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, *, form: str = "exact",
-                    reference: str | None = None) -> CompensatedPath:
+def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, *,
+                    form: KinematicForm = KinematicForm.EXACT, reference: str | None = None) -> CompensatedPath:
     """Compensated commands for the planned path ``q`` (n, 6) under ``wrench``
     ((6,) constant or (n, 6) per sample). The predicted deflection is the exact
     one (loaded equilibrium) for ``form="exact"`` and ``J dtheta`` for
@@ -120,13 +121,13 @@ def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray,
     if reference == "nominal":
         target = k.nominal_targets(q)
         # first order: the torques at the planned configuration (Yang); exact: at the target
-        cmd = target - k.offsets - k.c * k.torque(plan if form == "first-order" else target, w, base)
+        cmd = target - k.offsets - k.c * k.torque(plan if form == KinematicForm.FIRST_ORDER else target, w, base)
         theta_loaded = k.equilibrium(q, w, start=target + (q - cmd), base=base)
         deflection = k.positions(theta_loaded, base) - k.positions(target, base)
         return CompensatedPath(form=form, reference=reference, q_planned=q, wrench=w, q_command=cmd,
                                theta_target=target, tcp_deflection=deflection, prismatic=_prismatic(model))
     target = k.equilibrium(q, np.zeros_like(w), base=base) if reference == "unloaded" else plan
-    if form == "first-order":
+    if form == KinematicForm.FIRST_ORDER:
         # one pass at the planned angles: c ⊙ J^T W (unloaded) or c ⊙ tau(q, W) (rigid), and J_p dtheta
         dtheta, deflection = k.first_order(base, w, passive=reference == "rigid")
         cmd = q - dtheta

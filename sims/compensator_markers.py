@@ -18,6 +18,7 @@ import numpy as np
 import pinocchio as pin
 
 from elastocal.model.robot import Robot
+from elastocal.model.kinds import CompensatorKind
 from elastocal.formats.tables import RunTable, run_table_from_arrays
 
 PIVOT = "P1"
@@ -30,7 +31,7 @@ def compensator_truth(robot: Robot) -> dict:
     """What ``geometry`` identifies, from the compensator of ``robot``: ``L`` (P2 to P1) and
     ``a`` (P2 to P0) [m]."""
     c = robot.compensator
-    if c is None or c.kind != "hydropneumatic":
+    if c is None or c.kind != CompensatorKind.HYDROPNEUMATIC:
         raise ValueError("the robot has no hydropneumatic compensator")
     return {"L": math.hypot(c.geo("a"), c.geo("h")), "a": c.geo("b")}
 

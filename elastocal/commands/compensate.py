@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from elastocal.errors import InputError
+from elastocal.model.kinds import CompensatorKind, KinematicForm
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -19,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--wrench", metavar="FX,FY,FZ[,MX,MY,MZ]",
                         help="constant process wrench on the load point [N, N*m, base axes]; the moments 0 when "
                              "left out")
-    parser.add_argument("--form", default="exact", choices=("exact", "first-order"),
+    parser.add_argument("--form", default="exact", choices=[f.value for f in KinematicForm],
                         help="exact (default): the loaded robot reaches the plan; first-order: q - dtheta (Yang)")
     parser.add_argument("--reference", default=None, choices=("unloaded", "rigid", "nominal"),
                         help="what the plan means: the pose the robot reaches without the process load "
@@ -138,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
 
     reference = args.reference or default_reference(model)
     try:
-        result = compensate_path(model, planned.q, wrench, form=args.form, reference=reference)
+        result = compensate_path(model, planned.q, wrench, form=KinematicForm(args.form), reference=reference)
         residual = predicted_residual(model, result)
     except NotConverged as exc:
         raise _not_converged(exc, planned, wrench, args) from None
@@ -177,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
         from elastocal.compensation.validate import validate_on_sim
         from elastocal.sims.cell import CellTruth, SimCell
 
-        if robot.compensator is not None and robot.compensator.kind != "hydropneumatic":
+        if robot.compensator is not None and robot.compensator.kind != CompensatorKind.HYDROPNEUMATIC:
             raise InputError("--validate simulates the HH-150 cell (hydro-pneumatic compensator); this robot's "
                              "compensator is a spring", source="--validate")
         truth, holds = calibrated_truth(robot, cal, CellTruth.for_robot(robot))
