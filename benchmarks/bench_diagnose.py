@@ -31,6 +31,7 @@ from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.model.kinds import TorqueSource
 
 
 def _median_time(fn, repeat: int):
@@ -69,13 +70,13 @@ def main() -> None:
         t_fit, _ = _median_time(lambda: identify_static(robot, ds, torque=torque), args.repeat)
         t_diag, diag_t = _median_time(lambda: diagnose_static(robot, ds, torque=torque), args.repeat)
         fk += fk_batches_s(robot, batches=5)
-        if torque == "current":
+        if torque == TorqueSource.CURRENT:
             t_current = t_diag
         n_all = len(diag_t.candidates) + len(diag_t.not_testable)
         print(f"{torque:<8} {t_fit:>10.3f} {t_diag:>10.3f} {n_all:>10} {len(diag_t.candidates):>6}  "
               f"{diag_t.verdict} ({diag_t.fit.rms * 1e6:.1f} -> {diag_t.final.rms * 1e6:.1f} um, "
               f"floor {diag_t.final.noise_floor * 1e6:.1f} um)")
-        if torque == "current":
+        if torque == TorqueSource.CURRENT:
             diag = diag_t
     fastest, typical = min(fk), statistics.median(fk)
     unloaded = t_current * fastest / typical

@@ -51,6 +51,7 @@ from elastocal.model.effects import get_effect
 from elastocal.model.robot import Robot
 from elastocal.identify.static import StaticDataset
 from elastocal.diagnose.stepwise import FLOOR_RATIO
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 #: a candidate is significant below this p-value and delta BIC (docs/cli.md)
 VERDICT_P = 0.01
@@ -308,8 +309,9 @@ def _evidence(effect: str, before: AbsoluteFit, after: AbsoluteFit) -> str:
     return text
 
 
-def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *, torque: str = "current",
-                      form: str = "exact", pool: Sequence[str] = ABSOLUTE_EFFECTS,
+def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *,
+                      torque: TorqueSource = TorqueSource.CURRENT, form: KinematicForm = KinematicForm.EXACT,
+                      pool: Sequence[str] = ABSOLUTE_EFFECTS,
                       tracker_prior: Sequence[float] | None = None) -> AbsoluteDiagnosis:
     """Compare ``model`` (with its registration) with the absolute positions and
     test the absolute effects it lacks; ``tracker_prior`` (base coordinates [m]) is a

@@ -46,6 +46,7 @@ from elastocal.formats.calibration import Calibration
 from elastocal.model.effects import get_effect
 from elastocal.model.robot import Robot
 from elastocal.formats.tables import RunTable, StaticTable
+from elastocal.model.kinds import KinematicForm
 
 #: effects whose parameters belong to a measuring session, not to the robot
 SESSION_EFFECTS = ("thermal_drift", "tracker_frame")
@@ -221,7 +222,7 @@ def _model_allowance(calibration: Calibration, noise_var: float, n_params: int) 
 
 
 def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, alpha: float = 1e-3,
-                 form: str = "exact") -> DeflectionCheck:
+                 form: KinematicForm = KinematicForm.EXACT) -> DeflectionCheck:
     """Compare the check's deflections with the calibration's prediction (module docstring)."""
     from elastocal.identify.static import identify_static
 
@@ -356,7 +357,7 @@ def check_friction(robot: Robot, calibration: Calibration, runs: RunTable, *, al
 # ==================================================================== verdict
 def check_calibration(robot: Robot, calibration: Calibration, *, static: StaticTable | None = None,
                       runs: RunTable | None = None, alpha: float = 1e-3, friction_tolerance: float = 0.2,
-                      form: str = "exact") -> CheckResult:
+                      form: KinematicForm = KinematicForm.EXACT) -> CheckResult:
     """The verdict on ``calibration`` from a check's static table and/or runs."""
     if not 0.0 < alpha < 1.0:
         raise InputError(f"must be between 0 and 1, got {alpha}", argument="alpha")

@@ -21,10 +21,11 @@ from elastocal.formats.calibration import (
 )
 from elastocal.identify.absolute import ABSOLUTE_EFFECTS, AbsoluteFit
 from elastocal.model.effects import ALL_EFFECTS, get_effect
-from elastocal.model.kinds import TorqueSource
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
-def absolute_or_static(robot, table, model: tuple[str, ...], torque: str, form: str, *, tracker_prior=None):
+def absolute_or_static(robot, table, model: tuple[str, ...], torque: TorqueSource, form: KinematicForm, *,
+                       tracker_prior=None):
     """The absolute fit (identify/absolute.py) when the table holds absolute
     positions or the model has absolute effects, else the deflection fit."""
     from elastocal.identify.absolute import ABSOLUTE_EFFECTS, has_absolute_positions, identify_absolute
@@ -125,7 +126,7 @@ class Identification:
         return obj
 
 
-def identify_data(robot, static, runs, model: tuple[str, ...], torque: str, form: str, *,
+def identify_data(robot, static, runs, model: tuple[str, ...], torque: TorqueSource, form: KinematicForm, *,
                   exclude_outliers: bool = False, tracker_prior=None,
                   prior_source: str | None = None) -> Identification:
     """What ``identify`` finds in the tables (:class:`Identification`). ``outliers`` lists the
@@ -157,7 +158,7 @@ def identify_data(robot, static, runs, model: tuple[str, ...], torque: str, form
                           outliers=(*excluded, *fit.dataset.outliers), prior_source=prior_source)
 
 
-def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: str, form: str, *,
+def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: TorqueSource, form: KinematicForm, *,
                   log: str | None = None, exclude_outliers: bool = False, tracker_prior=None):
     """(static Diagnosis or None, run Diagnosis or None) for the tables; ``log``
     names the log they came from, for the error when there is nothing to diagnose;

@@ -81,6 +81,7 @@ from elastocal.diagnose.stepwise import (
 from elastocal.formats.tables import StaticTable
 from elastocal.diagnose.verdict import VERDICT_DELTA_BIC, VERDICT_P, NotTestable
 from elastocal.diagnose.where import Where, _noise, excess_p_value, unexplained_structure, where_it_fails
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
 # =================================================================== results
@@ -140,8 +141,8 @@ class Diagnosis:
     """What ``elastocal diagnose`` finds (docs/cli.md, ``diagnose --json``)."""
 
     model: tuple[str, ...]
-    torque: str
-    form: str
+    torque: TorqueSource
+    form: KinematicForm
     fit: StaticFit = field(repr=False)           # the model as given
     candidates: tuple[Candidate, ...]             # best first
     not_testable: tuple[NotTestable, ...]
@@ -245,7 +246,7 @@ def _wald(aug: StaticFit, names: Sequence[str], reported: Sequence[str] | None =
     return stat, q, float(scipy.stats.chi2.sf(stat, q)), -stat + q * math.log(aug.n)
 
 
-def _assumed_noise(robot: Robot, ds: StaticDataset, model, torque: str, form: str) -> StaticDataset:
+def _assumed_noise(robot: Robot, ds: StaticDataset, model, torque: TorqueSource, form: KinematicForm) -> StaticDataset:
     """Without repeated readings the noise level is unknown. Take the structure
     of tracker noise (the deflections of one marker share its reference reading)
     with the level that makes the model's residual what noise leaves."""
@@ -290,8 +291,8 @@ def _evidence(effect, params: Sequence[Parameter], fallback: str) -> str:
 
 
 # =================================================================== diagnose
-def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequence[str], *, torque: str,
-                    form: str, noise_known: bool, work=None) -> tuple[list[Candidate], list[NotTestable]]:
+def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequence[str], *, torque: TorqueSource,
+                    form: KinematicForm, noise_known: bool, work=None) -> tuple[list[Candidate], list[NotTestable]]:
     """Fit ``base``'s model plus each effect of ``pool`` it lacks and test it
     against ``base``: candidates best first, and the effects these data cannot show. ``work``: the
     diagnosis' Pinocchio work buffers (``robot.create_data()``), shared by its fits."""
@@ -354,8 +355,8 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
 
 
 def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
-                    model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
-                    form: str = "exact", effects: Sequence[str] | None = None,
+                    model: Sequence[str] = ("joint_stiffness",), torque: TorqueSource = TorqueSource.CURRENT,
+                    form: KinematicForm = KinematicForm.EXACT, effects: Sequence[str] | None = None,
                     exclude_outliers: bool = False, tracker_prior: Sequence[float] | None = None) -> Diagnosis:
     """Fit ``model``, test each effect it lacks, and diagnose stepwise (docs/cli.md).
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from elastocal.errors import ElastocalError, InputError
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 #: the analyses a fleet runs, one per single-log command
 COMMANDS = ("identify", "diagnose", "check")
@@ -36,8 +37,8 @@ class FleetTask:
     cell_config: str | None = None
     cell: str = ""
     model: tuple[str, ...] = ("joint_stiffness",)
-    torque: str = "current"
-    form: str = "exact"
+    torque: TorqueSource = TorqueSource.CURRENT
+    form: KinematicForm = KinematicForm.EXACT
     exclude_outliers: bool = False
     calibration: Any = None          # elastocal.formats.calibration.Calibration
     calibration_id: int | None = None

@@ -22,6 +22,7 @@ from typing import Any, Mapping, Sequence
 
 from elastocal.errors import InputError
 from elastocal.formats.textfiles import read_text_file
+from elastocal.model.kinds import TorqueSource
 
 FORMAT = "elastocal.calibration/1"
 #: ``friction_sign`` of a calibration holding friction (elastocal extension of docs/formats.md §4):
@@ -30,7 +31,7 @@ FORMAT = "elastocal.calibration/1"
 #: ``xi i = tau_load - f sign(dq)``: their friction is read with the sign turned, and said in a note.
 FRICTION_SIGN = "direction_of_motion"
 #: the torque a calibration was identified from: motor currents or the measured wrench
-TORQUES = ("current", "force")
+TORQUES = tuple(t.value for t in TorqueSource)
 #: the joint stiffness of a six-axis arm; a robot of N joints has k1..kN (:func:`stiffness_names`)
 STIFFNESS_NAMES = tuple(f"k{j}" for j in range(1, 7))
 
@@ -152,7 +153,7 @@ class Calibration:
     robot: str
     created: str
     model: tuple[str, ...]
-    torque: str
+    torque: TorqueSource
     parameters: tuple[CalibratedParameter, ...]
     residual: Residual = Residual()
     data: tuple[DataFile, ...] = ()
@@ -216,7 +217,7 @@ class Calibration:
         return out
 
 
-def make_calibration(robot_name: str, *, model: Sequence[str], torque: str,
+def make_calibration(robot_name: str, *, model: Sequence[str], torque: TorqueSource,
                      parameters: Sequence[CalibratedParameter], residual: Residual,
                      absolute_residual: Residual | None = None, data_paths: Sequence[str | pathlib.Path] = (),
                      created: str | None = None, robot_description: str | None = None,
@@ -260,7 +261,7 @@ def calibration_from_fit(robot_name: str, fit_json: dict, data_paths: Sequence[s
             raise InputError(f"the fit gives {name}: {exc.detail}; not a calibration (the robot description's "
                              "torque constants and geometry, the data's units?)", source=source) from None
     return Calibration(robot=robot_name, created=created, model=tuple(fit_json["model"]),
-                       torque=fit_json.get("torque", "current"), parameters=tuple(parameters),
+                       torque=TorqueSource(fit_json.get("torque", "current")), parameters=tuple(parameters),
                        residual=residual, data=data, absolute_residual=absolute,
                        robot_description=robot_description,
                        unidentifiable=tuple(str(n) for n in fit_json.get("unidentifiable", ())))
@@ -492,7 +493,7 @@ def calibration_from_json(doc: object, source: str) -> Calibration:
     description = doc.get("robot_description")
     if description is not None and not isinstance(description, str):
         raise InputError("expected the robot.toml text", source=src, column="robot_description")
-    return Calibration(robot=robot, created=created, model=tuple(model), torque=torque,
+    return Calibration(robot=robot, created=created, model=tuple(model), torque=TorqueSource(torque),
                        parameters=parameters, residual=residual,
                        data=tuple(_data_file(d, src, k) for k, d in enumerate(data)), source=src,
                        absolute_residual=absolute, robot_description=description,

@@ -36,6 +36,7 @@ from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.dataset import StaticDataset, build_dataset
 from elastocal.identify.staticmodel import Problem, absolute_bases, absolute_positions, state_torques, static_context
 from elastocal.formats.tables import StaticTable
+from elastocal.model.kinds import TorqueSource
 
 #: effects of a measuring session: not carried to other data
 SESSION_EFFECTS = ("thermal_drift",)
@@ -183,7 +184,7 @@ def _predicted(robot: Robot, calibration: Calibration, ds: StaticDataset) -> tup
     torque = calibration.torque
     if is_absolute_only(ds) and not ds.has_wrench:   # no loads: the robot's own weight only
         ds, torque = self_weight_dataset(ds), "force"
-    if torque == "current" and not ds.has_currents:
+    if torque == TorqueSource.CURRENT and not ds.has_currents:
         raise InputError("a current-based calibration with joint stiffness needs the currents i1..iN in every "
                          "row", source=ds.source)
     pr = Problem(rob, ds, effects, torque, "exact", frames)

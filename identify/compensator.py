@@ -39,6 +39,7 @@ from elastocal.errors import InputError, UnidentifiableError
 from elastocal.model.effects import get_effect
 from elastocal.model.robot import LOAD_FRAME, Robot
 from elastocal.identify.sweepfit import fit_sweeps, sweep_terms
+from elastocal.model.kinds import CompensatorKind
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,7 +61,7 @@ class SweepMeans:
 class CompensatorFit:
     """Identified compensator parameters (C, l_c or K_c, s0)."""
 
-    kind: str                        # "hydropneumatic" or "spring"
+    kind: CompensatorKind
     names: tuple[str, str]
     units: tuple[str, str]
     values: np.ndarray               # (2,)

@@ -21,6 +21,7 @@ from elastocal.model.effects import get_effect
 from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.dataset import StaticDataset
 from elastocal.identify.staticmodel import Problem, evaluate, state_torques, static_bases, static_context
+from elastocal.model.kinds import TorqueSource
 
 
 def planned_dataset(robot: Robot, q: np.ndarray, wrenches: Sequence[np.ndarray], markers: Sequence[str], *,
@@ -61,7 +62,7 @@ def planned_dataset(robot: Robot, q: np.ndarray, wrenches: Sequence[np.ndarray],
     return ds
 
 
-def regressor(robot: Robot, ds: StaticDataset, effects: Sequence[str], *, torque: str = "current",
+def regressor(robot: Robot, ds: StaticDataset, effects: Sequence[str], *, torque: TorqueSource = TorqueSource.CURRENT,
               beta: np.ndarray | None = None) -> tuple[np.ndarray, tuple[str, ...]]:
     """(D, 3, p) first-order Jacobian of the predicted deflections of ``ds`` in the
     parameters of ``joint_stiffness`` and ``effects`` (in that order), at ``beta``
@@ -77,7 +78,8 @@ def regressor(robot: Robot, ds: StaticDataset, effects: Sequence[str], *, torque
     return a.reshape(ds.n_deflections, 3, -1), param_names
 
 
-def refusals(robot: Robot, ds: StaticDataset, effects: Sequence[str], *, torque: str = "current") -> dict[str, str]:
+def refusals(robot: Robot, ds: StaticDataset, effects: Sequence[str], *,
+             torque: TorqueSource = TorqueSource.CURRENT) -> dict[str, str]:
     """The effects of ``effects`` these data cannot show at all, with each effect's own reason
     (``Effect.static_refusal``: static friction is no part of a current-based model; backlash
     needs a load that reverses a torque)."""

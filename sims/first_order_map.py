@@ -19,6 +19,7 @@ import numpy as np
 from elastocal.errors import InputError
 from elastocal.model.robot import DEFAULT_PRIOR_STIFFNESS, LOAD_FRAME, Robot
 from elastocal.sims.cell import CellTruth, SimCell
+from elastocal.model.kinds import TorqueSource
 
 #: relative stiffness error under which the first-order model is good enough (Y §4.2)
 GOOD_ENOUGH = 0.05
@@ -35,7 +36,7 @@ class FirstOrderMap:
     position_error: np.ndarray    # (n3, n2) eps_P = |dP(k_id) - dP(k)| / |dP(k)| at the load point
     q_base: tuple[float, ...]
     wrench: tuple[float, ...]
-    torque: str
+    torque: TorqueSource
     threshold: float = GOOD_ENOUGH
 
     @property
@@ -54,7 +55,8 @@ class FirstOrderMap:
 
 def first_order_map(robot: Robot, *, q_base: Sequence[float], wrench: Sequence[float],
                     stiffness: Sequence[float] = DEFAULT_PRIOR_STIFFNESS, markers: Sequence[str] | None = None,
-                    torque: str = "current", n_grid: int = 25, threshold: float = GOOD_ENOUGH) -> FirstOrderMap:
+                    torque: TorqueSource = TorqueSource.CURRENT, n_grid: int = 25,
+                    threshold: float = GOOD_ENOUGH) -> FirstOrderMap:
     """Yang's analysis over (q2, q3), the other joints at ``q_base``.
 
     At every grid point the exact statics of the simulated cell (links'
@@ -88,7 +90,7 @@ def first_order_map(robot: Robot, *, q_base: Sequence[float], wrench: Sequence[f
             eq1 = cell.equilibrium(q, w, reference=eq0)
             d_markers = cell.marker_positions(eq1, markers) - cell.marker_positions(eq0, markers)
             jac = robot.jacobians(robot.theta(q), frames)
-            gam = eq1.gear_torque - eq0.gear_torque if torque == "current" else jac[0].T @ w
+            gam = eq1.gear_torque - eq0.gear_torque if torque == TorqueSource.CURRENT else jac[0].T @ w
             a_mat = (jac[1:, :3, :] * gam[None, None, :]).reshape(-1, 6)
             scale = np.linalg.norm(a_mat, axis=0)
             ok = scale > 1e-9 * max(float(scale.max()), 1e-300)

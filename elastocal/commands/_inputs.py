@@ -10,6 +10,7 @@ from elastocal.errors import InputError
 from elastocal.model.robot import Robot
 from elastocal.formats.robot_toml import load_robot
 from elastocal.formats.tables import RunTable, StaticTable, read_run_table, read_static_table
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
 @dataclass(frozen=True)
@@ -45,9 +46,9 @@ def add_input_arguments(parser: argparse.ArgumentParser, *, model_flags: bool = 
         parser.add_argument("--model", default=None,
                             help="comma-separated effects to include (default joint_stiffness; on a table "
                                  "without loads kinematic_errors,tracker_frame)")
-        parser.add_argument("--torque", choices=("current", "force"), default="current",
+        parser.add_argument("--torque", choices=[t.value for t in TorqueSource], default="current",
                             help="joint torques from motor currents (default) or from the wrench columns")
-        parser.add_argument("--form", choices=("exact", "first-order"), default="exact",
+        parser.add_argument("--form", choices=[f.value for f in KinematicForm], default="exact",
                             help="exact (secant, default) or first-order kinematics")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 

@@ -18,6 +18,7 @@ from elastocal.commands._inputs import (
 from elastocal.model.effects import parse_model
 from elastocal.diagnose.pipeline import diagnose_data, diagnosis_json
 from elastocal.diagnose.unexplained import unexplained_lines
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,8 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_tracker_arguments(parser)
 
 
-def diagnose_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *, exclude_outliers: bool = False,
-                    prior=None):
+def diagnose_inputs(inputs, model: tuple[str, ...], torque: TorqueSource, form: KinematicForm, *,
+                    exclude_outliers: bool = False, prior=None):
     """(static Diagnosis or None, run Diagnosis or None) for the loaded inputs; ``prior``
     (:class:`~elastocal.commands._inputs.TrackerPrior`) on the registration, by default the
     one of the cell.toml a log carries."""
@@ -242,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
     inputs = load_inputs(args)
     model = table_model(args, inputs, parse_model(args.model))
     prior = tracker_prior(args, inputs)
-    static, runs = diagnose_inputs(inputs, model, args.torque, args.form,
+    static, runs = diagnose_inputs(inputs, model, TorqueSource(args.torque), KinematicForm(args.form),
                                    exclude_outliers=getattr(args, "exclude_outliers", False), prior=prior)
     if args.json:
         obj = diagnosis_json(static, runs)

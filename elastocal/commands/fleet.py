@@ -13,6 +13,7 @@ import sys
 import time
 
 from elastocal.errors import InputError
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 ACTIONS = ("identify", "diagnose", "check", "history")
 
@@ -29,9 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                        "input's folder or above)")
     parser.add_argument("--model", default="joint_stiffness",
                         help="comma-separated effects to include (default joint_stiffness)")
-    parser.add_argument("--torque", choices=("current", "force"), default="current",
+    parser.add_argument("--torque", choices=[t.value for t in TorqueSource], default="current",
                         help="joint torques from motor currents (default) or from the wrench columns")
-    parser.add_argument("--form", choices=("exact", "first-order"), default="exact",
+    parser.add_argument("--form", choices=[f.value for f in KinematicForm], default="exact",
                         help="exact (secant, default) or first-order kinematics")
     parser.add_argument("--exclude-outliers", action="store_true",
                         help="identify/diagnose: leave out single readings far off their repeats (as identify's flag)")
@@ -150,7 +151,8 @@ def _tasks(args: argparse.Namespace, inputs, model: tuple[str, ...]):
                                      error=error_text(why))
                 continue
         tasks.append((k, FleetTask(command=args.action, path=str(item.path), tables=item.tables, cell_config=cfg,
-                                   cell=cell, model=model, torque=args.torque, form=args.form,
+                                   cell=cell, model=model, torque=TorqueSource(args.torque),
+                                   form=KinematicForm(args.form),
                                    exclude_outliers=args.exclude_outliers, calibration=cal,
                                    calibration_id=cal_id, alpha=args.alpha,
                                    friction_tolerance=args.friction_tolerance)))

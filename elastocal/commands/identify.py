@@ -21,6 +21,7 @@ from elastocal.errors import InputError
 from elastocal.formats.calibration import write_calibration
 from elastocal.model.effects import parse_model
 from elastocal.diagnose.pipeline import Identification, identify_data
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_tracker_arguments(parser)
 
 
-def identify_inputs(inputs, model: tuple[str, ...], torque: str, form: str, *,
+def identify_inputs(inputs, model: tuple[str, ...], torque: TorqueSource, form: KinematicForm, *,
                     exclude_outliers: bool = False, prior=None) -> Identification:
     """What identify finds in the inputs (:func:`elastocal.diagnose.pipeline.identify_data`);
     ``prior``: the cell's tracker position (commands/_inputs.py's tracker_prior)."""
@@ -51,8 +52,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("the log holds neither a static experiment nor runs", source=args.log or "--static")
     model = table_model(args, inputs, model)
     prior = tracker_prior(args, inputs)
-    result = identify_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers,
-                             prior=prior)
+    result = identify_inputs(inputs, model, TorqueSource(args.torque), KinematicForm(args.form),
+                             exclude_outliers=args.exclude_outliers, prior=prior)
     obj = result.to_json()
     if args.out:
         calibration = result.calibration(inputs.robot.name, inputs.files, robot_description=inputs.robot.to_toml())

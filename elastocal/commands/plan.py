@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from elastocal.errors import InputError
+from elastocal.model.kinds import TorqueSource
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     exp.add_argument("--repeats", type=int, default=3, help="readings per marker and load state (default 3)")
     exp.add_argument("--tracker-noise", type=float, default=10e-6, help="tracker noise per reading [m] (default 1e-5)")
     exp.add_argument("--current-noise", type=float, default=0.02, help="current noise per sample [A] (default 0.02)")
-    exp.add_argument("--torque", choices=("current", "force"), default="current",
+    exp.add_argument("--torque", choices=[t.value for t in TorqueSource], default="current",
                      help="how the calibration will get the joint torques (default current)")
     exp.add_argument("--check-poses", type=int, default=3, help="poses of the short [check] (default 3)")
     exp.add_argument("--friction-path", metavar="U;V",
@@ -241,8 +242,8 @@ def run(args: argparse.Namespace) -> int:
     workspace = dz.Workspace(f_max_n=f_max, directions=args.directions, min_height_m=args.min_height,
                              max_height_m=args.max_height, min_radius_m=args.min_radius, base_p_tracker=tracker,
                              link_radius_m=args.link_radius)
-    noise = dz.NoiseModel(tracker_m=args.tracker_noise, current_a=args.current_noise if args.torque == "current"
-                          else 0.0, repeats=args.repeats)
+    current_a = args.current_noise if TorqueSource(args.torque) == TorqueSource.CURRENT else 0.0
+    noise = dz.NoiseModel(tracker_m=args.tracker_noise, current_a=current_a, repeats=args.repeats)
     prior, prior_source = _prior(args, robot)
     friction = _friction(args, robot)
     try:
@@ -267,7 +268,7 @@ def run(args: argparse.Namespace) -> int:
         map_load = (_wrench(args.map_load, "--map-wrench") if args.map_load
                     else tuple(f_max / math.sqrt(3.0) * np.array([1.0, 1.0, -1.0])) + (0.0, 0.0, 0.0))
         fmap = fom.first_order_map(robot, q_base=test.q, wrench=map_load, stiffness=prior, markers=markers,
-                                  torque=args.torque, n_grid=args.map_grid)
+                                  torque=TorqueSource(args.torque), n_grid=args.map_grid)
     with outputs:
         if fmap is not None:
             fom.plot_first_order_map(fmap, outputs.temp(args.map), test_q=test.q, poses=design.q)

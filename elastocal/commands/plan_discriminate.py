@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from elastocal.errors import InputError
+from elastocal.model.kinds import TorqueSource
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -110,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     if args.poses < 1 or args.loads_per_pose < 1 or args.candidates < 1 or args.repeats < 1:
         raise InputError("--poses, --loads-per-pose, --candidates and --repeats must be at least 1", source="--poses")
     robot, table = _given(args)
-    diag = diagnose_static(robot, table, model=model, torque=args.torque)
+    diag = diagnose_static(robot, table, model=model, torque=TorqueSource(args.torque))
     given = given_from_diagnosis(diag, sigma_tracker=args.tracker_noise,
                                  sigma_current=np.full(robot.n_joints, args.current_noise))
     wrench = given.dataset.state_wrench[:, :3]

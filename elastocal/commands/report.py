@@ -18,6 +18,7 @@ from elastocal.commands._outputs import Outputs
 from elastocal.commands.diagnose import diagnose_inputs, identify_command
 from elastocal.errors import InputError
 from elastocal.model.effects import get_effect, parse_model
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,8 +43,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"{args.add} is already in the model", source="--add")
     inputs = load_inputs(args)
     model = table_model(args, inputs, model)
-    static, runs = diagnose_inputs(inputs, model, args.torque, args.form, exclude_outliers=args.exclude_outliers,
-                                   prior=tracker_prior(args, inputs))
+    static, runs = diagnose_inputs(inputs, model, TorqueSource(args.torque), KinematicForm(args.form),
+                                   exclude_outliers=args.exclude_outliers, prior=tracker_prior(args, inputs))
     from elastocal.diagnose.absolute_only import AbsoluteOnlyDiagnosis
     from elastocal.report.html import render_report
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from elastocal.commands._inputs import add_input_arguments, add_outlier_argument, add_tracker_arguments, load_inputs
 from elastocal.errors import InputError
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 HOST = "127.0.0.1"
 ERROR_RGB = (255, 0, 255)        # the error vectors: magenta, a colour nothing else on the page has
@@ -61,7 +62,7 @@ def build_view(args: argparse.Namespace):
         raise InputError("the view shows static deflections: give a log or --static table with static poses",
                          source=args.log or "--static")
     model = parse_model(args.model)
-    static, _ = diagnose_inputs(inputs, model, args.torque, args.form,
+    static, _ = diagnose_inputs(inputs, model, TorqueSource(args.torque), KinematicForm(args.form),
                                 exclude_outliers=getattr(args, "exclude_outliers", False),
                                 prior=tracker_prior(args, inputs))
     calibrated = robot_calibrated = None
@@ -70,7 +71,7 @@ def build_view(args: argparse.Namespace):
         from elastocal.diagnose.check import check_static
 
         cal = read_calibration(args.calibration)
-        result = check_static(inputs.robot, cal, inputs.static, form=args.form)
+        result = check_static(inputs.robot, cal, inputs.static, form=KinematicForm(args.form))
         if result.measured.shape != static.where.measured.shape or not np.allclose(result.measured,
                                                                                    static.where.measured):
             raise InputError("the calibration's model orders the deflections differently; cannot compare",
