@@ -130,32 +130,11 @@ def _run_procedure(args: argparse.Namespace, config, plan_text: str | None, db: 
     return out, outcome.skipped
 
 
-def run(args: argparse.Namespace) -> int:
-    from elastocal.acquisition.history import History
-    from elastocal.commands._cell import check_sim_section
-    from elastocal.commands.history import clean
-    from elastocal.drivers.config import load_cell_config
-    from elastocal.formats.calibration import file_sha256
-    from elastocal.diagnose.check import check_calibration
+def _data(args: argparse.Namespace, config, robot, plan_text: str | None, db, now_ns: int):
+    """(static, runs, the data file, the log or None, what an unattended check skipped): the
+    tables given, the log given, or the log the check procedure records now."""
     from elastocal.formats.tables import read_run_table, read_static_table
 
-    now_ns = time.time_ns()
-    if args.out:  # the folder and the name; an existing log is refused by the procedure (as calibrate's)
-        from elastocal.commands._outputs import Outputs
-
-        Outputs(force=True, inputs=[(args.cell, "--cell"), (args.plan, "--plan"), (args.calibration,
-                                    "--calibration")]).add(args.out, "--out")
-    config = load_cell_config(args.cell)
-    check_sim_section(config)
-    robot = config.load_robot()
-    db = pathlib.Path(args.history) if args.history else config.history
-    with config.key_errors("history", None if args.history else db):
-        cal, cal_id, plan_text = _calibration(args, db)
-    if cal.robot and cal.robot != robot.name:
-        raise InputError(f"the calibration is for {cal.robot!r}, the cell's robot is {robot.name!r}",
-                         source=args.calibration or str(db))
-    if (args.static or args.runs) and args.log:
-        raise InputError("give either a log or --static/--runs tables, not both", source=args.log)
     log_path = None
     skipped: tuple[str, ...] = ()
     if args.static or args.runs or args.log:
@@ -177,6 +156,48 @@ def run(args: argparse.Namespace) -> int:
         data_path = log_path
         if static is None and runs is None:
             raise InputError("nothing to check: the log holds neither static poses nor runs", source=str(log_path))
+    return static, runs, data_path, log_path, skipped
+
+
+def _record(args: argparse.Namespace, db, cal_id, result, obj: dict, data_path: pathlib.Path, now_ns: int):
+    """The check's id in the history (None with --no-record or without a history)."""
+    from elastocal.acquisition.history import History
+    from elastocal.formats.calibration import file_sha256
+
+    if args.no_record or db is None:
+        return None
+    if cal_id is None:
+        raise InputError("the calibration is not in the history, so the verdict cannot be recorded: add it with "
+                         "`elastocal history add`, or give --no-record", source=args.calibration)
+    with History(db) as h:
+        return h.add_check(calibration_id=cal_id, time_ns=now_ns, verdict=result.verdict, reasons=result.reasons,
+                           result=obj, log_sha256=file_sha256(data_path), log_path=str(data_path.resolve()))
+
+
+def run(args: argparse.Namespace) -> int:
+    from elastocal.commands._cell import check_sim_section
+    from elastocal.commands.history import clean
+    from elastocal.drivers.config import load_cell_config
+    from elastocal.diagnose.check import check_calibration
+
+    now_ns = time.time_ns()
+    if args.out:  # the folder and the name; an existing log is refused by the procedure (as calibrate's)
+        from elastocal.commands._outputs import Outputs
+
+        Outputs(force=True, inputs=[(args.cell, "--cell"), (args.plan, "--plan"), (args.calibration,
+                                    "--calibration")]).add(args.out, "--out")
+    config = load_cell_config(args.cell)
+    check_sim_section(config)
+    robot = config.load_robot()
+    db = pathlib.Path(args.history) if args.history else config.history
+    with config.key_errors("history", None if args.history else db):
+        cal, cal_id, plan_text = _calibration(args, db)
+    if cal.robot and cal.robot != robot.name:
+        raise InputError(f"the calibration is for {cal.robot!r}, the cell's robot is {robot.name!r}",
+                         source=args.calibration or str(db))
+    if (args.static or args.runs) and args.log:
+        raise InputError("give either a log or --static/--runs tables, not both", source=args.log)
+    static, runs, data_path, log_path, skipped = _data(args, config, robot, plan_text, db, now_ns)
     result = check_calibration(robot, cal, static=static, runs=runs, alpha=args.alpha,
                                friction_tolerance=args.friction_tolerance)
     if skipped:
@@ -188,15 +209,7 @@ def run(args: argparse.Namespace) -> int:
             f"not checked, no person at the cell (unattended): {'; '.join(skipped)}",))
     obj = clean(result.to_json())
     obj["skipped"] = list(skipped)
-    recorded = None
-    if not args.no_record and db is not None:
-        if cal_id is None:
-            raise InputError("the calibration is not in the history, so the verdict cannot be recorded: add it with "
-                             "`elastocal history add`, or give --no-record", source=args.calibration)
-        with History(db) as h:
-            recorded = h.add_check(calibration_id=cal_id, time_ns=now_ns, verdict=result.verdict,
-                                   reasons=result.reasons, result=obj, log_sha256=file_sha256(data_path),
-                                   log_path=str(data_path.resolve()))
+    recorded = _record(args, db, cal_id, result, obj, data_path, now_ns)
     obj.update({"calibration": cal_id, "recorded": recorded, "history": None if db is None else str(db),
                 "log": None if log_path is None else str(log_path)})
     code = 0 if result.verdict == "holds" else EXIT_RECALIBRATE

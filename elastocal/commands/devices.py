@@ -68,6 +68,51 @@ def _line(name: str, sample, stats) -> str:
             f"{rate}  {lost}")
 
 
+def _identify(cell, quiet: bool) -> list[dict]:
+    """Each device's identity (vendor, model, serial, ...), printed unless ``quiet``."""
+    found = []
+    for device in cell.devices():
+        info = device.identify()
+        found.append({"name": device.name, **_info_dict(info)})
+        if not quiet:
+            print(f"{device.name:<10} {info.url}")
+            print(f"{'':<10} {info.vendor} {info.model} serial {info.serial or '-'} rev {info.revision or '-'}")
+            for k, v in info.details:
+                print(f"{'':<10} {k}: {v}")
+    return found
+
+
+def _watch(streams, duration: float, every: float | None):
+    """Poll the streams for ``duration`` s (until Ctrl-C or a device's error), printing each
+    stream's last sample every ``every`` s (None: silent); (last sample per stream, the error)."""
+    from elastocal.errors import DeviceError
+
+    last: dict[str, object] = {name: None for name, _ in streams}
+    error: DeviceError | None = None
+    start = time.monotonic()
+    next_print = start + (every or 0.0)
+    try:
+        while time.monotonic() - start < duration and error is None:
+            time.sleep(min(0.05, max(0.0, duration - (time.monotonic() - start))))
+            for name, stream in streams:
+                try:
+                    batch = stream.poll()
+                except DeviceError as exc:
+                    error = exc
+                    break
+                if batch.samples:
+                    last[name] = batch.samples[-1]
+            if every is not None and time.monotonic() >= next_print:
+                next_print += every
+                print(f"[{time.monotonic() - start:6.1f} s]")
+                for name, stream in streams:
+                    print(_line(name, last[name], stream.stats()))
+                sys.stdout.flush()
+    except KeyboardInterrupt:
+        pass
+    return last, error
+
+
 def run(args: argparse.Namespace) -> int:
     from elastocal.drivers.cell import CellDevices
     from elastocal.drivers.config import load_cell_config
@@ -89,14 +134,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"opening the devices of {config.name} ...", flush=True)
     with CellDevices.open(config, every_failure=True, on_device=opened) as cell:    # a dead cell: all named
         names = [d.name for d in cell.devices()]
-        for device in cell.devices():
-            info = device.identify()
-            out["devices"].append({"name": device.name, **_info_dict(info)})
-            if not args.json:
-                print(f"{device.name:<10} {info.url}")
-                print(f"{'':<10} {info.vendor} {info.model} serial {info.serial or '-'} rev {info.revision or '-'}")
-                for k, v in info.details:
-                    print(f"{'':<10} {k}: {v}")
+        out["devices"] = _identify(cell, args.json)
         if args.identify_only:
             if args.json:
                 print(json.dumps(out))
@@ -107,29 +145,7 @@ def run(args: argparse.Namespace) -> int:
                 streams.append((drive.name, drive.stream(config.drive(joint).rate_hz)))
             if cell.tracker is not None:
                 streams.append(("tracker", cell.tracker.stream(config.tracker.rate_hz)))
-            last: dict[str, object] = {name: None for name, _ in streams}
-            error: DeviceError | None = None
-            start = time.monotonic()
-            next_print = start + args.every
-            try:
-                while time.monotonic() - start < duration and error is None:
-                    time.sleep(min(0.05, max(0.0, duration - (time.monotonic() - start))))
-                    for name, stream in streams:
-                        try:
-                            batch = stream.poll()
-                        except DeviceError as exc:
-                            error = exc
-                            break
-                        if batch.samples:
-                            last[name] = batch.samples[-1]
-                    if not args.json and time.monotonic() >= next_print:
-                        next_print += args.every
-                        print(f"[{time.monotonic() - start:6.1f} s]")
-                        for name, stream in streams:
-                            print(_line(name, last[name], stream.stats()))
-                        sys.stdout.flush()
-            except KeyboardInterrupt:
-                pass
+            last, error = _watch(streams, duration, None if args.json else args.every)
             for name, stream in streams:
                 st = stream.stats()
                 out["streams"].append({"device": name, "rate_hz": st.rate_hz, "received": st.received,
