@@ -1,4 +1,4 @@
-"""Absolute fit time: geometry, registration and every static effect together (issue 12).
+"""Absolute fit time: geometry, registration and every static effect together.
 
     python benchmarks/bench_absolute.py [--poses 60] [--repeat 3]
 

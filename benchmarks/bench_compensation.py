@@ -16,7 +16,7 @@ quiet and on a loaded machine. Times are the process's CPU time (the wall time
 is printed too): on a machine shared with other work the wall time is mostly
 the share of a core the scheduler gave, the CPU time what the code costs, and
 the case and its FK limit are measured alike. points/s is points per CPU second. The
-goals of issue 15 (150,000 points/s exact, 500,000 points/s first-order, with
+speed goals (150,000 points/s exact, 500,000 points/s first-order, with
 one forward kinematics at 0.48 us) are 13.9 and 4.2 forward kinematics per
 point; the last column is the measured figure over the goal (<= 1 meets it).
 """
@@ -37,7 +37,7 @@ from elastocal.identify import kinematics as kin
 from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth
 
-#: issue 15's goals [points/s] and the forward-kinematics time they were set against [s]
+#: the speed goals [points/s] and the forward-kinematics time they were set against [s]
 GOAL_EXACT_POINTS_S = 150_000
 GOAL_FIRST_ORDER_POINTS_S = 500_000
 GOAL_FK_S = 0.48e-6

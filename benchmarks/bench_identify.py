@@ -6,7 +6,7 @@ Prints, per size and form, the median wall and CPU time of identify_static, the 
 units of one Pinocchio forward-kinematics call measured in the same run (so the figure means
 the same on a loaded machine), and the recovered stiffness error, so speed and accuracy are
 read together; then the time of averaging the table alone (build_dataset: one grouped numpy
-pass over the rows) and of reading the same table from CSV; last, the goal of issue 15 (300
+pass over the rows) and of reading the same table from CSV; last, the speed goal (300
 poses, exact, current, under 0.5 s on a quiet machine whose FK takes 0.48 us: one million FK)
 as the ratio of this run's figure to it.
 
@@ -40,7 +40,7 @@ def one_fk_s(robot, n: int = 50_000) -> float:
     return (time.perf_counter_ns() - t0) * 1e-9 / n
 
 
-#: issue 15's goal: identify, 300 poses, exact, current, under 0.5 s where one FK takes 0.48 us
+#: the speed goal: identify, 300 poses, exact, current, under 0.5 s where one FK takes 0.48 us
 GOAL_S, GOAL_FK_S = 0.5, 0.48e-6
 
 

@@ -15,7 +15,7 @@ prints messages per second:
 
 Each reader runs ``--repeat`` times, in turn (A B C A B C ...), and the medians of the
 wall and CPU times are compared, so that the ratios hold when the machine's speed
-drifts; the goal (issue 15) is replay >= 0.9 x StreamReader's messages per second.
+drifts; the goal is replay >= 0.9 x StreamReader's messages per second.
 
     python benchmarks/bench_log.py --minutes 5
 """
@@ -74,7 +74,7 @@ def replay(path: pathlib.Path) -> int:
     return -1 if runs is None else len(runs)
 
 
-#: issue 15's goal: replay at least this fraction of StreamReader's messages per second
+#: the goal: replay at least this fraction of StreamReader's messages per second
 GOAL = 0.9
 
 

@@ -101,7 +101,7 @@ class CompensationModel:
             if any(cal.has(n) for n in other):
                 raise InputError(f"compensator parameters {', '.join(other)} do not fit the robot's "
                                  f"{spec.kind} compensator", source=source, column="parameters")
-        if "kinematic_errors" in cal.model:        # the real geometry (issue 12, part 7)
+        if "kinematic_errors" in cal.model:        # the real geometry, not the drawing's
             from elastocal.identify.accuracy import calibrated_robot
 
             return cls(robot=calibrated_robot(robot, cal), stiffness=k, compensator=comp, nominal=robot)

@@ -1,4 +1,4 @@
-"""Poses that make the kinematic set observable too (issue 12, part 9).
+"""Poses that make the kinematic set observable too.
 
 The stiffness plan (design/search.py) minimises the industry measure K40 at
 the test pose. An absolute calibration also identifies the geometry and the

@@ -1,6 +1,6 @@
 """Where the model fails: the residual by pose, marker, joint angle, load and time against
-the noise floor, and the structure an unexplained excess follows (issue 11 split this out of
-:mod:`elastocal.diagnose.static`; the noise algebra of the floor is here too)."""
+the noise floor, and the structure an unexplained excess follows; the noise algebra of the floor is here too, so that
+the static and absolute diagnoses share one definition of it."""
 
 from __future__ import annotations
 

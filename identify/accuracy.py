@@ -248,7 +248,7 @@ def validate(robot: Robot, calibration: Calibration, data: StaticTable | StaticD
 
 
 #: a check's absolute accuracy holds while the calibrated rms stays within this many noise floors
-#: (the validation criterion of issue 12)
+#: (beyond it the calibrated model explains less than the tracker measures)
 CHECK_FLOOR_RATIO = 2.0
 
 

@@ -1,4 +1,4 @@
-"""The absolute part of the HTML report (issue 12, part 4): absolute errors per
+"""The absolute part of the HTML report: absolute errors per
 pose before and after the absolute steps, and the error vectors on a top view
 of the cell, from :class:`elastocal.diagnose.absolute.AbsoluteDiagnosis`."""
 

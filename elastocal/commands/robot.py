@@ -1,4 +1,4 @@
-"""`elastocal robot`: the calibrated robot description for other tools (issue 12, part 6).
+"""`elastocal robot`: the calibrated robot description for other tools.
 
 ``--calibration cal.json --out calibrated.toml [--urdf calibrated.urdf]``: the
 robot.toml of the nominal description (``--robot``, or the one the calibration
