@@ -397,6 +397,36 @@ def _described_joints(robot_text: str) -> int:
     return len(joints) if isinstance(joints, list) else 0
 
 
+def _add_tracker_samples(tracker_parts: dict[str, list], values: list[dict], t: np.ndarray, source: str) -> None:
+    """One group of tracker messages (times ``t``) added to each marker's parts."""
+    try:
+        markers = [v["marker"] for v in values]
+        xyz = np.array(list(map(operator.itemgetter("x", "y", "z"), values)), dtype=float)
+        if not all(isinstance(m, str) for m in markers):
+            raise TypeError("marker")
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"a message on {lf.TOPIC_TRACKER} is not a tracker sample", source=source) from None
+    if len(set(markers)) == 1:
+        tracker_parts.setdefault(markers[0], []).append((t, xyz))
+    else:
+        names = np.array(markers)
+        for m in dict.fromkeys(markers):
+            sel = names == m
+            tracker_parts.setdefault(m, []).append((t[sel], xyz[sel]))
+
+
+def _sorted(parts: list[tuple[np.ndarray, np.ndarray]], width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The parts' times and values joined, in time order."""
+    if not parts:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, width))
+    t = np.concatenate([p[0] for p in parts])
+    vals = np.concatenate([p[1] for p in parts])
+    if np.any(np.diff(t) < 0):
+        order = np.argsort(t, kind="stable")
+        t, vals = t[order], vals[order]
+    return t, vals
+
+
 def read_log(path: str | pathlib.Path) -> LogContents:
     """Gather a log's documents, events and samples (tolerates a truncated file).
     Only the topics of :data:`READ_TOPICS` are decoded; ``messages`` counts all."""
@@ -410,7 +440,6 @@ def read_log(path: str | pathlib.Path) -> LogContents:
     drive_index = {t: j for j, t in enumerate(lf.DRIVE_TOPICS)}
     n_messages = 0
     get_drive = operator.itemgetter("position_rad", "velocity_rad_s", "current_a")
-    get_xyz = operator.itemgetter("x", "y", "z")
     segment = 0
     for count, groups in reader.grouped(READ_TOPICS):
         offset = segment * SEGMENT_NS
@@ -428,21 +457,7 @@ def read_log(path: str | pathlib.Path) -> LogContents:
                     raise InputError(f"a message on {topic} is not a drive sample", source=source) from None
                 drive_parts[j].append((_keys(times, offset, source), vals))
             elif topic == lf.TOPIC_TRACKER:
-                try:
-                    markers = [v["marker"] for v in values]
-                    xyz = np.array(list(map(get_xyz, values)), dtype=float)
-                    if not all(isinstance(m, str) for m in markers):
-                        raise TypeError("marker")
-                except (KeyError, TypeError, ValueError):
-                    raise InputError(f"a message on {topic} is not a tracker sample", source=source) from None
-                t = _keys(times, offset, source)
-                if len(set(markers)) == 1:
-                    tracker_parts.setdefault(markers[0], []).append((t, xyz))
-                else:
-                    names = np.array(markers)
-                    for m in dict.fromkeys(markers):
-                        sel = names == m
-                        tracker_parts.setdefault(m, []).append((t[sel], xyz[sel]))
+                _add_tracker_samples(tracker_parts, values, _keys(times, offset, source), source)
             elif topic == lf.TOPIC_EVENT:
                 events.extend({**v, "t_ns": t, "segment": segment} for t, v in zip(times, values))
                 resumes += sum(1 for v in values if v.get("kind") == "resume")
@@ -459,16 +474,6 @@ def read_log(path: str | pathlib.Path) -> LogContents:
     if n_messages == 0 or not sessions:
         raise InputError("no elastocal session in the log (not an elastocal log, or killed before "
                          "its first message was written)", source=source)
-
-    def _sorted(parts, width):
-        if not parts:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, width))
-        t = np.concatenate([p[0] for p in parts])
-        vals = np.concatenate([p[1] for p in parts])
-        if np.any(np.diff(t) < 0):
-            order = np.argsort(t, kind="stable")
-            t, vals = t[order], vals[order]
-        return t, vals
 
     drives_out = []
     # the log's joints: the robot's N (drives 1..N), or as many as have samples

@@ -39,6 +39,35 @@ def _move_s(a: Sequence[float] | None, b: Sequence[float], speed: float) -> floa
     return float(np.max(np.abs(np.asarray(b) - np.asarray(a)))) / speed
 
 
+def _sweep_steps(plan: Plan, last_q: list, settle_s: float, person_s: float) -> list[Step]:
+    """The joint-2 sweep's steps (``last_q[0]``: where the robot stands before them, updated)."""
+    steps: list[Step] = []
+    w = plan.sweep
+    q_from = list(w.q)
+    q_from[1] = w.q2_from
+    q_to = list(w.q)
+    q_to[1] = w.q2_to
+    move_speed = plan.static.speed_rad_s if plan.static else w.speed_rad_s * 4
+    for r in range(1, w.repeats + 1):
+        est = (_move_s(last_q[0], q_from, move_speed) + 2 * _move_s(q_from, q_to, w.speed_rad_s)
+               + 2 * settle_s + (person_s if w.load != UNLOADED else 0.0))
+        last_q[0] = q_from
+        markers = [w.marker] if w.marker else []
+
+        def action(s: Session, r=r, q_from=tuple(q_from), q_to=tuple(q_to), markers=markers,
+                   move_speed=move_speed) -> None:
+            s.ensure_load(w.load)
+            s.move(q_from, move_speed, markers)
+            s.settle(markers, run=f"sweep-{r}")
+            s.run(f"sweep-{r}+", "+", q_from, q_to, w.speed_rad_s, w.load, w.marker, joint=2)
+            s.settle(markers, run=f"sweep-{r}")
+            s.run(f"sweep-{r}-", "-", q_to, q_from, w.speed_rad_s, w.load, w.marker, joint=2)
+
+        steps.append(Step(id=f"sweep/{r}", procedure="sweep", label=f"joint-2 sweep {r}/{w.repeats}",
+                          estimate_s=est, needs_person=w.load != UNLOADED, action=action))
+    return steps
+
+
 def build_steps(plan: Plan, procedures: Sequence[str], *, person_s: float = PERSON_S) -> list[Step]:
     """The steps of ``procedures`` (names of plan sections), in order, with
     their time estimates (robot time plus ``person_s`` per load change)."""
@@ -97,29 +126,7 @@ def build_steps(plan: Plan, procedures: Sequence[str], *, person_s: float = PERS
                             steps.append(pair_step(proc, f, speed, load_id, f"friction/{f.id}/{k}",
                                                    f"{f.id}-{k}"))
         elif proc == "sweep":
-            w = plan.sweep
-            q_from = list(w.q)
-            q_from[1] = w.q2_from
-            q_to = list(w.q)
-            q_to[1] = w.q2_to
-            move_speed = plan.static.speed_rad_s if plan.static else w.speed_rad_s * 4
-            for r in range(1, w.repeats + 1):
-                est = (_move_s(last_q[0], q_from, move_speed) + 2 * _move_s(q_from, q_to, w.speed_rad_s)
-                       + 2 * settle_s + (person_s if w.load != UNLOADED else 0.0))
-                last_q[0] = q_from
-                markers = [w.marker] if w.marker else []
-
-                def action(s: Session, r=r, q_from=tuple(q_from), q_to=tuple(q_to), markers=markers,
-                           move_speed=move_speed) -> None:
-                    s.ensure_load(w.load)
-                    s.move(q_from, move_speed, markers)
-                    s.settle(markers, run=f"sweep-{r}")
-                    s.run(f"sweep-{r}+", "+", q_from, q_to, w.speed_rad_s, w.load, w.marker, joint=2)
-                    s.settle(markers, run=f"sweep-{r}")
-                    s.run(f"sweep-{r}-", "-", q_to, q_from, w.speed_rad_s, w.load, w.marker, joint=2)
-
-                steps.append(Step(id=f"sweep/{r}", procedure="sweep", label=f"joint-2 sweep {r}/{w.repeats}",
-                                  estimate_s=est, needs_person=w.load != UNLOADED, action=action))
+            steps += _sweep_steps(plan, last_q, settle_s, person_s)
         elif proc == "check":
             c = plan.check
             for pid in c.poses:

@@ -198,21 +198,9 @@ def _read_xyz(text: str, source: str, unit: str) -> list[ExportPoint]:
     return out
 
 
-def _read_table(text: str, source: str, unit: str | None, columns: dict[str, str] | None) -> list[ExportPoint]:
-    records, decimal_comma = _split_records(text, source)
-    if not records:
-        raise InputError("the file is empty", source=source)
-    _, header = records[0]
-    check_header(header, source)
-    if columns is None:
-        roles = _leica_roles(header, source)
-    else:
-        roles = {}
-        for role, col in columns.items():
-            if col not in header:
-                raise InputError((Arg("columns"), f" maps {role} to {col!r}, which is not in the header "
-                                  f"({', '.join(header)})"), source=source, row=1)
-            roles[role] = (header.index(col), None)
+def _table_units(roles: dict, header: list[str], unit: str | None, source: str) -> tuple[float, float, str, str]:
+    """(metres per coordinate, metres per U95, temperature unit, pressure unit) from the
+    header's brackets, else ``unit``; a header and a ``unit`` that disagree are refused."""
     head_units = {r: u for r, (_, u) in roles.items() if u}
     xyz_units = {head_units.get(c) for c in "xyz"}
     if len(xyz_units) > 1:
@@ -235,6 +223,25 @@ def _read_table(text: str, source: str, unit: str | None, columns: dict[str, str
     if press_unit not in PRESSURE_UNITS:
         raise InputError(f"unknown pressure unit {press_unit!r}; one of {', '.join(PRESSURE_UNITS)}",
                          source=source, row=1)
+    return f, fu, temp_unit, press_unit
+
+
+def _read_table(text: str, source: str, unit: str | None, columns: dict[str, str] | None) -> list[ExportPoint]:
+    records, decimal_comma = _split_records(text, source)
+    if not records:
+        raise InputError("the file is empty", source=source)
+    _, header = records[0]
+    check_header(header, source)
+    if columns is None:
+        roles = _leica_roles(header, source)
+    else:
+        roles = {}
+        for role, col in columns.items():
+            if col not in header:
+                raise InputError((Arg("columns"), f" maps {role} to {col!r}, which is not in the header "
+                                  f"({', '.join(header)})"), source=source, row=1)
+            roles[role] = (header.index(col), None)
+    f, fu, temp_unit, press_unit = _table_units(roles, header, unit, source)
     out = []
     for line, row in records[1:]:
         if not any(row):

@@ -354,6 +354,37 @@ def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequ
     return candidates, skipped
 
 
+def _deflection_unexplained(base: StaticFit, steps, final: StaticFit, floor, excess, where_final,
+                            ds: StaticDataset):
+    """(sentences, detail) of what the deflections' final model leaves above the noise floor;
+    ((), None) when it leaves only noise."""
+    if excess is None or excess >= EXCESS_P:
+        return (), None
+    unexplained = unexplained_structure(where_final)
+    detail = unexplained_of(base.rms, steps, final.rms, floor, excess, unexplained)
+    if detail is None:
+        return unexplained, None
+    if not unexplained:
+        unexplained = (f"residual stays {detail.ratio:.2f}x the noise floor with no pattern in pose, "
+                       "marker, joint angle, load or time",)
+    kept = [o for o in ds.outliers if not o.excluded]
+    if kept:
+        unexplained = (f"{len(kept)} reading(s) far off their repeats (lines "
+                       f"{', '.join(str(o.line) for o in kept)}) are in the fit: diagnose again leaving "
+                       "them out", *unexplained)
+    return unexplained, replace(detail, follows=unexplained)
+
+
+def _where_absolute_sits(unexplained: tuple[str, ...], sides) -> tuple[str, ...]:
+    """The last sentence (the absolute side's) says where its excess sits, when it is located."""
+    abs_side = next((sd for sd in sides if sd.side == "absolute" and sd.where is not None), None)
+    if abs_side is None or not unexplained:
+        return unexplained
+    w = abs_side.where
+    return (*unexplained[:-1], f"{unexplained[-1]}; it sits in {w.words} ({100 * w.share:.0f} % of "
+                               f"the excess in {100 * w.fraction:.0f} % of the readings)")
+
+
 def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
                     model: Sequence[str] = ("joint_stiffness",), torque: TorqueSource = TorqueSource.CURRENT,
                     form: KinematicForm = KinematicForm.EXACT, effects: Sequence[str] | None = None,
@@ -411,21 +442,7 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     verdict = verdict_of(steps, final.rms, floor, excess) if noise_known else (steps[0].effect if steps else None)
     where = where_it_fails(robot, base, noise=noise_known)
     where_final = where_it_fails(robot, final, noise=noise_known) if final is not base else where
-    unexplained: tuple[str, ...] = ()
-    detail = None
-    if excess is not None and excess < EXCESS_P:
-        unexplained = unexplained_structure(where_final)
-        detail = unexplained_of(base.rms, steps, final.rms, floor, excess, unexplained)
-        if detail is not None:
-            if not unexplained:
-                unexplained = (f"residual stays {detail.ratio:.2f}x the noise floor with no pattern in pose, "
-                               "marker, joint angle, load or time",)
-            kept = [o for o in ds.outliers if not o.excluded]
-            if kept:
-                unexplained = (f"{len(kept)} reading(s) far off their repeats (lines "
-                               f"{', '.join(str(o.line) for o in kept)}) are in the fit: diagnose again leaving "
-                               "them out", *unexplained)
-            detail = replace(detail, follows=unexplained)
+    unexplained, detail = _deflection_unexplained(base, steps, final, floor, excess, where_final, ds)
     abs_diag = None
     if absolute:     # the deflection model's final form against the absolute positions
         abs_diag = diagnose_absolute(robot, ds_abs, (*final.model, *absolute_model), torque=torque, form=form,
@@ -437,11 +454,7 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
         if extra:
             unexplained = (*unexplained, extra)
     sides = _unexplained_sides(detail, where_final, abs_diag if noise_known else None)
-    abs_side = next((sd for sd in sides if sd.side == "absolute" and sd.where is not None), None)
-    if abs_side is not None and unexplained:       # the absolute sentence says where it sits
-        w = abs_side.where
-        unexplained = (*unexplained[:-1], f"{unexplained[-1]}; it sits in {w.words} ({100 * w.share:.0f} % of "
-                                          f"the excess in {100 * w.fraction:.0f} % of the readings)")
+    unexplained = _where_absolute_sits(unexplained, sides)
     return Diagnosis(unexplained_sides=sides, model=(*base.model, *absolute_model), torque=torque, form=form, fit=base,
                      candidates=tuple(candidates),
                      not_testable=tuple(skipped_first), verdict=verdict, final=final, excess_p_value=excess,

@@ -90,6 +90,31 @@ def _ancestors(model: pin.Model, joint: int) -> list[int]:
     return out[::-1]
 
 
+def _joint_axes(model, data, ids: Sequence[int], joint_names: Sequence[str], *, source: str):
+    """(kinds, unit axes, lower, upper limits) of the chain's joints at the neutral
+    configuration: a joint's Jacobian column says whether it turns or slides."""
+    kinds, axes, lower, upper = [], [], [], []
+    for i, name in zip(ids, joint_names):
+        jm = model.joints[i]
+        column = pin.getJointJacobian(model, data, i, pin.LOCAL)[:, jm.idx_v] if jm.nv == 1 else None
+        if column is not None and np.linalg.norm(column[3:]) < 1e-12 and abs(np.linalg.norm(column[:3]) - 1) < 1e-9:
+            kinds.append(JointKind.PRISMATIC)
+            axes.append(column[:3] / np.linalg.norm(column[:3]))
+        elif column is not None and np.linalg.norm(column[:3]) < 1e-12 and abs(np.linalg.norm(column[3:]) - 1) < 1e-9:
+            kinds.append(JointKind.REVOLUTE)
+            axes.append(column[3:] / np.linalg.norm(column[3:]))
+        else:
+            raise InputError(f"URDF joint {name!r} ({jm.shortname()}) is neither revolute nor prismatic",
+                             source=source, column="joint.name")
+        if jm.nq == 1:          # revolute or prismatic: URDF limits
+            lower.append(float(model.lowerPositionLimit[jm.idx_q]))
+            upper.append(float(model.upperPositionLimit[jm.idx_q]))
+        else:                   # continuous (cos, sin): no limits in the URDF
+            lower.append(math.nan)
+            upper.append(math.nan)
+    return kinds, axes, lower, upper
+
+
 def urdf_chain(urdf: UrdfSource, joint_names: Sequence[str], *, source: str) -> UrdfChain:
     """Read the chain of ``joint_names`` from ``urdf`` (errors name ``source``)."""
     where = urdf.path or "urdf_xml"
@@ -137,25 +162,7 @@ def urdf_chain(urdf: UrdfSource, joint_names: Sequence[str], *, source: str) -> 
     pin.forwardKinematics(model, data, q0)
     pin.updateFramePlacements(model, data)
     pin.computeJointJacobians(model, data, q0)
-    kinds, axes, lower, upper = [], [], [], []
-    for i, name in zip(ids, joint_names):
-        jm = model.joints[i]
-        column = pin.getJointJacobian(model, data, i, pin.LOCAL)[:, jm.idx_v] if jm.nv == 1 else None
-        if column is not None and np.linalg.norm(column[3:]) < 1e-12 and abs(np.linalg.norm(column[:3]) - 1) < 1e-9:
-            kinds.append(JointKind.PRISMATIC)
-            axes.append(column[:3] / np.linalg.norm(column[:3]))
-        elif column is not None and np.linalg.norm(column[:3]) < 1e-12 and abs(np.linalg.norm(column[3:]) - 1) < 1e-9:
-            kinds.append(JointKind.REVOLUTE)
-            axes.append(column[3:] / np.linalg.norm(column[3:]))
-        else:
-            raise InputError(f"URDF joint {name!r} ({jm.shortname()}) is neither revolute nor prismatic",
-                             source=source, column="joint.name")
-        if jm.nq == 1:          # revolute or prismatic: URDF limits
-            lower.append(float(model.lowerPositionLimit[jm.idx_q]))
-            upper.append(float(model.upperPositionLimit[jm.idx_q]))
-        else:                   # continuous (cos, sin): no limits in the URDF
-            lower.append(math.nan)
-            upper.append(math.nan)
+    kinds, axes, lower, upper = _joint_axes(model, data, ids, joint_names, source=source)
     base_placement = pin.SE3.Identity()
     if urdf.base_link:
         # every joint between the root and base_link is locked at zero: base_link stands still

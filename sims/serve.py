@@ -117,8 +117,25 @@ class SimulatedCell:
 
     def _start(self) -> None:
         cfg = self.source_config
+        resolved_drives = {d.joint: d for d in cfg.drives}     # each drive's URL, its ports resolved
+        self._start_canopen(resolved_drives)
+        controller = self._start_modbus(resolved_drives)
+        tracker_cfg = self._start_tracker()
+
+        sim_table = cfg.sim
+        if self._with_rig:
+            self.load_rig = SimLoadRig(self.world)
+            self._rig_server = ModbusServerThread([self.load_rig.device], tcp=("127.0.0.1", 0),
+                                                  identity=rig_identity()).start()
+            sim_table = MappingProxyType({**cfg.sim, "load_url": f"modbus+tcp://127.0.0.1:{self._rig_server.port}"
+                                                                 f"?unit={self.load_rig.unit}"})
+        self.config = replace(cfg, drives=tuple(resolved_drives[d.joint] for d in cfg.drives),
+                              tracker=tracker_cfg, controller=controller, sim=sim_table)
+
+    def _start_canopen(self, resolved_drives: dict) -> None:
+        """The CANopen drives, one network per channel (a loopback's free port into ``resolved_drives``)."""
+        cfg = self.source_config
         sim = self.sim
-        # CANopen drives, one network per channel
         groups: dict[tuple[str, str, int], list[SimCanopenDrive]] = {}
         for d in cfg.drives:
             if d.url.scheme != "canopen":
@@ -133,7 +150,6 @@ class SimulatedCell:
             self.canopen_drives[d.joint] = drive
             bitrate = d.url.int_param("bitrate", 1_000_000, low=10_000, high=1_000_000)
             groups.setdefault((iface, d.url.can_channel, bitrate), []).append(drive)
-        resolved_drives = {d.joint: d for d in cfg.drives}
         for (iface, channel, bitrate), drives in groups.items():
             kwargs = {}
             if iface == CAN_LOOPBACK:    # port 0 or none: a free port, written into the resolved URLs
@@ -149,7 +165,11 @@ class SimulatedCell:
                                                        url=resolved_drives[d.joint].url.with_param("port",
                                                                                                    network.port))
 
-        # Modbus devices, one server per endpoint
+    def _start_modbus(self, resolved_drives: dict):
+        """The Modbus drives and controller, one server per endpoint (ports and pty paths into
+        ``resolved_drives``); the controller's configuration, its URL resolved."""
+        cfg = self.source_config
+        sim = self.sim
         endpoints: dict[tuple, list] = {}
         for d in cfg.drives:
             if d.url.scheme.startswith("modbus"):
@@ -183,8 +203,12 @@ class SimulatedCell:
         controller = cfg.controller
         if controller is not None and ("controller", 0) in new_urls:
             controller = replace(controller, url=new_urls[("controller", 0)])
+        return controller
 
-        # tracker
+    def _start_tracker(self):
+        """The simulated tracker; its configuration, the URL resolved."""
+        cfg = self.source_config
+        sim = self.sim
         tracker_cfg = cfg.tracker
         if tracker_cfg is not None and tracker_cfg.url.scheme == "tracker+emscon":
             url = tracker_cfg.url
@@ -209,16 +233,7 @@ class SimulatedCell:
             else:
                 path = self.tracker.serve_pty()
                 tracker_cfg = replace(tracker_cfg, url=url.with_path(path))
-
-        sim_table = cfg.sim
-        if self._with_rig:
-            self.load_rig = SimLoadRig(self.world)
-            self._rig_server = ModbusServerThread([self.load_rig.device], tcp=("127.0.0.1", 0),
-                                                  identity=rig_identity()).start()
-            sim_table = MappingProxyType({**cfg.sim, "load_url": f"modbus+tcp://127.0.0.1:{self._rig_server.port}"
-                                                                 f"?unit={self.load_rig.unit}"})
-        self.config = replace(cfg, drives=tuple(resolved_drives[d.joint] for d in cfg.drives),
-                              tracker=tracker_cfg, controller=controller, sim=sim_table)
+        return tracker_cfg
 
     # ------------------------------------------------------------- info
     @property

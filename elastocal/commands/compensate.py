@@ -99,6 +99,16 @@ def _stats(d: np.ndarray) -> dict:
     return {"rms": float(np.sqrt(np.mean(n ** 2))), "max": float(np.max(n)), "unit": "m"}
 
 
+def _within_limits(result, robot, path: str) -> None:
+    """Refuse a compensated command beyond a joint's limits, naming the path's row."""
+    outside = (result.q_command < robot.lower) | (result.q_command > robot.upper)
+    if np.any(outside):
+        i, j = (int(v) for v in np.argwhere(outside)[0])
+        raise InputError(f"the compensated q{j + 1} = {result.q_command[i, j]:.5f} {robot.joints[j].unit} leaves "
+                         "the joint limits",
+                         source=path, row=i + 2, column=f"q{j + 1}")
+
+
 def run(args: argparse.Namespace) -> int:
     from elastocal.compensation.files import read_path, write_compensated_csv, write_krl, write_rapid
     from elastocal.compensation.model import CompensationModel, NotConverged, refuse_unmodelled
@@ -143,12 +153,7 @@ def run(args: argparse.Namespace) -> int:
         residual = predicted_residual(model, result)
     except NotConverged as exc:
         raise _not_converged(exc, planned, wrench, args) from None
-    outside = (result.q_command < robot.lower) | (result.q_command > robot.upper)
-    if np.any(outside):
-        i, j = (int(v) for v in np.argwhere(outside)[0])
-        raise InputError(f"the compensated q{j + 1} = {result.q_command[i, j]:.5f} {robot.joints[j].unit} leaves "
-                         "the joint limits",
-                         source=args.path, row=i + 2, column=f"q{j + 1}")
+    _within_limits(result, robot, args.path)
     with outputs:
         write_compensated_csv(outputs.temp(args.out), planned.t, result)
         # the program is named after the file the user asked for, not the temporary one
@@ -174,21 +179,33 @@ def run(args: argparse.Namespace) -> int:
     if args.rapid:
         obj["rapid"] = args.rapid
     if args.validate:
-        from elastocal.compensation.ik import PlannedPath
-        from elastocal.compensation.validate import validate_on_sim
-        from elastocal.sims.cell import CellTruth, SimCell
-
-        if robot.compensator is not None and robot.compensator.kind != CompensatorKind.HYDROPNEUMATIC:
-            raise InputError("--validate simulates the HH-150 cell (hydro-pneumatic compensator); this robot's "
-                             "compensator is a spring", source="--validate")
-        truth, holds = calibrated_truth(robot, cal, CellTruth.for_robot(robot))
-        cell = SimCell(robot, truth)
-        check = validate_on_sim(cell, model, PlannedPath(t=planned.t, q=planned.q), wrench, reference=reference)
-        obj["validation"] = check.summary()
-        obj["validation"]["truth"] = f"the calibrated robot of {args.calibration}: {', '.join(holds)}"
+        obj["validation"] = _validation(args, robot, cal, model, planned, wrench, reference)
     if args.json:
         print(json.dumps(obj))
         return 0
+    _print_text(args, obj, result, robot, model)
+    return 0
+
+
+def _validation(args: argparse.Namespace, robot, cal, model, planned, wrench: np.ndarray, reference: str) -> dict:
+    """--validate: the compensated path on the simulated cell made from the calibrated robot."""
+    from elastocal.compensation.ik import PlannedPath
+    from elastocal.compensation.validate import validate_on_sim
+    from elastocal.sims.cell import CellTruth, SimCell
+
+    if robot.compensator is not None and robot.compensator.kind != CompensatorKind.HYDROPNEUMATIC:
+        raise InputError("--validate simulates the HH-150 cell (hydro-pneumatic compensator); this robot's "
+                         "compensator is a spring", source="--validate")
+    truth, holds = calibrated_truth(robot, cal, CellTruth.for_robot(robot))
+    cell = SimCell(robot, truth)
+    check = validate_on_sim(cell, model, PlannedPath(t=planned.t, q=planned.q), wrench, reference=reference)
+    summary = check.summary()
+    summary["truth"] = f"the calibrated robot of {args.calibration}: {', '.join(holds)}"
+    return summary
+
+
+def _print_text(args: argparse.Namespace, obj: dict, result, robot, model) -> None:
+    """The text the command prints without --json, made from its --json object."""
     mm = 1e3
     print(f"{len(result)} points, {result.form} compensation, reference: {result.reference} pose")
     print(f"  predicted tool deflection before compensation: max {obj['deflection']['max'] * mm:.3f} mm, "
@@ -205,4 +222,3 @@ def run(args: argparse.Namespace) -> int:
         print(f"simulated cell as {v['truth']}; tool-point error along the path:")
         for key, label in (("uncompensated", "planned path"), ("first_order", "first-order"), ("exact", "exact")):
             print(f"  {label:<14} max {v[key]['max'] * mm:9.4f} mm   rms {v[key]['rms'] * mm:9.4f} mm")
-    return 0
