@@ -103,18 +103,20 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
     are copied into the new log and skipped.
 
     ``unattended``: no person is at the cell (a scheduled check). The steps that
-    need one (hanging or removing a load) are left out and listed in the
-    outcome's ``skipped``; the cell is taken as unloaded, as every procedure
-    leaves it, and nothing is asked. Refused when no step remains.
+    need one (hanging or removing a load) are left out, a check pose reads its
+    markers unloaded only, and what was left out is listed in the outcome's
+    ``skipped``; the cell is taken as unloaded, as every procedure leaves it,
+    and nothing is asked. Refused when no step remains.
     """
     ui = ui if ui is not None else AutoUI(quiet=True)
     robot = io.robot
     plan.validate_for(robot)
     procs = _procedures(plan, procedures)
-    steps = build_steps(plan, procs, person_s=0.0 if ui.automatic else PERSON_S)
+    steps = build_steps(plan, procs, person_s=0.0 if ui.automatic else PERSON_S, unattended=unattended)
     skipped: tuple[str, ...] = ()
     if unattended:
-        skipped = tuple(s.label for s in steps if s.needs_person)
+        skipped = tuple(s.label if s.needs_person else s.leaves_out for s in steps
+                        if s.needs_person or s.leaves_out)
         steps = [s for s in steps if not s.needs_person]
         if not steps:
             raise InputError(f"no step of {', '.join(procs)} runs without a person at the cell (each hangs a "

@@ -30,6 +30,8 @@ class Step:
     estimate_s: float
     needs_person: bool
     action: Callable[["Session"], None]
+    #: what an unattended run of this step leaves out (the part that needs a person), "" for nothing
+    leaves_out: str = ""
 
 
 # ------------------------------------------------------------------ steps
@@ -68,9 +70,32 @@ def _sweep_steps(plan: Plan, last_q: list, settle_s: float, person_s: float) -> 
     return steps
 
 
-def build_steps(plan: Plan, procedures: Sequence[str], *, person_s: float = PERSON_S) -> list[Step]:
+def _unloaded_step(plan: Plan, proc: str, pose: PoseSpec, loads: Sequence[str], last_q: list,
+                   settle_s: float) -> Step:
+    """A check pose read unloaded only, what the robot can do with nobody at the cell
+    (``last_q[0]``: where the robot stands before it, updated)."""
+    st = plan.static
+    markers = st.markers
+    est = _move_s(last_q[0], pose.q, st.speed_rad_s) + settle_s + st.repeats * st.reading_s
+    last_q[0] = pose.q
+
+    def action(s: Session) -> None:
+        s.move(pose.q, st.speed_rad_s, markers[:1])
+        s.event("pose", pose=pose.id, q=list(pose.q))
+        s.settle(markers, pose=pose.id, load=UNLOADED)
+        s.hold(pose, UNLOADED, markers, st.repeats, st.reading_s)
+
+    return Step(id=f"{proc}/{pose.id}/unloaded", procedure=proc, label=f"{proc} pose {pose.id} unloaded",
+                estimate_s=est, needs_person=False, action=action,
+                leaves_out=f"{proc} pose {pose.id} under load {', '.join(loads)}")
+
+
+def build_steps(plan: Plan, procedures: Sequence[str], *, person_s: float = PERSON_S,
+                unattended: bool = False) -> list[Step]:
     """The steps of ``procedures`` (names of plan sections), in order, with
-    their time estimates (robot time plus ``person_s`` per load change)."""
+    their time estimates (robot time plus ``person_s`` per load change).
+    ``unattended``: nobody at the cell, so a check pose reads its markers unloaded
+    only (what the robot can do alone); the loads it leaves out are the step's ``leaves_out``."""
     steps: list[Step] = []
     settle_s = plan.settle.window_s + 0.5
     last_q: list[Sequence[float] | None] = [None]
@@ -130,7 +155,8 @@ def build_steps(plan: Plan, procedures: Sequence[str], *, person_s: float = PERS
         elif proc == "check":
             c = plan.check
             for pid in c.poses:
-                steps.append(static_step("check", plan.pose(pid), (c.load,)))
+                steps.append(_unloaded_step(plan, "check", plan.pose(pid), (c.load,), last_q, settle_s)
+                             if unattended else static_step("check", plan.pose(pid), (c.load,)))
             if c.friction is not None:
                 f = next(x for x in plan.friction if x.id == c.friction)
                 steps.append(pair_step("check", f, f.speeds_rad_s[0], f.loads[0], f"check/{f.id}",

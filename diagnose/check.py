@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from elastocal.diagnose.check_positions import PositionCheck, check_positions
 from elastocal.errors import InputError
 from elastocal.formats.calibration import Calibration
 from elastocal.model.effects import get_effect
@@ -183,12 +184,15 @@ class CheckResult:
     friction: FrictionCheck | None
     #: absolute accuracy (identify/accuracy.py), when the calibration holds kinematic_errors
     absolute: object | None = None
+    #: unloaded positions against the calibration's own data (diagnose/check_positions.py)
+    positions: PositionCheck | None = None
 
     def to_json(self) -> dict:
         return {"verdict": self.verdict, "reasons": list(self.reasons), "alpha": self.alpha,
                 "deflection": None if self.deflection is None else self.deflection.to_json(),
                 "friction": None if self.friction is None else self.friction.to_json(),
-                **({} if self.absolute is None else {"absolute": self.absolute.to_json()})}
+                **({} if self.absolute is None else {"absolute": self.absolute.to_json()}),
+                **({} if self.positions is None else {"positions": self.positions.to_json()})}
 
 
 # ================================================================ deflections
@@ -357,20 +361,30 @@ def check_friction(robot: Robot, calibration: Calibration, runs: RunTable, *, al
 # ==================================================================== verdict
 def check_calibration(robot: Robot, calibration: Calibration, *, static: StaticTable | None = None,
                       runs: RunTable | None = None, alpha: float = 1e-3, friction_tolerance: float = 0.2,
-                      form: KinematicForm = KinematicForm.EXACT) -> CheckResult:
-    """The verdict on ``calibration`` from a check's static table and/or runs."""
+                      form: KinematicForm = KinematicForm.EXACT, baseline: StaticTable | None = None) -> CheckResult:
+    """The verdict on ``calibration`` from a check's static table and/or runs. ``baseline``: the
+    calibration's own static data; a check's unloaded readings are compared with its unloaded
+    readings at the same poses (diagnose/check_positions.py), which is all an unattended check
+    (no load hung) can test of the static model."""
     if not 0.0 < alpha < 1.0:
         raise InputError(f"must be between 0 and 1, got {alpha}", argument="alpha")
     if static is None and runs is None:
         raise InputError("the check holds neither static poses nor runs", argument="static")
     has_friction = runs is not None and any(p.name.startswith("fc") and p.name[2:].isdigit()
                                             for p in calibration.parameters)
-    n_tests = int(static is not None) + int(has_friction)
+    loaded = static is not None and not static.absolute_only
+    compare_positions = static is not None and baseline is not None
+    n_tests = int(loaded) + int(has_friction) + int(compare_positions)
     share = alpha / max(n_tests, 1)
     reasons: list[tuple[bool, str]] = []      # (failed, text)
-    deflection = check_static(robot, calibration, static, alpha=share, form=form) if static is not None else None
+    deflection = check_static(robot, calibration, static, alpha=share, form=form) if loaded else None
     if deflection is not None:
         reasons.append((not deflection.passed, deflection.reason()))
+    elif static is not None:
+        reasons.append((False, "deflections not checked: the check read its poses unloaded only"))
+    positions = check_positions(static, baseline, alpha=share) if compare_positions else None
+    if positions is not None:
+        reasons.append((not positions.passed, positions.reason()))
     from elastocal.identify.accuracy import absolute_check
 
     absolute = absolute_check(robot, calibration, static) if static is not None else None
@@ -386,4 +400,4 @@ def check_calibration(robot: Robot, calibration: Calibration, *, static: StaticT
     failed = any(f for f, _ in reasons)
     ordered = [text for f, text in reasons if f] + [text for f, text in reasons if not f]
     return CheckResult(verdict="recalibrate" if failed else "holds", reasons=tuple(ordered), alpha=alpha,
-                       deflection=deflection, friction=friction, absolute=absolute)
+                       deflection=deflection, friction=friction, absolute=absolute, positions=positions)

@@ -444,16 +444,16 @@ def test_sim_serve_write_cell_refuses_to_overwrite_without_force(tmp_path, capsy
 
 
 # ------------------------------------------- 10. unattended checks, friction drift
-def _check_plan(friction: bool = True) -> str:
+def _check_plan(friction: bool = True, check_poses: bool = True) -> str:
     from elastocal.formats.plan import CheckSpec, FrictionSpec, LoadSpec, SettleSpec, plan_toml
 
     poses = {"P1": (0.2, 0.3, -0.4, 0.3, 1.0, 0.2), "P2": (0.5, 0.55, -0.2, 0.6, 1.2, 0.5)}
     spec = (FrictionSpec("F1", start=(-0.2, 0.3, -0.5, -0.1, 0.6, -0.1), end=(0.0, 0.4, -0.4, 0.1, 0.7, 0.1),
-                         speeds_rad_s=(0.2,)),)
+                         speeds_rad_s=(0.2,), loads=("0",) if check_poses else ("L1",)),)
     return plan_toml(poses=poses, loads=(LoadSpec("L1", force_n=(-635.0, 635.0, -635.0)),),
                      markers=("R1", "R2", "R3"), repeats=2, reading_s=0.04, speed_rad_s=0.8,
                      settle=SettleSpec(speed_rad_s=2e-3, spread_m=60e-6, window_s=0.15, timeout_s=20.0),
-                     friction=spec, check=CheckSpec(poses=("P1", "P2"), load="L1",
+                     friction=spec, check=CheckSpec(poses=("P1", "P2") if check_poses else (), load="L1",
                                                     friction="F1" if friction else None))
 
 
@@ -468,16 +468,21 @@ def test_unattended_procedure_skips_what_needs_a_person(tmp_path):
     timing = VirtualTiming(drive_rate_hz=100.0, tracker_rate_hz=100.0)
     io = VirtualCellIO(SimCell(ROBOT, CellTruth()), seed=3, timing=timing)
     out = run_procedures(io, parse_plan(_check_plan()), tmp_path / "u.mcap", procedures=("check",), unattended=True)
-    assert out.status == "completed" and out.skipped == ("check pose P1", "check pose P2")
+    assert out.status == "completed" and out.skipped == ("check pose P1 under load L1", "check pose P2 under load L1")
     contents = read_log(tmp_path / "u.mcap")
     kinds = [e["kind"] for e in contents.events]
-    assert "prompt" not in kinds and kinds.count("run_start") == 2 and "reading" not in kinds
+    assert "prompt" not in kinds and kinds.count("run_start") == 2
+    # what the robot can do alone: each check pose read unloaded, nothing under load
+    readings = [e for e in contents.events if e["kind"] == "reading"]
+    assert {(e["pose"], e["load"]) for e in readings} == {("P1", "0"), ("P2", "0")} and len(readings) == 2 * 2 * 3
     assert [e["text"] for e in contents.events if e["kind"] == "unattended"] == [
-        "no person at the cell: the cell is taken as unloaded; skipped check pose P1; check pose P2"]
+        "no person at the cell: the cell is taken as unloaded; skipped check pose P1 under load L1; "
+        "check pose P2 under load L1"]
+    # a check of no pose whose friction run is under a load: nothing left without a person
     with pytest.raises(InputError, match="no step of check runs without a person at the cell"):
         run_procedures(VirtualCellIO(SimCell(ROBOT, CellTruth()), seed=3, timing=timing),
-                       parse_plan(_check_plan(friction=False)), tmp_path / "v.mcap", procedures=("check",),
-                       unattended=True)
+                       parse_plan(_check_plan(check_poses=False)), tmp_path / "v.mcap",
+                       procedures=("check",), unattended=True)
     assert not (tmp_path / "v.mcap").exists()
 
 
@@ -506,9 +511,10 @@ def test_a_check_without_terminal_runs_unattended(data, tmp_path, capsys, monkey
                                     "--no-record", "--json"])
     assert rc in (0, 3), err
     obj = json.loads(out)
-    assert obj["skipped"] == ["check pose P1", "check pose P2"] and obj["deflection"] is None
-    assert obj["friction"]["joints"]
-    assert obj["reasons"][-1] == "not checked, no person at the cell (unattended): check pose P1; check pose P2"
+    assert obj["skipped"] == ["check pose P1 under load L1", "check pose P2 under load L1"]
+    assert obj["deflection"] is None and obj["friction"]["joints"]
+    assert obj["reasons"][-1] == ("not checked, no person at the cell (unattended): check pose P1 under load L1; "
+                                  "check pose P2 under load L1")
     assert "aborted" not in err
 
 

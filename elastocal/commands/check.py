@@ -75,6 +75,42 @@ def _calibration(args: argparse.Namespace, db: pathlib.Path | None):
     return rec.calibration, rec.id, rec.plan
 
 
+def baseline_log(db: pathlib.Path | None, cal_id: int | None) -> pathlib.Path | None:
+    """The log the calibration was identified from, as the history recorded it (``history add
+    --log``), when it is still there unchanged: its unloaded readings are what an unattended
+    check's are compared with (diagnose/check_positions.py)."""
+    from elastocal.acquisition.history import History
+    from elastocal.formats.calibration import file_sha256
+
+    if db is None or cal_id is None or not db.exists():
+        return None
+    with History(db, create=False) as h:
+        rec = h.calibration(cal_id)
+    if rec is None or not rec.log_path:
+        return None
+    path = pathlib.Path(rec.log_path)
+    if not path.is_file() or (rec.log_sha256 and file_sha256(path) != rec.log_sha256):
+        return None
+    return path
+
+
+def _baseline(args: argparse.Namespace, db: pathlib.Path | None, cal_id: int | None, robot):
+    """The calibration's own static table, or None (with a note saying why the unloaded positions
+    cannot be compared)."""
+    from elastocal.commands._inputs import load_log_noted
+    from elastocal.commands._outputs import note
+
+    path = baseline_log(db, cal_id)
+    if path is None:
+        note(args, "note: the history holds no log of this calibration (`elastocal history add --log`), so "
+                   "the unloaded positions are not compared with the calibration's")
+        return None
+    log_robot, static, _ = load_log_noted(args, path)
+    if static is None or (log_robot is not None and log_robot.name != robot.name):
+        return None
+    return static
+
+
 def unattended(args: argparse.Namespace) -> bool:
     """No person can answer prompts: --unattended, or no terminal on stdin (a scheduled run) without --yes."""
     if args.yes:
@@ -198,13 +234,16 @@ def run(args: argparse.Namespace) -> int:
     if (args.static or args.runs) and args.log:
         raise InputError("give either a log or --static/--runs tables, not both", source=args.log)
     static, runs, data_path, log_path, skipped = _data(args, config, robot, plan_text, db, now_ns)
+    baseline = _baseline(args, db, cal_id, robot) if static is not None and static.absolute_only else None
     result = check_calibration(robot, cal, static=static, runs=runs, alpha=args.alpha,
-                               friction_tolerance=args.friction_tolerance)
+                               friction_tolerance=args.friction_tolerance, baseline=baseline)
     if skipped:
-        tested = result.deflection is not None or (result.friction is not None and result.friction.joints)
+        tested = (result.deflection is not None or result.positions is not None or result.absolute is not None
+                  or (result.friction is not None and result.friction.joints))
         if not tested:
             raise InputError(f"the unattended check tested nothing: it skipped {'; '.join(skipped)} (no person to "
-                             "hang the load), and the rest does not test this calibration", source=str(log_path))
+                             "hang the load), and the rest does not test this calibration (no log of it in the "
+                             "history to compare the unloaded positions with)", source=str(log_path))
         result = dataclasses.replace(result, reasons=result.reasons + (
             f"not checked, no person at the cell (unattended): {'; '.join(skipped)}",))
     obj = clean(result.to_json())

@@ -187,16 +187,16 @@ def _write_atomic(files: dict[pathlib.Path, str]) -> None:
 
 def unattended_check(check_args: argparse.Namespace, config, db: pathlib.Path | None) -> str | None:
     """Refuse a schedule whose check can test nothing without a person: a timer runs it with no
-    terminal, so only the steps that need no person run (docs/check.md, Unattended checks).
-    Returns a note when the plan or calibration cannot be known yet (nothing recorded)."""
-    from elastocal.acquisition.steps import build_steps
-    from elastocal.commands.check import _calibration
+    terminal, so the check poses are read unloaded and only the steps that need no person run
+    (docs/check.md, Unattended checks). Returns a note when the plan or calibration cannot be
+    known yet (nothing recorded)."""
+    from elastocal.commands.check import _calibration, baseline_log
     from elastocal.formats.plan import load_plan, parse_plan
 
     if not check_args.calibration and (db is None or not db.exists()):
         return (f"no calibration recorded yet in {db}: whether the check can run unattended is not known; "
                 "`elastocal check --cell ... --unattended` tells once one is recorded")
-    cal, _, plan_text = _calibration(check_args, db)
+    cal, cal_id, plan_text = _calibration(check_args, db)
     if check_args.plan:
         plan = load_plan(check_args.plan)
     elif plan_text is not None:
@@ -207,20 +207,19 @@ def unattended_check(check_args: argparse.Namespace, config, db: pathlib.Path | 
         return "no check plan found yet: whether the check can run unattended is not known"
     if plan.check is None:
         raise InputError("the plan has no [check] section: a scheduled check could not run", source=plan.source)
-    steps = build_steps(plan, ("check",))
-    free = [s for s in steps if not s.needs_person]
-    why = None
-    if not free:
-        why = (f"every step of its [check] needs a person ({', '.join(s.label for s in steps)}: each hangs a "
-               "load) and a timer runs it with nobody there")
-    elif not any(cal.has(f"fc{j}") for j in range(1, len(config.load_robot().joints) + 1)):
-        why = ("without a person it runs only the friction path, and the calibration holds no friction to "
-               "compare with")
-    if why:
-        raise InputError(f"the scheduled check would exit 2 every time: {why}; plan the check with a "
-                         "--friction-path and identify friction, or (a simulated cell) pass "
-                         "--check-args=\"--yes\"", source=plan.source)
-    return None
+    friction_run = plan.check.friction is not None and any(
+        cal.has(f"fc{j}") for j in range(1, len(config.load_robot().joints) + 1))
+    # the check poses read unloaded: compared with the calibration's own log (history add --log), or
+    # with its geometry when it holds one
+    positions = bool(plan.check.poses) and (baseline_log(db, cal_id) is not None
+                                            or "kinematic_errors" in cal.model)
+    if friction_run or positions:
+        return None
+    raise InputError("the scheduled check would exit 2 every time: without a person it reads the check poses "
+                     "unloaded and runs the friction path, and nothing here compares them with the calibration "
+                     "(no log of the calibration in the history, no geometry in it, no friction run or no "
+                     "friction in it); record the calibration with its log (`elastocal history add --log`), "
+                     "or (a simulated cell) pass --check-args=\"--yes\"", source=plan.source)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
