@@ -87,7 +87,7 @@ def static_readings(contents: LogContents) -> list[StaticReading]:
         no_sample = []
         for j, d in enumerate(contents.drives, start=1):
             dsl = _window(d.t_ns, start, end)
-            cur.append(float(np.mean(d.current_a[dsl])) if dsl.stop > dsl.start else float("nan"))
+            cur.append(float(_mean(d.current_a[dsl])) if dsl.stop > dsl.start else float("nan"))
             if dsl.stop <= dsl.start:
                 no_sample.append(j)
         session = contents.sessions[min(int(e["segment"]), len(contents.sessions) - 1)]
@@ -98,6 +98,13 @@ def static_readings(contents: LogContents) -> list[StaticReading]:
             q=tuple(float(v) for v in e["q"]), wrench=tuple(_wrench(e.get("wrench"))), currents=tuple(cur),
             wall_s=tuple(wall0 + int(v) * 1e-9 for v in e["window_ns"]), no_sample=tuple(no_sample)))
     return out
+
+
+def _mean(x: np.ndarray) -> np.ndarray:
+    """The mean of a window's samples (along the first axis) about its first sample: equal samples
+    give that sample exactly, whatever their number (a plain sum of n equal values can end a last bit
+    off, so two windows of one reading holding 2 or 3 samples would differ in a last digit)."""
+    return x[0] + np.mean(x - x[0], axis=0)
 
 
 def _utc_seconds(text: str, source: str) -> float:
@@ -136,7 +143,7 @@ def static_table_from_log(contents: LogContents, robot: Robot | None = None) -> 
         if samples is None or sl.stop <= sl.start:
             raise InputError(f"reading of marker {r.marker} at pose {r.pose} load {r.load} has no tracker sample "
                              f"in its window", source=contents.path)
-        xyz.append(samples.xyz[sl].mean(axis=0))
+        xyz.append(_mean(samples.xyz[sl]))
         currents.append(list(r.currents))
         pose.append(r.pose)
         load.append(r.load)

@@ -30,6 +30,8 @@ DRAIN_TIMEOUT_S = 5.0
 
 #: how many more times a reading is taken when a drive lost every sample of its window (a stream gap)
 READING_RETRIES = 3
+#: a reading's window is held open until every drive has a sample in it, up to this many times its length
+WINDOW_EXTEND = 20
 
 
 #: how often progress is redrawn during a step [s]
@@ -416,7 +418,7 @@ class Session:
             t1 = self.io.clock()
             if not self.io.reads_tracker or any(s.marker == marker and t0 <= s.t_ns <= t1 for s in samples.tracker):
                 if first_miss is None:
-                    return t0, t1
+                    return t0, self._complete_window(marker, t0, t1, reading_s)
                 # the beam is back: whoever broke it may have touched the cell; settle, then read again
                 self.event("beam_back", marker=marker, duration_s=(t1 - first_miss) * 1e-9, pose=pose.id,
                            load=load_id)
@@ -431,6 +433,22 @@ class Session:
                 raise BeamBroken(f"the tracker gave no reading of marker {marker} for {BEAM_WAIT_S:g} s at pose "
                                  f"{pose.id}, load {load_id} (beam broken or no target); clear the line of "
                                  "sight, then resume")
+
+    def _complete_window(self, marker: str, t0: int, t1: int, reading_s: float) -> int:
+        """The end of a reading's window, held open until every drive has a sample in it: a busy host
+        can delay a drive's cycles past a short window, and a window is then longer rather than
+        taken again (a new aim would be a new reading, with its own simulated noise, so the same
+        seed would not give the same numbers). At most :data:`WINDOW_EXTEND` windows long; a drive
+        still without a sample then is left to :meth:`hold`'s retries."""
+        if not self._latest_drive_ns:          # a cell without drives in this session
+            return t1
+        self.drain(t1)
+        limit = t0 + int(WINDOW_EXTEND * max(reading_s, 0.01) * 1e9)
+        while not all(self._has_sample(j, t0, t1) for j in self._latest_drive_ns) and t1 < limit:
+            self.poll([marker], max(reading_s, 0.01) / 4)
+            t1 = self.io.clock()
+            self.drain(t1)
+        return t1
 
     def _has_sample(self, joint: int, t0: int, t1: int) -> bool:
         times = self._drive_times.get(joint, [])

@@ -321,7 +321,8 @@ def test_resume_after_a_kill_continues_a_truncated_log(robot, poses, tmp_path):
 
 
 class LosesJoint2InReadings(VirtualCellIO):
-    """Joint 2's stream loses every sample of the first ``n`` reading windows (a gap)."""
+    """Joint 2's stream loses every sample of the first ``n`` polls of a reading window (a gap),
+    the polls that hold a window open for a drive's sample and wait for late ones included."""
 
     def __init__(self, *args, n: int, reading_s: float, **kw):
         super().__init__(*args, **kw)
@@ -329,7 +330,9 @@ class LosesJoint2InReadings(VirtualCellIO):
 
     def poll(self, markers, duration_s):
         samples = super().poll(markers, duration_s)
-        if not (markers and duration_s == self.reading_s and len(self.lost) < self.n):
+        reading = ((markers and duration_s in (self.reading_s, self.reading_s / 4))
+                   or (not markers and duration_s == 0.005))
+        if not (reading and len(self.lost) < self.n):
             return samples
         gone = [d for d in samples.drives if d.joint == 2]
         if not gone:
@@ -339,7 +342,9 @@ class LosesJoint2InReadings(VirtualCellIO):
         return Samples(tuple(d for d in samples.drives if d.joint != 2), samples.tracker, samples.gaps + (gap,))
 
 
-def test_a_reading_whose_window_a_drive_gap_swallowed_is_taken_again(robot, poses, tmp_path):
+def test_a_reading_whose_window_a_drive_gap_swallowed_is_held_open_for_the_drive(robot, poses, tmp_path):
+    """A gap over a reading's window keeps the window open until the drive's samples come (a busy
+    host's late cycles), so no reading is taken again and none lacks a drive's current."""
     plan = static_plan(poses[:2])
     io = LosesJoint2InReadings(SimCell(robot, CellTruth()), seed=5, timing=TIMING, n=2, reading_s=0.04)
     out = run_procedures(io, plan, tmp_path / "log.mcap")
@@ -361,4 +366,5 @@ def test_a_drive_that_loses_every_try_of_a_reading_ends_the_procedure(robot, pos
     contents = read_log(tmp_path / "log.mcap")                 # the log up to the fault is readable
     assert contents.complete and contents.end_status == "failed"
     assert [e["error"] for e in contents.events if e["kind"] == "fault"] == ["DeviceTimeout"]
-    assert sum(e["kind"] == "gap" for e in contents.events) == 4 * 6   # every try of every window, recorded
+    # every try of every window held open to its limit, its gaps recorded
+    assert sum(e["kind"] == "gap" for e in contents.events) == len(io.lost) > 4 * 6
