@@ -37,6 +37,7 @@ import os
 import pathlib
 import sys
 import tempfile
+from types import SimpleNamespace
 import time
 import uuid
 from dataclasses import replace
@@ -138,7 +139,65 @@ class _Sims:
                     self._child.kill()
 
 
-def main(argv: list[str] | None = None) -> int:
+def _report(args: argparse.Namespace, sims, run: SimpleNamespace) -> int:
+    """Print what the run measured; 0 when every lost sample is a recorded gap."""
+    where = ("simulated drives in this process, simulated tracker in a child process"
+             if args.tracker_sim == "process" else "simulated devices in this process")
+    print(f"{run.n_drives} CANopen drives at {args.rate:g} Hz, tracker at {args.tracker_rate:g} Hz, "
+          f"{args.duration:g} s, {where}")
+    print(f"{'device':<10} {'expected':>9} {'accounted':>10} {'received':>9} {'lost':>6} {'gaps':>5} "
+          f"{'in log':>8} {'gap in log':>10} {'unrecorded':>10} {'kept':>7}")
+    worst = 0
+    unrecorded_all = 0
+    kept = []
+    for name in run.names:
+        st = run.stats[name]
+        rate = args.tracker_rate if name == "tracker" else args.rate
+        expected = int(round(rate * st.elapsed_s))
+        in_flight = int(rate * 0.01)      # samples on their way when the stream was closed (10 ms)
+        lost = st.missing + max(0, expected - st.expected - in_flight)
+        worst = max(worst, lost)
+        in_log, gap_in_log = run.logged[name]
+        # lost without a gap event saying so: what the stream accounts for (received + the gaps it
+        # reported: SYNC cycles for the drives, sequence numbers for the tracker) against the log
+        unrecorded = max(0, st.expected - in_log - gap_in_log)
+        unrecorded_all += unrecorded
+        kept.append(in_log / max(expected, 1))
+        print(f"{name:<10} {expected:>9d} {st.expected:>10d} {st.received:>9d} {lost:>6d} {st.gaps:>5d} "
+              f"{in_log:>8d} {gap_in_log:>10d} {unrecorded:>10d} {kept[-1]:>7.2%}"
+              + (f"  {run.errors[name]}" if name in run.errors else ""))
+    for reason, n in sorted(run.reasons.items(), key=lambda kv: -kv[1]):
+        print(f"  lost to: {n:6d}  {reason}")
+    bus, sync, cpu_s, wall_s = run.bus, run.sync, run.cpu_s, run.wall_s
+    print(f"CAN bus {sims.name}: {bus.frames_per_s:,.0f} frames/s, load {bus.load:.1%} of "
+          f"{bus.bitrate / 1e6:g} Mbit/s; TPDOs dropped: {bus.dropped_window} outside the SYNC window, "
+          f"{bus.dropped_overrun} on overrun")
+    print(f"SYNC: {sync.sent} sent, {sync.not_sent} not sent (producer more than a period late), "
+          f"{sync.late} sent more than a tenth of a period late; lateness mean "
+          f"{sync.mean_lateness_s * 1e6:.0f} us, max {sync.max_lateness_s * 1e3:.2f} ms")
+    cycles = max(sync.sent, 1)
+    print(f"CPU: this process {cpu_s:.1f} s in {wall_s:.1f} s ({cpu_s / wall_s:.0%} of a core), "
+          f"{cpu_s / cycles * 1e6:.0f} us per SYNC cycle, {cpu_s / max(bus.frames, 1) * 1e6:.0f} us per CAN frame"
+          + (f"; tracker process {sims.child_cpu_s:.1f} s in all" if sims.child_cpu_s is not None else ""))
+    if run.woke is not None:
+        n, missed, p50, p99, worst_ns = run.woke
+        print(f"wake-up probe (a bare thread in another process sleeping to the same deadlines): "
+              f"{missed} of {n + missed} deadlines missed by more than a period ({missed / max(n + missed, 1):.2%}); "
+              f"lateness median {p50 / 1e3:.0f} us, 99th percentile {p99 / 1e3:.0f} us, max {worst_ns / 1e6:.1f} ms")
+    print(f"machine: {os.cpu_count()} CPUs, load average {run.load_before[0]:.2f} -> {run.load_after[0]:.2f}, "
+          f"CPU pressure (time some task waited for a CPU, last 10 s) {run.pressure}")
+    if run.woke is not None:
+        met = n / max(n + missed, 1)
+        print(f"kept against the bare sleeper: worst device {min(kept):.2%} of its samples in the log, the sleeper "
+              f"met {met:.2%} of its deadlines: ratio {min(kept) / max(met, 1e-9):.3f} (1.000: as good as this "
+              "machine allowed a thread that does nothing else)")
+    print("result:", "no sample lost" if worst == 0 else f"samples lost (worst device: {worst})",
+          "; every lost sample is a recorded gap" if unrecorded_all == 0 else
+          f"; {unrecorded_all} samples lost WITHOUT a recorded gap")
+    return 0 if unrecorded_all == 0 else 1
+
+
+def _arguments(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--duration", type=float, default=20.0, help="streaming time [s] (default 20)")
     p.add_argument("--rate", type=float, default=1000.0, help="SYNC rate of the drives [Hz] (default 1000)")
@@ -152,15 +211,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--switch-interval", type=float, default=2e-4,
                    help="sys.setswitchinterval of this process [s] (default 2e-4; Python's is 5e-3)")
     args = p.parse_args(argv)
+    return args
+
+
+def _start_probe(rate: float):
+    """(process, pipe) of the wake-up probe, started first so that its imports are done before streaming."""
+    ctx = multiprocessing.get_context("spawn")
+    probe_conn, child_end = ctx.Pipe()
+    probe = ctx.Process(target=_probe, args=(child_end, rate), daemon=True, name="wake-probe")
+    probe.start()
+    probe_conn.recv()
+    return probe, probe_conn
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _arguments(argv)
     sys.setswitchinterval(args.switch_interval)
 
-    probe = probe_conn = woke = None
-    if args.probe:                            # started first: its imports are done before streaming
-        ctx = multiprocessing.get_context("spawn")
-        probe_conn, child_end = ctx.Pipe()
-        probe = ctx.Process(target=_probe, args=(child_end, args.rate), daemon=True, name="wake-probe")
-        probe.start()
-        probe_conn.recv()
+    woke = None
+    probe, probe_conn = _start_probe(args.rate) if args.probe else (None, None)
     sims = _Sims(args.tracker_sim)
     tmp = None
     if args.log is None:
@@ -228,59 +297,11 @@ def main(argv: list[str] | None = None) -> int:
             if tmp is not None:
                 tmp.cleanup()
 
-    where = ("simulated drives in this process, simulated tracker in a child process"
-             if args.tracker_sim == "process" else "simulated devices in this process")
-    print(f"{len(cell.drives)} CANopen drives at {args.rate:g} Hz, tracker at {args.tracker_rate:g} Hz, "
-          f"{args.duration:g} s, {where}")
-    print(f"{'device':<10} {'expected':>9} {'accounted':>10} {'received':>9} {'lost':>6} {'gaps':>5} "
-          f"{'in log':>8} {'gap in log':>10} {'unrecorded':>10} {'kept':>7}")
-    worst = 0
-    unrecorded_all = 0
-    kept = []
-    for name, _ in streams:
-        st = stats[name]
-        rate = args.tracker_rate if name == "tracker" else args.rate
-        expected = int(round(rate * st.elapsed_s))
-        in_flight = int(rate * 0.01)      # samples on their way when the stream was closed (10 ms)
-        lost = st.missing + max(0, expected - st.expected - in_flight)
-        worst = max(worst, lost)
-        in_log, gap_in_log = logged[name]
-        # lost without a gap event saying so: what the stream accounts for (received + the gaps it
-        # reported: SYNC cycles for the drives, sequence numbers for the tracker) against the log
-        unrecorded = max(0, st.expected - in_log - gap_in_log)
-        unrecorded_all += unrecorded
-        kept.append(in_log / max(expected, 1))
-        print(f"{name:<10} {expected:>9d} {st.expected:>10d} {st.received:>9d} {lost:>6d} {st.gaps:>5d} "
-              f"{in_log:>8d} {gap_in_log:>10d} {unrecorded:>10d} {kept[-1]:>7.2%}"
-              + (f"  {errors[name]}" if name in errors else ""))
-    for reason, n in sorted(reasons.items(), key=lambda kv: -kv[1]):
-        print(f"  lost to: {n:6d}  {reason}")
-    print(f"CAN bus {sims.name}: {bus.frames_per_s:,.0f} frames/s, load {bus.load:.1%} of "
-          f"{bus.bitrate / 1e6:g} Mbit/s; TPDOs dropped: {bus.dropped_window} outside the SYNC window, "
-          f"{bus.dropped_overrun} on overrun")
-    print(f"SYNC: {sync.sent} sent, {sync.not_sent} not sent (producer more than a period late), "
-          f"{sync.late} sent more than a tenth of a period late; lateness mean "
-          f"{sync.mean_lateness_s * 1e6:.0f} us, max {sync.max_lateness_s * 1e3:.2f} ms")
-    cycles = max(sync.sent, 1)
-    print(f"CPU: this process {cpu_s:.1f} s in {wall_s:.1f} s ({cpu_s / wall_s:.0%} of a core), "
-          f"{cpu_s / cycles * 1e6:.0f} us per SYNC cycle, {cpu_s / max(bus.frames, 1) * 1e6:.0f} us per CAN frame"
-          + (f"; tracker process {sims.child_cpu_s:.1f} s in all" if sims.child_cpu_s is not None else ""))
-    if probe is not None and woke is not None:
-        n, missed, p50, p99, worst_ns = woke
-        print(f"wake-up probe (a bare thread in another process sleeping to the same deadlines): "
-              f"{missed} of {n + missed} deadlines missed by more than a period ({missed / max(n + missed, 1):.2%}); "
-              f"lateness median {p50 / 1e3:.0f} us, 99th percentile {p99 / 1e3:.0f} us, max {worst_ns / 1e6:.1f} ms")
-    print(f"machine: {os.cpu_count()} CPUs, load average {load_before[0]:.2f} -> {load_after[0]:.2f}, "
-          f"CPU pressure (time some task waited for a CPU, last 10 s) {pressure}")
-    if probe is not None and woke is not None:
-        met = n / max(n + missed, 1)
-        print(f"kept against the bare sleeper: worst device {min(kept):.2%} of its samples in the log, the sleeper "
-              f"met {met:.2%} of its deadlines: ratio {min(kept) / max(met, 1e-9):.3f} (1.000: as good as this "
-              "machine allowed a thread that does nothing else)")
-    print("result:", "no sample lost" if worst == 0 else f"samples lost (worst device: {worst})",
-          "; every lost sample is a recorded gap" if unrecorded_all == 0 else
-          f"; {unrecorded_all} samples lost WITHOUT a recorded gap")
-    return 0 if unrecorded_all == 0 else 1
+    run = SimpleNamespace(n_drives=len(cell.drives), names=[name for name, _ in streams], stats=stats, logged=logged,
+                          errors=errors, reasons=reasons, bus=bus, sync=sync, cpu_s=cpu_s, wall_s=wall_s,
+                          woke=woke if probe is not None else None, load_before=load_before, load_after=load_after,
+                          pressure=pressure)
+    return _report(args, sims, run)
 
 
 def _logged(path: pathlib.Path, names: list[str]) -> dict[str, tuple[int, int]]:

@@ -132,9 +132,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+# long: the demo's story, steps 1-6 one after the other, reads best in one piece
 def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
-    """Steps 1-6 (the module's docstring); their tables go to stdout (kept by the caller). One
-    function over 80 lines on purpose: it reads as the demo's story, step after step."""
+    """Steps 1-6 (the module's docstring); their tables go to stdout (kept by the caller)."""
     from elastocal.acquisition.export import load_log
     from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
     from elastocal.acquisition.procedures import run_calibration
@@ -153,6 +153,7 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     from elastocal.identify.static import identify_static
     from elastocal.sims.cell import CellTruth, SimCell
     from elastocal.sims.serve import example_cell_config
+    from elastocal.model.kinds import KinematicForm, TorqueSource
     from elastocal.sims.static import random_poses
 
     # 1. the simulated cell: built with its real geometry (kinematic errors), the tracker 3.7 m away and turned
@@ -194,7 +195,7 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     k_names = [f"k{j}" for j in range(1, robot.n_joints + 1)]
     truth_k = {k: truth_params[k] for k in k_names}
     fits = {}
-    for torque in ("current", "force"):
+    for torque in (TorqueSource.CURRENT, TorqueSource.FORCE):
         fits[torque] = identify_static(robot_log, static, torque=torque)
     say("Identified the joint stiffness from the log (exact form), from motor currents and from forces:")
     for torque, fit in fits.items():
@@ -244,7 +245,7 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     model = CompensationModel(robot=robot, stiffness=k, compensator=None if comp is None else tuple(comp))
     path = yang_path(robot)
     wrench = np.tile(np.asarray(YANG_WRENCH, dtype=float), (len(path), 1))
-    result = compensate_path(model, path.q, wrench, form="exact")
+    result = compensate_path(model, path.q, wrench, form=KinematicForm.EXACT)
     for name, writer in (("compensated.csv", write_compensated_csv), ("compensated.src", write_krl),
                          ("compensated.mod", write_rapid)):
         with atomic(out / name) as tmp:

@@ -162,37 +162,8 @@ def _friction(args: argparse.Namespace, robot=None):
     return (FrictionSpec("F1", start=u, end=v, speeds_rad_s=speeds),)
 
 
-def run(args: argparse.Namespace) -> int:
-    if args.discriminate is not None:
-        from elastocal.commands import plan_discriminate
-
-        args.poses = 6 if args.poses is None else args.poses
-        args.candidates = 150 if args.candidates is None else args.candidates
-        args.loads_per_pose = 2 if args.loads_per_pose is None else args.loads_per_pose
-        return plan_discriminate.run(args)
-    for flag in ("given", "static"):
-        if getattr(args, flag):
-            raise InputError("only with --discriminate", source="--" + flag)
-    if args.test_pose is None:
-        raise InputError("the working pose is required: --test-pose Q1,...,Q6 (or --discriminate EFFECT)",
-                         source="--test-pose")
-    args.poses = 12 if args.poses is None else args.poses
-    args.candidates = 2000 if args.candidates is None else args.candidates
-    from elastocal.design.planning import plan_calibration
-    from elastocal.design import search as dz
-    from elastocal.formats.robot_toml import load_robot
-    from elastocal.sims import first_order_map as fom
-
-    from elastocal.commands._outputs import Outputs
-
-    started = time.monotonic()
-    outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot"), (args.cell, "--cell"),
-                                                (args.calibration, "--calibration")])
-    out = outputs.add(args.out, "--out")
-    if args.map:
-        if pathlib.Path(args.map).suffix.lower() not in (".png", ".svg"):
-            raise InputError("the map is written as .png or .svg", source="--map")
-        outputs.add(args.map, "--map")
+def _check_flags(args: argparse.Namespace) -> None:
+    """The numeric flags checked (and --loads-per-pose defaulted) before anything is computed."""
     if args.f_max is not None and not (math.isfinite(args.f_max) and args.f_max > 0):
         raise InputError(f"must be > 0, got {args.f_max}", source="--f-max")
     if args.loads_per_pose is None:       # hung weights offer one direction only
@@ -202,6 +173,12 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"must be at least 1, got {getattr(args, flag)}", source="--" + flag.replace("_", "-"))
     if args.seed < 0:
         raise InputError(f"must be >= 0, got {args.seed}", source="--seed")
+
+
+def _robot_and_markers(args: argparse.Namespace):
+    """(the cell or None, the robot, the markers to read) from --robot, --cell and --markers."""
+    from elastocal.formats.robot_toml import load_robot
+
     cell = None
     if args.cell:
         from elastocal.drivers.config import load_cell_config
@@ -224,6 +201,13 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"unknown marker {m!r}; the robot has {', '.join(robot.marker_names)}", source="--markers")
     if not markers:
         raise InputError("no marker to read", source="--markers")
+    return cell, robot, markers
+
+
+def _test_pose(args: argparse.Namespace, robot):
+    """(the working pose and its process load, the largest load force [N])."""
+    from elastocal.design import search as dz
+
     if args.load is None:
         raise InputError("the process load is required: --wrench FX,FY,FZ[,MX,MY,MZ]", source="--wrench")
     test = dz.TestPose(q=numbers(args.test_pose, (robot.n_joints,), "--test-pose"),
@@ -236,6 +220,117 @@ def run(args: argparse.Namespace) -> int:
     if f_max <= 0:
         raise InputError("the process load has no force, so the largest load force is unknown: give --f-max",
                          source="--load")
+    return test, f_max
+
+
+def _plan_json(args: argparse.Namespace, robot, planned, out, markers, f_max: float, tracker, prior,
+               prior_source: str, fmap, started: float) -> dict:
+    """The --json object of the plan."""
+    design, candidates, check, check_spec = planned.design, planned.candidates, planned.check, planned.check_spec
+    loads, geometry = planned.loads, planned.geometry
+    q = design.quality
+    names = [f"k{j}" for j in range(1, robot.n_joints + 1)]
+    obj = {
+        "plan": str(out),
+        "poses": {pid: [float(v) for v in qq] for pid, qq in zip(planned.pose_ids, design.q)},
+        "loads": [{"id": s.id, "force": [float(v) for v in f], "mass_kg": s.mass_kg}
+                  for s, f in zip(loads, design.forces)],
+        "markers": list(markers),
+        "f_max": f_max,
+        "k40": _finite(q.k40),
+        "k40_random_median": _finite(float(np.median(planned.baseline_k40))),
+        "accuracy": {"value": _finite(q.accuracy_m), "unit": "m"},
+        "accuracy_random": {"value": _finite(planned.random_quality.accuracy_m), "unit": "m"},
+        "test_deflection": {"value": q.test_deflection_m, "unit": "m"},
+        "stiffness_relative_std": {n: _finite(v) for n, v in zip(names, q.stiffness_rel_std)},
+        "check": {"poses": list(check_spec.poses), "load": check_spec.load, "friction": check_spec.friction,
+                  "k40": _finite(check.quality.k40), "accuracy": _finite(check.quality.accuracy_m)},
+        "candidates": {"kept": len(candidates.q), "sampled": candidates.sampled, "accepted": candidates.accepted,
+                       "rejected": dict(candidates.rejected)},
+        "visibility_checked": tracker is not None,
+        "prior": {"stiffness": list(prior), "source": prior_source},
+        "map": None if fmap is None else {"path": args.map, "good_fraction": fmap.good_fraction,
+                                          "torque": fmap.torque, "load": list(fmap.wrench)},
+        "kinematic": None if geometry is None else geometry.to_json(),
+        "planning_s": planned.planning_s,
+        "time_s": time.monotonic() - started,
+    }
+    return obj
+
+
+def _print_text(args: argparse.Namespace, obj: dict, planned, markers, out, tracker, prior_source: str,
+                fmap) -> None:
+    """The text the command prints without --json."""
+    design, candidates, check, check_spec = planned.design, planned.candidates, planned.check, planned.check_spec
+    loads, geometry, q = planned.loads, planned.geometry, planned.design.quality
+    names = [f"k{j}" for j in range(1, len(q.stiffness_rel_std) + 1)]
+    lines = [f"plan: {len(design.q)} poses x {len(loads)} loads (+ the unloaded reference), markers "
+             f"{', '.join(markers)}, {args.repeats} readings each -> {out}"]
+    for s in loads:
+        lines.append(f"  load {s.id}: {s.description}")
+    lines.append(f"industry measure K40 = {q.k40:.4g} ({args.poses} random candidate poses, same loads: median "
+                 f"{np.median(planned.baseline_k40):.4g})")
+    if geometry is not None:
+        g = obj["kinematic"]
+        lines.append(f"kinematic set ({len(g['identifiable']) - 6} parameters and the registration): observability "
+                     f"index O1 = {g['o1']:.4g} (stiffness-only plan {g['o1_stiffness_only']:.4g}, random median "
+                     f"{g['o1_random_median']:.4g}); largest predicted std {g['max_std']['value'] * 1e6:.1f} µm; "
+                     f"K40 {g['k40_stiffness_only']:.4g} for the stiffness alone")
+    rel = 100.0 * q.accuracy_m / q.test_deflection_m if q.test_deflection_m > 0 else math.nan
+    lines.append(f"predicted accuracy at the test pose: {q.accuracy_m * 1e6:.2f} µm rms after compensation "
+                 f"(deflection there {q.test_deflection_m * 1e3:.3f} mm under the process load, {rel:.3f} %; "
+                 f"random poses: {planned.random_quality.accuracy_m * 1e6:.2f} µm)")
+    lines.append("predicted stiffness std: " + ", ".join(
+        f"{n} {v * 100:.2f} %" if math.isfinite(v) else f"{n} unidentifiable" for n, v in zip(names, q.stiffness_rel_std)))
+    lines.append(f"check: poses {', '.join(check_spec.poses)} under {check_spec.load}"
+                 + (f", friction path {check_spec.friction}" if check_spec.friction else "")
+                 + f" (a calibration from the check's data alone would reach {check.quality.accuracy_m * 1e6:.1f} µm "
+                   "at the test pose)")
+    rejected = ", ".join(f"{n} {r}" for r, n in candidates.rejected if n)
+    lines.append(f"candidates: {len(candidates.q)} poses; {candidates.accepted} of {candidates.sampled} drawn "
+                 "respected the workspace" + (f" (rejected: {rejected})" if rejected else ""))
+    if tracker is None:
+        lines.append("marker visibility not checked: give --tracker-position")
+    lines.append(f"prior stiffness: {prior_source}")
+    if fmap is not None:
+        lines.append(f"first-order map: {args.map} (good enough on {fmap.good_fraction * 100:.0f} % of (q2, q3))")
+    lines.append(f"planning {planned.planning_s:.2f} s, total {obj['time_s']:.2f} s")
+    print("\n".join(lines))
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.discriminate is not None:
+        from elastocal.commands import plan_discriminate
+
+        args.poses = 6 if args.poses is None else args.poses
+        args.candidates = 150 if args.candidates is None else args.candidates
+        args.loads_per_pose = 2 if args.loads_per_pose is None else args.loads_per_pose
+        return plan_discriminate.run(args)
+    for flag in ("given", "static"):
+        if getattr(args, flag):
+            raise InputError("only with --discriminate", source="--" + flag)
+    if args.test_pose is None:
+        raise InputError("the working pose is required: --test-pose Q1,...,Q6 (or --discriminate EFFECT)",
+                         source="--test-pose")
+    args.poses = 12 if args.poses is None else args.poses
+    args.candidates = 2000 if args.candidates is None else args.candidates
+    from elastocal.design.planning import plan_calibration
+    from elastocal.design import search as dz
+    from elastocal.sims import first_order_map as fom
+
+    from elastocal.commands._outputs import Outputs
+
+    started = time.monotonic()
+    outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot"), (args.cell, "--cell"),
+                                                (args.calibration, "--calibration")])
+    out = outputs.add(args.out, "--out")
+    if args.map:
+        if pathlib.Path(args.map).suffix.lower() not in (".png", ".svg"):
+            raise InputError("the map is written as .png or .svg", source="--map")
+        outputs.add(args.map, "--map")
+    _check_flags(args)
+    cell, robot, markers = _robot_and_markers(args)
+    test, f_max = _test_pose(args, robot)
     tracker = numbers(args.tracker_position, (3,), "--tracker-position") if args.tracker_position else None
     if tracker is None and cell is not None and cell.tracker is not None and cell.tracker.base_p_tracker is not None:
         tracker = np.array(cell.tracker.base_p_tracker)
@@ -257,12 +352,6 @@ def run(args: argparse.Namespace) -> int:
         if exc.column and exc.column.startswith("friction"):
             raise InputError(exc.detail, source="--friction-path") from None
         raise
-    design, candidates, baseline, random_quality = (planned.design, planned.candidates, planned.baseline_k40,
-                                                    planned.random_quality)
-    check, loads, pose_ids, check_spec, text = (planned.check, planned.loads, planned.pose_ids, planned.check_spec,
-                                                planned.text)
-    plan_s = planned.planning_s
-    geometry = planned.geometry
     fmap = None
     if args.map:
         map_load = (_wrench(args.map_load, "--map-wrench") if args.map_load
@@ -271,68 +360,11 @@ def run(args: argparse.Namespace) -> int:
                                   torque=TorqueSource(args.torque), n_grid=args.map_grid)
     with outputs:
         if fmap is not None:
-            fom.plot_first_order_map(fmap, outputs.temp(args.map), test_q=test.q, poses=design.q)
-        outputs.temp(out).write_text(text, encoding="utf-8")
-    q = design.quality
-    names = [f"k{j}" for j in range(1, robot.n_joints + 1)]
-    obj = {
-        "plan": str(out),
-        "poses": {pid: [float(v) for v in qq] for pid, qq in zip(pose_ids, design.q)},
-        "loads": [{"id": s.id, "force": [float(v) for v in f], "mass_kg": s.mass_kg}
-                  for s, f in zip(loads, design.forces)],
-        "markers": list(markers),
-        "f_max": f_max,
-        "k40": _finite(q.k40),
-        "k40_random_median": _finite(float(np.median(baseline))),
-        "accuracy": {"value": _finite(q.accuracy_m), "unit": "m"},
-        "accuracy_random": {"value": _finite(random_quality.accuracy_m), "unit": "m"},
-        "test_deflection": {"value": q.test_deflection_m, "unit": "m"},
-        "stiffness_relative_std": {n: _finite(v) for n, v in zip(names, q.stiffness_rel_std)},
-        "check": {"poses": list(check_spec.poses), "load": check_spec.load, "friction": check_spec.friction,
-                  "k40": _finite(check.quality.k40), "accuracy": _finite(check.quality.accuracy_m)},
-        "candidates": {"kept": len(candidates.q), "sampled": candidates.sampled, "accepted": candidates.accepted,
-                       "rejected": dict(candidates.rejected)},
-        "visibility_checked": tracker is not None,
-        "prior": {"stiffness": list(prior), "source": prior_source},
-        "map": None if fmap is None else {"path": args.map, "good_fraction": fmap.good_fraction,
-                                          "torque": fmap.torque, "load": list(fmap.wrench)},
-        "kinematic": None if geometry is None else geometry.to_json(),
-        "planning_s": plan_s,
-        "time_s": time.monotonic() - started,
-    }
+            fom.plot_first_order_map(fmap, outputs.temp(args.map), test_q=test.q, poses=planned.design.q)
+        outputs.temp(out).write_text(planned.text, encoding="utf-8")
+    obj = _plan_json(args, robot, planned, out, markers, f_max, tracker, prior, prior_source, fmap, started)
     if args.json:
         print(json.dumps(obj))
         return 0
-    lines = [f"plan: {len(design.q)} poses x {len(loads)} loads (+ the unloaded reference), markers "
-             f"{', '.join(markers)}, {args.repeats} readings each -> {out}"]
-    for s in loads:
-        lines.append(f"  load {s.id}: {s.description}")
-    lines.append(f"industry measure K40 = {q.k40:.4g} ({args.poses} random candidate poses, same loads: median "
-                 f"{np.median(baseline):.4g})")
-    if geometry is not None:
-        g = obj["kinematic"]
-        lines.append(f"kinematic set ({len(g['identifiable']) - 6} parameters and the registration): observability "
-                     f"index O1 = {g['o1']:.4g} (stiffness-only plan {g['o1_stiffness_only']:.4g}, random median "
-                     f"{g['o1_random_median']:.4g}); largest predicted std {g['max_std']['value'] * 1e6:.1f} µm; "
-                     f"K40 {g['k40_stiffness_only']:.4g} for the stiffness alone")
-    rel = 100.0 * q.accuracy_m / q.test_deflection_m if q.test_deflection_m > 0 else math.nan
-    lines.append(f"predicted accuracy at the test pose: {q.accuracy_m * 1e6:.2f} µm rms after compensation "
-                 f"(deflection there {q.test_deflection_m * 1e3:.3f} mm under the process load, {rel:.3f} %; "
-                 f"random poses: {random_quality.accuracy_m * 1e6:.2f} µm)")
-    lines.append("predicted stiffness std: " + ", ".join(
-        f"{n} {v * 100:.2f} %" if math.isfinite(v) else f"{n} unidentifiable" for n, v in zip(names, q.stiffness_rel_std)))
-    lines.append(f"check: poses {', '.join(check_spec.poses)} under {check_spec.load}"
-                 + (f", friction path {check_spec.friction}" if check_spec.friction else "")
-                 + f" (a calibration from the check's data alone would reach {check.quality.accuracy_m * 1e6:.1f} µm "
-                   "at the test pose)")
-    rejected = ", ".join(f"{n} {r}" for r, n in candidates.rejected if n)
-    lines.append(f"candidates: {len(candidates.q)} poses; {candidates.accepted} of {candidates.sampled} drawn "
-                 "respected the workspace" + (f" (rejected: {rejected})" if rejected else ""))
-    if tracker is None:
-        lines.append("marker visibility not checked: give --tracker-position")
-    lines.append(f"prior stiffness: {prior_source}")
-    if fmap is not None:
-        lines.append(f"first-order map: {args.map} (good enough on {fmap.good_fraction * 100:.0f} % of (q2, q3))")
-    lines.append(f"planning {plan_s:.2f} s, total {obj['time_s']:.2f} s")
-    print("\n".join(lines))
+    _print_text(args, obj, planned, markers, out, tracker, prior_source, fmap)
     return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pathlib
 
 from elastocal.commands._flags import DEFAULT_LOADS_PER_POSE, add_aliased, add_json, add_seed
 from elastocal.errors import InputError
@@ -196,21 +197,11 @@ def _path(args: argparse.Namespace) -> int:
     return 0
 
 
-def run(args: argparse.Namespace) -> int:
-    if args.sim_command == "serve":
-        return _serve(args)
-    if args.sim_command == "path":
-        return _path(args)
-    if args.sim_command == "plant":
-        from elastocal.commands import sim_plant
-
-        return sim_plant.run(args)
-    from elastocal.commands._outputs import Outputs, check_folder
-    from elastocal.sims.cell import HIDDEN_EFFECTS, CellTruth
+def _check_flags(args: argparse.Namespace, static: bool) -> None:
+    """The flags of ``sim static``/``sim runs`` checked, before anything is written."""
+    from elastocal.sims.cell import HIDDEN_EFFECTS
     from elastocal.sims.runs import RUN_HIDDEN
 
-    # everything is checked before anything is written
-    static = args.sim_command == "static"
     hidden = HIDDEN_EFFECTS if static else RUN_HIDDEN
     if not all(name.strip() in hidden for name in args.hidden.split(",")):
         raise InputError(f"the simulator cannot hide {args.hidden!r} in {'static' if static else 'run'} data; "
@@ -225,6 +216,68 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"must be >= 0, got {args.outliers}", source="--outliers")
         if args.outliers and args.repeats < 3:
             raise InputError("outliers need 3 or more repeats to be told from their repeats", source="--outliers")
+
+
+def _simulate(args: argparse.Namespace, robot, static: bool, out: pathlib.Path):
+    """(the robot the user's robot.toml describes, the simulated table, the cell's truth, truth.json)."""
+    from elastocal.sims.cell import CellTruth
+
+    if static:
+        import numpy as np
+
+        from elastocal.sims.static import StaticPlan, add_outliers, simulate_static
+
+        truth = CellTruth.for_robot(robot).with_hidden(args.hidden)
+        plan = StaticPlan(n_poses=args.poses, n_loads=args.loads, repeats=args.repeats,
+                          shared_currents=args.shared_currents)
+        table = simulate_static(robot, truth, seed=args.seed, plan=plan)
+        try:
+            table, outlier_lines = add_outliers(table, args.outliers, np.random.default_rng([args.seed, 18]))
+        except ValueError as exc:
+            raise InputError(str(exc), source="--outliers") from None
+        params = truth.parameters(robot)
+    else:
+        from elastocal.sims.runs import described_robot, hide_in_runs, simulate_runs
+
+        truth = hide_in_runs(CellTruth.for_robot(robot), args.hidden)
+        table = simulate_runs(robot, truth, seed=args.seed, source=str(out / "runs.csv"))
+        params = truth.parameters(robot)
+        robot = described_robot(robot, args.hidden)     # what the user's robot.toml says
+    truth_doc = {"hidden": args.hidden, "seed": args.seed, "robot": robot.name, "parameters": params,
+                 "noise": {"tracker_m": truth.tracker_noise_m, "current_a": truth.current_noise_a}}
+    if static:
+        truth_doc["outliers"] = [int(x) for x in outlier_lines]
+    return robot, table, truth, truth_doc
+
+
+def _compensator_sweep(args: argparse.Namespace, robot, truth, truth_doc: dict, out: pathlib.Path):
+    """The compensator's marker sweep (its geometry added to ``truth_doc``)."""
+    import numpy as np
+
+    from elastocal.sims.compensator_markers import compensator_sweep, compensator_truth
+
+    try:
+        truth_doc["compensator_geometry"] = {**compensator_truth(robot), "unit": "m"}
+    except ValueError as exc:
+        raise InputError(str(exc), source="--compensator-sweep") from None
+    return compensator_sweep(robot, np.random.default_rng([args.seed, 2]), noise_m=truth.tracker_noise_m,
+                             source=str(out / "sweep.csv"))
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.sim_command == "serve":
+        return _serve(args)
+    if args.sim_command == "path":
+        return _path(args)
+    if args.sim_command == "plant":
+        from elastocal.commands import sim_plant
+
+        return sim_plant.run(args)
+    from elastocal.commands._outputs import Outputs, check_folder
+
+    # everything is checked before anything is written
+    static = args.sim_command == "static"
+    _check_flags(args, static)
     out = check_folder(args.out, "--out")
     outputs = Outputs(force=args.force, inputs=[(args.robot, "--robot")])
     table_name = "static.csv" if static else "runs.csv"
@@ -240,43 +293,11 @@ def run(args: argparse.Namespace) -> int:
     written = {"robot": str(out / "robot.toml")}
     if static:
         from elastocal.formats.tables import write_static_table
-        import numpy as np
-
-        from elastocal.sims.static import StaticPlan, add_outliers, simulate_static
-
-        truth = CellTruth.for_robot(robot).with_hidden(args.hidden)
-        plan = StaticPlan(n_poses=args.poses, n_loads=args.loads, repeats=args.repeats,
-                          shared_currents=args.shared_currents)
-        table = simulate_static(robot, truth, seed=args.seed, plan=plan)
-        try:
-            table, outlier_lines = add_outliers(table, args.outliers, np.random.default_rng([args.seed, 18]))
-        except ValueError as exc:
-            raise InputError(str(exc), source="--outliers") from None
-        params = truth.parameters(robot)
     else:
         from elastocal.formats.tables import read_run_table
-        from elastocal.sims.runs import described_robot, hide_in_runs, simulate_runs, write_runs_csv
-
-        truth = hide_in_runs(CellTruth.for_robot(robot), args.hidden)
-        table = simulate_runs(robot, truth, seed=args.seed, source=str(out / "runs.csv"))
-        params = truth.parameters(robot)
-        robot = described_robot(robot, args.hidden)     # what the user's robot.toml says
-    truth_doc = {"hidden": args.hidden, "seed": args.seed, "robot": robot.name, "parameters": params,
-                 "noise": {"tracker_m": truth.tracker_noise_m, "current_a": truth.current_noise_a}}
-    if static:
-        truth_doc["outliers"] = [int(x) for x in outlier_lines]
-    sweep_table = None
-    if sweep:
-        import numpy as np
-
-        from elastocal.sims.compensator_markers import compensator_sweep, compensator_truth
-
-        try:
-            truth_doc["compensator_geometry"] = {**compensator_truth(robot), "unit": "m"}
-        except ValueError as exc:
-            raise InputError(str(exc), source="--compensator-sweep") from None
-        sweep_table = compensator_sweep(robot, np.random.default_rng([args.seed, 2]),
-                                        noise_m=truth.tracker_noise_m, source=str(out / "sweep.csv"))
+        from elastocal.sims.runs import write_runs_csv
+    robot, table, truth, truth_doc = _simulate(args, robot, static, out)
+    sweep_table = _compensator_sweep(args, robot, truth, truth_doc, out) if sweep else None
     outputs.make_folder(out)
     with outputs:
         outputs.temp(out / "robot.toml").write_text(robot.to_toml(), encoding="utf-8")
