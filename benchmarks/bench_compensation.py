@@ -35,6 +35,7 @@ from elastocal.compensation.trajectory import compensate_path, predicted_residua
 from elastocal.compensation.validate import YANG_WRENCH
 from elastocal.identify import kinematics as kin
 from elastocal.formats.robot_toml import bundled_robot
+from elastocal.model.kinds import KinematicForm
 from elastocal.sims.cell import CellTruth
 
 #: the speed goals [points/s] and the forward-kinematics time they were set against [s]
@@ -94,18 +95,18 @@ def main() -> None:
     names = kin.parameter_names(robot, robot.marker_names)
     geometry = kin.corrected_robot(robot, names, np.random.default_rng(15).normal(size=len(names)) * 2e-4)
     calibrated = CompensationModel(geometry, truth.stiffness, truth.compensator, nominal=robot)
-    result = compensate_path(model, q, wrench, form="exact")
+    result = compensate_path(model, q, wrench, form=KinematicForm.EXACT)
     cases = [
-        ("exact, unloaded reference", exact_fk, lambda: compensate_path(model, q, wrench, form="exact")),
+        ("exact, unloaded reference", exact_fk, lambda: compensate_path(model, q, wrench, form=KinematicForm.EXACT)),
         ("first-order, unloaded reference", first_fk,
-         lambda: compensate_path(model, q, wrench, form="first-order")),
+         lambda: compensate_path(model, q, wrench, form=KinematicForm.FIRST_ORDER)),
         ("exact, rigid reference", exact_fk,
-         lambda: compensate_path(model, q, wrench, form="exact", reference="rigid")),
+         lambda: compensate_path(model, q, wrench, form=KinematicForm.EXACT, reference="rigid")),
         ("first-order, rigid reference", first_fk,
-         lambda: compensate_path(model, q, wrench, form="first-order", reference="rigid")),
+         lambda: compensate_path(model, q, wrench, form=KinematicForm.FIRST_ORDER, reference="rigid")),
         ("predicted residual (check)", None, lambda: predicted_residual(model, result)),
         ("exact, nominal reference (geometry)", None,
-         lambda: compensate_path(calibrated, q, wrench, form="exact", reference="nominal")),
+         lambda: compensate_path(calibrated, q, wrench, form=KinematicForm.EXACT, reference="nominal")),
     ]
     rows = [(name, goal, *timed_against_fk(fn, robot, thetas, args.repeat)) for name, goal, fn in cases]
     fk_s = fk_time(robot, thetas)

@@ -40,6 +40,7 @@ from elastocal.diagnose.pipeline import identify_data
 from elastocal.formats.robot_toml import load_robot
 from elastocal.formats.tables import read_static_table
 from elastocal.identify.accuracy import validate
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 from fk_limit import fk_batches_s  # benchmarks/fk_limit.py: the run's own FK limit
 
@@ -55,7 +56,7 @@ def norm_rmse_mm(residual: np.ndarray) -> float:
 def run_elastocal(robot, train, held) -> tuple[float, float]:
     """(identify wall time [s], validation norm RMSE [mm])."""
     start = time.perf_counter()
-    ident = identify_data(robot, train, None, MODEL, "current", "exact")
+    ident = identify_data(robot, train, None, MODEL, TorqueSource.CURRENT, KinematicForm.EXACT)
     seconds = time.perf_counter() - start
     cal = ident.calibration(robot.name)
     v = validate(robot, cal, held, keep_frame=True)

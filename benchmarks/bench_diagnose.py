@@ -66,7 +66,7 @@ def main() -> None:
     diag = None
     fk = fk_batches_s(robot, batches=5)
     t_current = None
-    for torque in ("current", "force"):
+    for torque in (TorqueSource.CURRENT, TorqueSource.FORCE):
         t_fit, _ = _median_time(lambda: identify_static(robot, ds, torque=torque), args.repeat)
         t_diag, diag_t = _median_time(lambda: diagnose_static(robot, ds, torque=torque), args.repeat)
         fk += fk_batches_s(robot, batches=5)

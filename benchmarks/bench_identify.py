@@ -28,6 +28,7 @@ from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.formats.tables import read_static_table, write_static_table
 from elastocal.sims.cell import CellTruth
+from elastocal.model.kinds import KinematicForm, TorqueSource
 from elastocal.sims.static import StaticPlan, simulate_static
 
 
@@ -73,14 +74,15 @@ def main() -> None:
     goal = None
     for n in (int(s) for s in args.sizes.split(",")):
         table = simulate_static(robot, truth, seed=n, plan=StaticPlan(n_poses=n))
-        for form, torque in (("first-order", "current"), ("exact", "current"), ("exact", "force")):
+        for form, torque in ((KinematicForm.FIRST_ORDER, TorqueSource.CURRENT),
+                             (KinematicForm.EXACT, TorqueSource.CURRENT), (KinematicForm.EXACT, TorqueSource.FORCE)):
             fits = []
             t, cpu = median_wall_cpu_s(lambda: fits.append(identify_static(robot, table, form=form, torque=torque)),
                                        args.repeat)
             err = np.max(np.abs(fits[-1].values([f"k{j}" for j in range(1, 7)]) / truth.stiffness - 1)) * 100
             print(f"{n:>6} {len(table):>7} {form:<12} {torque:<8} {t:>9.3f} {cpu:>7.3f} {t / fk_s:>10,.0f} "
                   f"{err:>14.2f}")
-            if n == 300 and (form, torque) == ("exact", "current"):
+            if n == 300 and (form, torque) == (KinematicForm.EXACT, TorqueSource.CURRENT):
                 goal = t / fk_s
         t = median_s(lambda: build_dataset(table), args.repeat)
         with tempfile.TemporaryDirectory() as tmp:

@@ -19,6 +19,7 @@ import numpy as np
 from elastocal.compensation.ik import PlannedPath, yang_path
 from elastocal.compensation.model import CompensationModel
 from elastocal.compensation.trajectory import compensate_path
+from elastocal.model.kinds import KinematicForm
 from elastocal.model.robot import LOAD_FRAME, Robot
 
 #: Yang Table 8: W = 1500 N. Taken as the workpiece pushing the tool up.
@@ -76,8 +77,8 @@ def validate_on_sim(cell: RunnableCell, model: CompensationModel, path: PlannedP
     q = np.asarray(path.q, dtype=float)
     w = np.asarray(wrench, dtype=float)
     w = np.tile(w, (len(q), 1)) if w.shape == (6,) else w
-    exact = compensate_path(model, q, w, form="exact", reference=reference)
-    first = compensate_path(model, q, w, form="first-order", reference=reference)
+    exact = compensate_path(model, q, w, form=KinematicForm.EXACT, reference=reference)
+    first = compensate_path(model, q, w, form=KinematicForm.FIRST_ORDER, reference=reference)
 
     def tcp(qs: np.ndarray, ws: np.ndarray | None) -> np.ndarray:
         return np.array([cell.load_point(cell.equilibrium(qi, None if ws is None else ws[i]))
