@@ -5,6 +5,9 @@ A plan names poses, load states, markers, repeats and speeds for the
 procedures: ``static`` (before/after load), ``friction`` (UV/VU runs),
 ``sweep`` (joint-2 sweep for the compensator) and ``check`` (a short
 recalibration check). Every error names the file and the key.
+
+Why one module over 500 lines: the plan format is read (a function per section) and
+written (:func:`plan_toml`) here, so that one file holds every key the procedures know.
 """
 
 from __future__ import annotations
@@ -301,16 +304,47 @@ def parse_plan(text: str, *, source: str = "<plan.toml>") -> Plan:
     if "expected" in doc and not isinstance(doc["expected"], dict):
         raise top.fail("expected", "must be a table (what the planner predicts; the procedures ignore it)")
     name = top.text("name", "calibration")
+    settle = _settle(top.table("settle"))
+    loads = _loads(top, source)
+    load_ids = [spec.id for spec in loads]
+    static = _static(top.table("static"), load_ids)
+    friction = _friction(top, load_ids, source)
+    sweep = _sweep(top.table("sweep"), load_ids)
+    check = _check(top.table("check"), load_ids, static, [f.id for f in friction])
+    present = tuple(p for p, spec in (("static", static), ("friction", friction), ("sweep", sweep)) if spec)
+    procedures = top.strings("procedures", present)
+    for p in procedures:
+        if p not in PROCEDURES:
+            raise top.fail("procedures", f"unknown procedure {p!r}; one of {', '.join(PROCEDURES)}")
+        spec = {"static": static, "friction": friction, "sweep": sweep, "check": check}[p]
+        if not spec:
+            raise top.fail("procedures", f"procedure {p!r} has no section in the plan")
+    if not procedures:
+        raise InputError("the plan has no procedure: give [static], [[friction]], [sweep] or [check]",
+                         source=source)
+    return Plan(name=name, source=source, text=text, settle=settle, loads=tuple(loads), static=static,
+                friction=tuple(friction), sweep=sweep, check=check, procedures=procedures)
 
+
+def _check_load(tbl: _Table, key: str, lid: str, load_ids: Sequence[str], *, allow_unloaded: bool) -> None:
+    if lid == UNLOADED and allow_unloaded:
+        return
+    if lid not in load_ids:
+        raise tbl.fail(key, f"unknown load {lid!r}; the plan has {', '.join(load_ids) or 'no [[load]]'}")
+
+
+def _settle(st: _Table | None) -> SettleSpec:
     settle = SettleSpec()
-    st = top.table("settle")
-    if st is not None:
-        st.check_keys(("speed_rad_s", "spread_m", "window_s", "timeout_s"))
-        settle = SettleSpec(speed_rad_s=st.number("speed_rad_s", settle.speed_rad_s, positive=True),
-                            spread_m=st.number("spread_m", settle.spread_m, positive=True),
-                            window_s=st.number("window_s", settle.window_s, positive=True),
-                            timeout_s=st.number("timeout_s", settle.timeout_s, positive=True))
+    if st is None:
+        return settle
+    st.check_keys(("speed_rad_s", "spread_m", "window_s", "timeout_s"))
+    return SettleSpec(speed_rad_s=st.number("speed_rad_s", settle.speed_rad_s, positive=True),
+                      spread_m=st.number("spread_m", settle.spread_m, positive=True),
+                      window_s=st.number("window_s", settle.window_s, positive=True),
+                      timeout_s=st.number("timeout_s", settle.timeout_s, positive=True))
 
+
+def _loads(top: _Table, source: str) -> list[LoadSpec]:
     loads = []
     for t in top.tables("load"):
         t.check_keys(("id", "mass_kg", "force_n", "moment_nm", "description"))
@@ -327,42 +361,39 @@ def parse_plan(text: str, *, source: str = "<plan.toml>") -> Plan:
     load_ids = [spec.id for spec in loads]
     if len(set(load_ids)) != len(load_ids):
         raise InputError("load ids repeat", source=source, column="load")
+    return loads
 
-    def check_load(tbl: _Table, key: str, lid: str, *, allow_unloaded: bool) -> None:
-        if lid == UNLOADED and allow_unloaded:
-            return
-        if lid not in load_ids:
-            raise tbl.fail(key, f"unknown load {lid!r}; the plan has {', '.join(load_ids) or 'no [[load]]'}")
 
-    static = None
-    s = top.table("static")
-    if s is not None:
-        s.check_keys(("markers", "repeats", "reading_s", "speed_rad_s", "pose"))
-        poses = []
-        for p in s.tables("pose"):
-            p.check_keys(("id", "q", "loads"))
-            pl = p.strings("loads", tuple(load_ids))
-            for lid in pl:
-                check_load(p, "loads", lid, allow_unloaded=False)
-            if not pl:
-                raise p.fail("loads", "a pose needs at least one loaded state")
-            poses.append(PoseSpec(id=p.text("id"), q=p.joint_vector("q"), loads=pl))
-        if not poses:
-            raise s.fail("pose", "the static procedure needs at least one [[static.pose]]")
-        ids = [p.id for p in poses]
-        if len(set(ids)) != len(ids):
-            raise s.fail("pose", "pose ids repeat")
-        static = StaticSpec(poses=tuple(poses), markers=s.strings("markers"),
-                            repeats=s.integer("repeats", 3),
-                            reading_s=s.number("reading_s", 0.2, positive=True),
-                            speed_rad_s=s.number("speed_rad_s", 0.3, positive=True))
+def _static(s: _Table | None, load_ids: Sequence[str]) -> StaticSpec | None:
+    if s is None:
+        return None
+    s.check_keys(("markers", "repeats", "reading_s", "speed_rad_s", "pose"))
+    poses = []
+    for p in s.tables("pose"):
+        p.check_keys(("id", "q", "loads"))
+        pl = p.strings("loads", tuple(load_ids))
+        for lid in pl:
+            _check_load(p, "loads", lid, load_ids, allow_unloaded=False)
+        if not pl:
+            raise p.fail("loads", "a pose needs at least one loaded state")
+        poses.append(PoseSpec(id=p.text("id"), q=p.joint_vector("q"), loads=pl))
+    if not poses:
+        raise s.fail("pose", "the static procedure needs at least one [[static.pose]]")
+    ids = [p.id for p in poses]
+    if len(set(ids)) != len(ids):
+        raise s.fail("pose", "pose ids repeat")
+    return StaticSpec(poses=tuple(poses), markers=s.strings("markers"), repeats=s.integer("repeats", 3),
+                      reading_s=s.number("reading_s", 0.2, positive=True),
+                      speed_rad_s=s.number("speed_rad_s", 0.3, positive=True))
 
+
+def _friction(top: _Table, load_ids: Sequence[str], source: str) -> list[FrictionSpec]:
     friction = []
     for f in top.tables("friction"):
         f.check_keys(("id", "from", "to", "speeds_rad_s", "loads", "repeats", "marker"))
         fl = f.strings("loads", (UNLOADED,))
         for lid in fl:
-            check_load(f, "loads", lid, allow_unloaded=True)
+            _check_load(f, "loads", lid, load_ids, allow_unloaded=True)
         speeds = f.data.get("speeds_rad_s")
         if (not isinstance(speeds, list) or not speeds
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in speeds)):
@@ -376,49 +407,40 @@ def parse_plan(text: str, *, source: str = "<plan.toml>") -> Plan:
     fids = [f.id for f in friction]
     if len(set(fids)) != len(fids):
         raise InputError("friction ids repeat", source=source, column="friction")
+    return friction
 
-    sweep = None
-    w = top.table("sweep")
-    if w is not None:
-        w.check_keys(("q", "q2_from", "q2_to", "speed_rad_s", "repeats", "load", "marker"))
-        lid = w.text("load", UNLOADED)
-        check_load(w, "load", lid, allow_unloaded=True)
-        sweep = SweepSpec(q=w.joint_vector("q"), q2_from=w.number("q2_from"), q2_to=w.number("q2_to"),
-                          speed_rad_s=w.number("speed_rad_s", positive=True), repeats=w.integer("repeats", 1),
-                          load=lid, marker=w.optional_text("marker"))
-        if sweep.q2_from == sweep.q2_to:
-            raise w.fail("q2_to", "the sweep has no length: q2_from and q2_to are equal")
 
-    check = None
-    c = top.table("check")
-    if c is not None:
-        c.check_keys(("poses", "load", "friction"))
-        if static is None:
-            raise c.fail("poses", "the check measures static poses; the plan has no [static]")
-        cposes = c.strings("poses")
-        for pid in cposes:
-            if pid not in [p.id for p in static.poses]:
-                raise c.fail("poses", f"unknown pose {pid!r}")
-        lid = c.text("load")
-        check_load(c, "load", lid, allow_unloaded=False)
-        fid = c.optional_text("friction")
-        if fid is not None and fid not in fids:
-            raise c.fail("friction", f"unknown friction path {fid!r}")
-        check = CheckSpec(poses=cposes, load=lid, friction=fid)
+def _sweep(w: _Table | None, load_ids: Sequence[str]) -> SweepSpec | None:
+    if w is None:
+        return None
+    w.check_keys(("q", "q2_from", "q2_to", "speed_rad_s", "repeats", "load", "marker"))
+    lid = w.text("load", UNLOADED)
+    _check_load(w, "load", lid, load_ids, allow_unloaded=True)
+    sweep = SweepSpec(q=w.joint_vector("q"), q2_from=w.number("q2_from"), q2_to=w.number("q2_to"),
+                      speed_rad_s=w.number("speed_rad_s", positive=True), repeats=w.integer("repeats", 1),
+                      load=lid, marker=w.optional_text("marker"))
+    if sweep.q2_from == sweep.q2_to:
+        raise w.fail("q2_to", "the sweep has no length: q2_from and q2_to are equal")
+    return sweep
 
-    present = tuple(p for p, spec in (("static", static), ("friction", friction), ("sweep", sweep)) if spec)
-    procedures = top.strings("procedures", present)
-    for p in procedures:
-        if p not in PROCEDURES:
-            raise top.fail("procedures", f"unknown procedure {p!r}; one of {', '.join(PROCEDURES)}")
-        spec = {"static": static, "friction": friction, "sweep": sweep, "check": check}[p]
-        if not spec:
-            raise top.fail("procedures", f"procedure {p!r} has no section in the plan")
-    if not procedures:
-        raise InputError("the plan has no procedure: give [static], [[friction]], [sweep] or [check]",
-                         source=source)
-    return Plan(name=name, source=source, text=text, settle=settle, loads=tuple(loads), static=static,
-                friction=tuple(friction), sweep=sweep, check=check, procedures=procedures)
+
+def _check(c: _Table | None, load_ids: Sequence[str], static: StaticSpec | None,
+           fids: Sequence[str]) -> CheckSpec | None:
+    if c is None:
+        return None
+    c.check_keys(("poses", "load", "friction"))
+    if static is None:
+        raise c.fail("poses", "the check measures static poses; the plan has no [static]")
+    cposes = c.strings("poses")
+    for pid in cposes:
+        if pid not in [p.id for p in static.poses]:
+            raise c.fail("poses", f"unknown pose {pid!r}")
+    lid = c.text("load")
+    _check_load(c, "load", lid, load_ids, allow_unloaded=False)
+    fid = c.optional_text("friction")
+    if fid is not None and fid not in fids:
+        raise c.fail("friction", f"unknown friction path {fid!r}")
+    return CheckSpec(poses=cposes, load=lid, friction=fid)
 
 
 def load_plan(path: str | pathlib.Path) -> Plan:
