@@ -88,6 +88,52 @@ def _check_out(out_path: str | pathlib.Path, overwrite: bool, resume_from) -> No
                              source=str(out))
 
 
+def _without_a_person(steps: list, procs: Sequence[str], plan: Plan) -> tuple[list, tuple[str, ...]]:
+    """(the steps that run with nobody at the cell, what is left out); refused when none remains."""
+    skipped = tuple(s.label if s.needs_person else s.leaves_out for s in steps if s.needs_person or s.leaves_out)
+    steps = [s for s in steps if not s.needs_person]
+    if not steps:
+        raise InputError(f"no step of {', '.join(procs)} runs without a person at the cell (each hangs a "
+                         "load): nothing to do unattended", source=plan.source)
+    return steps, skipped
+
+
+def _resumed(resume_from, plan: Plan, robot_text: str, steps: list) -> tuple[set[str], dict[str, float], int]:
+    """(the steps the interrupted log completed, how long each took [s], the index of its last
+    step_done event); refused when the log was recorded with another plan or robot."""
+    old = read_log(resume_from)
+    if old.plan is None or old.plan.sha256 != plan.sha256:
+        raise InputError("the log was recorded with another plan; resume with the same plan.toml",
+                         source=str(resume_from))
+    if old.robot is None or old.robot.text != robot_text:
+        raise InputError("the log was recorded with another robot description", source=str(resume_from))
+    done_before = set(old.completed_steps) & {s.id for s in steps}
+    took_s: dict[str, float] = {}
+    last_done_event = -1
+    started_at: dict[str, int] = {}
+    for i, e in enumerate(old.events):
+        if e["kind"] == "step_start":
+            started_at[e.get("step_id")] = e["t_ns"]
+        if e["kind"] == "step_done":
+            last_done_event = i
+            if e.get("step_id") in started_at:
+                took_s[e["step_id"]] = (e["t_ns"] - started_at[e["step_id"]]) * 1e-9
+    return done_before, took_s, last_done_event
+
+
+def _run_steps(session: Session, steps: list, done_before: set[str]) -> None:
+    """Each step not done before, in order; the last load taken off at the end."""
+    for index, step in enumerate(steps):
+        if step.id in done_before:
+            continue
+        session.begin_step(index, step)
+        step.action(session)
+        session.end_step()
+    if session.load_state not in (None, UNLOADED):
+        # the last load comes off, confirmed by a person, before the robot moves again
+        session.ensure_load(UNLOADED)
+
+
 def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: OperatorUI | None = None,
                    procedures: Sequence[str] | None = None, resume_from: str | pathlib.Path | None = None,
                    cell_text: str = "", cell_name: str = "cell", cell_path: str | None = None,
@@ -113,36 +159,12 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
     plan.validate_for(robot)
     procs = _procedures(plan, procedures)
     steps = build_steps(plan, procs, person_s=0.0 if ui.automatic else PERSON_S, unattended=unattended)
-    skipped: tuple[str, ...] = ()
-    if unattended:
-        skipped = tuple(s.label if s.needs_person else s.leaves_out for s in steps
-                        if s.needs_person or s.leaves_out)
-        steps = [s for s in steps if not s.needs_person]
-        if not steps:
-            raise InputError(f"no step of {', '.join(procs)} runs without a person at the cell (each hangs a "
-                             "load): nothing to do unattended", source=plan.source)
+    steps, skipped = _without_a_person(steps, procs, plan) if unattended else (steps, ())
     robot_text = robot_text if robot_text is not None else robot.to_toml()
     out_path = pathlib.Path(out_path)
-    done_before: set[str] = set()
-    took_s: dict[str, float] = {}      # how long each step of the resumed log took
-    last_done_event = -1
     _check_out(out_path, overwrite, resume_from)
-    if resume_from is not None:
-        old = read_log(resume_from)
-        if old.plan is None or old.plan.sha256 != plan.sha256:
-            raise InputError("the log was recorded with another plan; resume with the same plan.toml",
-                             source=str(resume_from))
-        if old.robot is None or old.robot.text != robot_text:
-            raise InputError("the log was recorded with another robot description", source=str(resume_from))
-        done_before = set(old.completed_steps) & {s.id for s in steps}
-        started_at: dict[str, int] = {}
-        for i, e in enumerate(old.events):
-            if e["kind"] == "step_start":
-                started_at[e.get("step_id")] = e["t_ns"]
-            if e["kind"] == "step_done":
-                last_done_event = i
-                if e.get("step_id") in started_at:
-                    took_s[e["step_id"]] = (e["t_ns"] - started_at[e["step_id"]]) * 1e-9
+    done_before, took_s, last_done_event = (_resumed(resume_from, plan, robot_text, steps)
+                                            if resume_from is not None else (set(), {}, -1))
     started = time.monotonic()
     world = io.world()
     with Recorder(out_path, overwrite=overwrite, clock=io.clock,
@@ -169,27 +191,14 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
             if remaining and not unattended:
                 session.confirm(f"the robot will run {len(remaining)} step(s) of {', '.join(procs)}; "
                                 f"clear the cell")
-            for index, step in enumerate(steps):
-                if step.id in done_before:
-                    continue
-                session.begin_step(index, step)
-                step.action(session)
-                session.end_step()
-            if session.load_state not in (None, UNLOADED):
-                # the last load comes off, confirmed by a person, before the robot moves again
-                session.ensure_load(UNLOADED)
-        except Aborted as exc:
+            _run_steps(session, steps, done_before)
+        except (Aborted, KeyboardInterrupt) as exc:
+            text = str(exc) if isinstance(exc, Aborted) else "interrupted (Ctrl-C)"
             session.step = None
-            session.event("procedure_end", status="aborted", text=str(exc))
+            session.event("procedure_end", status="aborted", text=text)
             ui.close()
             return Outcome(str(out_path), "aborted", len(steps), session.done, len(done_before),
-                           time.monotonic() - started, str(exc))
-        except KeyboardInterrupt:
-            session.step = None
-            session.event("procedure_end", status="aborted", text="interrupted (Ctrl-C)")
-            ui.close()
-            return Outcome(str(out_path), "aborted", len(steps), session.done, len(done_before),
-                           time.monotonic() - started, "interrupted (Ctrl-C)")
+                           time.monotonic() - started, text)
         except DeviceError as exc:
             session.event("fault", error=type(exc).__name__, text=str(exc))
             session.step = None
