@@ -338,3 +338,24 @@ def test_names_pair_within_the_window_of_the_points_time(tmp_path, capsys):
     assert rc == 0 and obj["unpaired"] == [], err
     np.testing.assert_array_equal(read_static_table(tmp_path / "imported.csv").currents,
                                   read_static_table(tmp_path / "static.csv").currents)
+
+
+def test_export_units_are_elastocal_units(tmp_path):
+    """The tracker exports read their units from model/units.py's one table, in any case: inches
+    and a weather station's psi give what model.units converts them to."""
+    from elastocal.acquisition.trackerexports import read_points
+    from elastocal.errors import InputError
+    from elastocal.model.units import conversion
+
+    path = tmp_path / "inches.csv"
+    path.write_text("Point,X [IN],Y [IN],Z [IN],U(95) [in],Pressure [PSI]\n"
+                    "A,40.0,0.0,20.0,0.001,14.7\nB,0.0,40.0,20.0,0.001,14.6\n")
+    points = read_points(path, layout="leica")
+    inch_m, psi_hpa = conversion("in", "m"), conversion("psi", "hPa")
+    assert (inch_m, psi_hpa) == (0.0254, 68.9476)
+    assert [p.xyz_m for p in points] == [(40.0 * inch_m, 0.0, 20.0 * inch_m), (0.0, 40.0 * inch_m, 20.0 * inch_m)]
+    assert [p.u95_m for p in points] == [0.001 * inch_m] * 2
+    assert [p.pressure_hpa for p in points] == [14.7 * psi_hpa, 14.6 * psi_hpa]
+    path.write_text("Point,X [furlong],Y [furlong],Z [furlong]\nA,1,2,3\n")
+    with pytest.raises(InputError, match="unknown length unit 'furlong'"):
+        read_points(path, layout="leica")

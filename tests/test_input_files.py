@@ -474,3 +474,16 @@ def test_plan_toml_reads_back_what_it_was_given():
     import tomllib
 
     assert tomllib.loads(text)["expected"] == {"evidence": 12.5, "poses": 2, "sub": {"k2": 1.5}}
+
+
+def test_robot_names_with_quotes_read_back():
+    """robot.toml's text values are quoted by tomli-w: a name with quotes and a backslash
+    reads back as written, and the plain ones keep the bytes calibration files embed."""
+    import dataclasses
+
+    odd = dataclasses.replace(ROBOT, name='HH-150 "left" \\ cell',
+                              joints=tuple(dataclasses.replace(j, name=f'A{i} "{i}"')
+                                           for i, j in enumerate(ROBOT.joints, 1)))
+    again = parse_robot(odd.to_toml(), source="again.toml")
+    assert again.name == odd.name and [j.name for j in again.joints] == [j.name for j in odd.joints]
+    assert 'name = "HH-150"\n' in ROBOT.to_toml() and 'name = "A1"\n' in ROBOT.to_toml()
