@@ -36,6 +36,7 @@ import numpy as np
 import pinocchio as pin
 
 from elastocal.errors import InputError
+from elastocal.model.kinds import JointKind
 from elastocal.model.robot import MARKER_PREFIX, Robot, RobotData
 from elastocal.identify.urdf_geometry import UNITS as URDF_UNITS
 from elastocal.identify.urdf_geometry import (
@@ -92,7 +93,7 @@ def unit_of(name: str, robot: Robot | None = None) -> str:
     if name.startswith(("dx_", "dy_", "dz_")):
         return UNITS["marker"]
     kind = name.rstrip("0123456789")
-    if kind == "dq" and robot is not None and robot.joints[int(name[2:]) - 1].kind.value == "prismatic":
+    if kind == "dq" and robot is not None and robot.joints[int(name[2:]) - 1].kind is JointKind.PRISMATIC:
         return "m"
     return UNITS[kind]
 
