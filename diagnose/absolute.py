@@ -45,7 +45,7 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
-from elastocal.errors import InputError
+from elastocal.errors import EffectRefused, InputError
 from elastocal.identify.absolute import ABSOLUTE_EFFECTS, AbsoluteFit, identify_absolute
 from elastocal.model.effects import get_effect
 from elastocal.model.robot import Robot
@@ -61,7 +61,10 @@ VERDICT_DELTA_BIC = -10.0
 #: (hours) the absolute positions see far more of it than a deflection does (seconds apart)
 CANDIDATE_MODELS = {"kinematic_errors": ("kinematic_errors", "tracker_frame"), "thermal_drift": ("thermal_drift",),
                     # on a table without loads (diagnose/absolute_only.py): the twist under the robot's own weight
-                    "joint_stiffness": ("joint_stiffness",)}
+                    "joint_stiffness": ("joint_stiffness",),
+                    # the play of a joint whose weight torque changes sign across the poses, with the
+                    # twist the same weight gives the springs (an arm carrying its weight twists its gears)
+                    "backlash": ("backlash", "joint_stiffness")}
 #: steps are named to the user only when the final absolute model leaves at most this x its floor
 NAMED_RATIO = 2.0
 #: the explanation holds across the data unless a split disagrees below this p (over the splits)
@@ -129,6 +132,8 @@ class AbsoluteDiagnosis:
     candidates: tuple[AbsoluteCandidate, ...]      # tested against the base, best first
     steps: tuple[AbsoluteCandidate, ...]
     final: AbsoluteFit
+    #: (effect, why) of the pool's effects these data cannot show (refused by the fit, by name)
+    refused: tuple[tuple[str, str], ...] = ()
 
     @property
     def at_floor(self) -> bool:
@@ -321,6 +326,7 @@ def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *,
     pool = tuple(p for p in pool if p in CANDIDATE_MODELS)
     first: tuple[AbsoluteCandidate, ...] | None = None
     steps: list[AbsoluteCandidate] = []
+    refused: dict[str, str] = {}
     fit = base
     while True:
         cands = []
@@ -334,6 +340,7 @@ def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *,
             except InputError as exc:       # the data cannot show it (no times for a drift)
                 if exc.argument != "model":  # a refusal of the model, typed; anything else is an error
                     raise
+                refused.setdefault(name, exc.reason if isinstance(exc, EffectRefused) else str(exc))
                 continue
             stat, p, dbic, dof = _test(fit, aug)
             eff = get_effect(name)
@@ -355,7 +362,8 @@ def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *,
             break
         steps.append(best)
         fit = best.fit
-    return AbsoluteDiagnosis(base=base, candidates=first or (), steps=tuple(steps), final=fit)
+    return AbsoluteDiagnosis(base=base, candidates=first or (), steps=tuple(steps), final=fit,
+                             refused=tuple(refused.items()))
 
 
 def combined_verdict(deflection_verdict: str | None, deflection_steps: int, deflection_unexplained: bool,

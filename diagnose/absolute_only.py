@@ -4,8 +4,10 @@ A geometric calibration table holds only absolute positions: the model is
 compared with them (diagnose/absolute.py: the registration always in) and the
 effects such data can show are tested stepwise: the geometry
 (``kinematic_errors``), the joints' twist under the robot's own weight
-(``joint_stiffness``, when the description has the masses), a thermal drift (when
-the readings have times). Whether the final model is complete is a comparison
+(``joint_stiffness``, when the description has the masses), the play of a joint
+whose weight torque changes sign across the poses (``backlash``, the masses too;
+listed as not testable, with why, when no joint's torque does), a thermal drift
+(when the readings have times). Whether the final model is complete is a comparison
 with the noise floor; without one (no repeated readings, no uncertainty
 columns, no tracker noise model) the verdict is null and says that no floor is
 known, never "at the floor".
@@ -23,13 +25,13 @@ from elastocal.model.robot import Robot
 from elastocal.identify.static import StaticDataset
 
 #: the effects a table without loads can show, tested when the model lacks them
-POOL = ("kinematic_errors", "joint_stiffness", "thermal_drift")
+POOL = ("kinematic_errors", "joint_stiffness", "backlash", "thermal_drift")
 #: why the others are not tested there
 NOT_TESTABLE = {
     "joint_stiffness": "needs the link masses (mass and com per [[joint]]): the torques are the robot's own weight",
     "thermal_drift": "needs the time t of the readings",
-    "backlash": "lost motion where a joint's weight torque changes sign is not modelled on absolute-only tables "
-                "yet; not tested",
+    "backlash": "needs the link masses (mass and com per [[joint]]): the play shows where a joint's weight torque "
+                "changes sign",
 }
 NO_FLOOR = ("no noise floor is known (no repeated readings, no u95 or sx,sy,sz columns, no tracker noise model): "
             "whether anything is missing cannot be said; the residual is not compared with noise")
@@ -116,14 +118,15 @@ def diagnose_absolute_only(robot: Robot, ds: StaticDataset, model: Sequence[str]
     """The stepwise diagnosis of a table without loads (module docstring)."""
     pool = [e for e in POOL if e not in model]
     skipped = []
-    if "joint_stiffness" in pool and not robot.has_masses:
-        pool.remove("joint_stiffness")
-        skipped.append(("joint_stiffness", NOT_TESTABLE["joint_stiffness"]))
+    for name in ("joint_stiffness", "backlash"):
+        if name in pool and not robot.has_masses:
+            pool.remove(name)
+            skipped.append((name, NOT_TESTABLE[name]))
     if "thermal_drift" in pool and (ds.abs_t is None or not (ds.abs_t == ds.abs_t).all()):
         pool.remove("thermal_drift")
         skipped.append(("thermal_drift", NOT_TESTABLE["thermal_drift"]))
-    skipped.append(("backlash", NOT_TESTABLE["backlash"]))
     diag = diagnose_absolute(robot, ds, tuple(model), pool=tuple(pool), tracker_prior=tracker_prior)
+    skipped += list(diag.refused)             # what the poses cannot show (no joint's torque changes sign)
     return AbsoluteOnlyDiagnosis(model=tuple(dict.fromkeys([*model, "tracker_frame"])), absolute=diag,
                                  not_testable=tuple(NotTestable(e, r) for e, r in skipped),
                                  outliers=tuple(ds.outliers))

@@ -29,10 +29,12 @@ from elastocal.identify.dataset import StaticDataset
 from elastocal.identify.static import StaticFit
 from elastocal.identify.staticmodel import Problem, state_torques, static_context
 
-#: effects an absolute-only table can show beside the geometry and the registration
-SELF_WEIGHT_EFFECTS = ("joint_stiffness",)
-#: a joint whose gravity torque spans less than this fraction of the largest joint's span is not
-#: determined by the poses (its twist does not change from pose to pose)
+#: effects an absolute-only table can show beside the geometry and the registration: the twist
+#: and the play of the joints under the robot's own weight
+SELF_WEIGHT_EFFECTS = ("joint_stiffness", "backlash")
+#: a parameter whose angle basis spans, across the poses, less than this fraction of the widest
+#: span among its effect's parameters is not determined (its angle does not change from pose to
+#: pose: a constant twist is a joint offset; a joint whose gravity torque keeps its sign shows no play)
 MIN_TORQUE_SPAN = 1e-3
 #: the torque source of an absolute-only table: the model's gravity, no external wrench
 SELF_WEIGHT_TORQUE = "force"
@@ -55,12 +57,14 @@ def absolute_only_start(robot: Robot, ds: StaticDataset, static_model: Sequence[
     for name in static_model:
         if name not in SELF_WEIGHT_EFFECTS:
             words = (f"{name} cannot be shown by a table without loads (one absolute reading per pose); "
-                     "it takes kinematic_errors, tracker_frame and joint_stiffness under the robot's own weight")
+                     "it takes kinematic_errors, tracker_frame, and joint_stiffness and backlash under the robot's own "
+                     "weight")
             raise EffectRefused(name, words, message=words, argument="model")
     if static_model and not robot.has_masses:
-        words = ("joint_stiffness on a table without loads is the twist under the robot's own weight: it needs "
+        name = static_model[0]
+        words = (f"{name} on a table without loads is seen under the robot's own weight: it needs "
                  "the link masses (mass and com of each [[joint]] in robot.toml)")
-        raise EffectRefused("joint_stiffness", words, message=words, argument="model")
+        raise EffectRefused(name, words, message=words, argument="model")
     ds = self_weight_dataset(ds)
     effects = tuple(get_effect(n, robot) for n in static_model)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
@@ -69,10 +73,8 @@ def absolute_only_start(robot: Robot, ds: StaticDataset, static_model: Sequence[
     unident: list[str] = []
     if static_model:
         tau = state_torques(pr, None)
-        span = np.ptp(tau, axis=0)
-        weak = span < MIN_TORQUE_SPAN * max(float(span.max()), 1e-300)
-        unident = [f"k{j + 1}" for j in np.flatnonzero(weak)]
         ctx = static_context(pr, tau)
+        unident = _undetermined(effects, ctx)
     else:
         ctx = None
     n = len(names)
@@ -82,3 +84,22 @@ def absolute_only_start(robot: Robot, ds: StaticDataset, static_model: Sequence[
                      predicted=empty, residuals=empty, rms=0.0, max=0.0, n=0, rss=0.0, n_params=0,
                      noise_floor=None, expected_rss=None, condition_number=1.0, iterations=0, dataset=ds,
                      absolute_model=None if ctx is None else (pr, np.zeros(n), ctx), effects=effects)
+
+
+def _undetermined(effects, ctx) -> list[str]:
+    """The parameters the poses do not determine (:data:`MIN_TORQUE_SPAN`), by the names the fit
+    reports (a stiffness by its ``k``); refuses an effect the data cannot show at all, by name."""
+    out: list[str] = []
+    for eff in effects:
+        reason = eff.static_refusal(ctx) if eff.static_refusal is not None else None
+        if reason:
+            raise EffectRefused(eff.name, reason, argument="model")
+        theta = eff.static_basis(ctx).theta                     # (S, N, p) joint angle per parameter
+        if theta is None:
+            continue
+        span = np.ptp(theta, axis=0).max(axis=0)                # (p,)
+        weak = span <= MIN_TORQUE_SPAN * float(span.max())
+        # a compliance c_j is reported as its stiffness k_j (identify/absolute.py's _report)
+        names = [f"k{c[1:]}" for c in eff.parameters] if eff.name == "joint_stiffness" else eff.parameters
+        out += [names[i] for i in np.flatnonzero(weak)]
+    return out

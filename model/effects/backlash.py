@@ -8,6 +8,13 @@ its torque across zero from the unloaded reference (a hung weight on a wrist
 joint that carries almost nothing unloaded, a pull against the gravity torque);
 a joint whose torque keeps its sign in every state has a zero basis column and
 is reported unidentifiable instead of fitted to noise.
+
+On a table without loads (one absolute reading per pose) the torques are the
+robot's own weight at each pose: the play shows where a joint's gravity torque
+changes sign across the poses (the gear rests on one flank in some poses, on the
+other in others), as a step between those two groups of poses. A joint whose
+weight keeps pressing the same flank shows only a constant, which a joint offset
+absorbs: it is not determined.
 """
 
 from __future__ import annotations
@@ -36,6 +43,9 @@ NOISE_MARGIN = 3.0
 #: a joint shows its play only if some load state changes tanh(tau/band)/2 by at
 #: least this fraction of the play (one tenth of it)
 MIN_VISIBLE_FRACTION = 0.1
+#: without loads, a joint shows its play only with this many poses on each flank (its take-up at
+#: least half MIN_VISIBLE_FRACTION either way): a step needs poses on both sides
+MIN_POSES_PER_FLANK = 3
 #: the smallest play worth finding: 0.1 arcmin, a tenth of a precision gear's catalogue
 #: value, 30 µm at 1 m [rad]
 DESIGN_PLAY_RAD = np.radians(0.1 / 60.0)
@@ -49,6 +59,8 @@ def take_up(tau: np.ndarray) -> np.ndarray:
 def visible_joints(ctx: StaticContext) -> np.ndarray:
     """(N,) bool: joints whose play some load state of these data shows."""
     frac = take_up(ctx.tau)
+    if ctx.n_deflections == 0:
+        return _flanks(frac)
     ref = take_up(ctx.tau - ctx.delta_tau)
     loaded = ~ctx.state_is_reference
     change = np.abs(frac - ref)[loaded]
@@ -62,6 +74,14 @@ def visible_joints(ctx: StaticContext) -> np.ndarray:
         noise = np.hypot(ctx.torque_noise[loaded], ref_noise)
         visible &= np.abs(ctx.delta_tau[loaded]) > NOISE_MARGIN * noise
     return visible.any(axis=0)
+
+
+def _flanks(frac: np.ndarray) -> np.ndarray:
+    """(N,) bool, without loads: joints whose weight torque leans on both flanks of the gear,
+    each in at least MIN_POSES_PER_FLANK poses (a take-up of half MIN_VISIBLE_FRACTION or more)."""
+    edge = 0.5 * MIN_VISIBLE_FRACTION
+    return ((np.sum(frac >= edge, axis=0) >= MIN_POSES_PER_FLANK)
+            & (np.sum(frac <= -edge, axis=0) >= MIN_POSES_PER_FLANK))
 
 
 def _reference_index(ctx: StaticContext) -> np.ndarray:
@@ -85,9 +105,13 @@ def _sensitivity(ctx: StaticContext, values: np.ndarray) -> np.ndarray:
 
 
 def _refusal(ctx: StaticContext) -> str | None:
-    if not np.any(visible_joints(ctx)):
-        return "no load state reverses the torque of any joint, so no play can show; add loads that do"
-    return None
+    if np.any(visible_joints(ctx)):
+        return None
+    if ctx.n_deflections == 0:
+        return (f"no joint's gravity torque changes sign across the poses (at least {MIN_POSES_PER_FLANK} poses "
+                "leaning on each flank of its gear), so no play can show; add poses that turn a joint's weight "
+                "torque over")
+    return "no load state reverses the torque of any joint, so no play can show; add loads that do"
 
 
 def _describe(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) -> str:
