@@ -18,26 +18,11 @@ import threading
 from typing import Callable, TextIO
 
 from elastocal.errors import ElastocalError
+from elastocal.progress import progress_line
 
 
 class Aborted(ElastocalError):
     """The operator aborted the procedure at a prompt."""
-
-
-def format_duration(seconds: float) -> str:
-    seconds = max(0, int(round(seconds)))
-    h, rem = divmod(seconds, 3600)
-    m, s = divmod(rem, 60)
-    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
-
-
-def progress_line(done: int, total: int, label: str, elapsed_s: float, left_s: float | None,
-                  width: int = 24) -> str:
-    """``[#########-----] 4/12  static P4  1:23 elapsed, ~3:10 left``"""
-    filled = 0 if total == 0 else int(round(width * done / total))
-    bar = "#" * filled + "-" * (width - filled)
-    left = "" if left_s is None else f", ~{format_duration(left_s)} left"
-    return f"[{bar}] {done}/{total}  {label}  {format_duration(elapsed_s)} elapsed{left}"
 
 
 class OperatorUI(abc.ABC):

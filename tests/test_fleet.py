@@ -166,7 +166,8 @@ def test_one_worker_and_the_process_pool_give_identical_results(plant, identifie
     one = tmp_path / "one.parquet"
     code, out, err = _fleet(capsys, "identify", plant, "--out", one, "--workers", "1")
     assert code == 0 and "40 input(s), 37 ok, 3 failed" in out and "Dask LocalCluster (1 worker)" in out
-    assert "fleet identify: 40/40 done, 3 failed" in err
+    last = [line for line in err.splitlines() if line.startswith("fleet identify: [")][-1]
+    assert " 40/40 " in last and last.endswith(", 3 failed")
     pooled = tmp_path / "pool.csv"
     code, out, _ = _fleet(capsys, "identify", plant, "--out", pooled, "--workers", "2", "--pool", "processes")
     assert code == 0 and "local process pool (2 workers)" in out

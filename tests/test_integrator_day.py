@@ -186,17 +186,18 @@ def test_devices_on_a_dead_cell_names_every_device_and_says_what_it_is_doing(tmp
 
 
 def test_sim_plant_reports_progress(tmp_path, capsys):
-    from elastocal.commands.sim_plant import Progress
-
-    progress = Progress(4)
-    progress(0, "cell-01 logs/2026-11-02.mcap")
-    progress(2, "cell-01 logs/2026-11-16.mcap")
-    progress.done()
-    lines = capsys.readouterr().err.splitlines()
-    assert [line.split()[1] for line in lines] == ["0/4", "2/4", "4/4"] and "left" in lines[1]
-    Progress(4, quiet=True)(1, "x")                  # --json: stdout's one object, nothing else said
-    assert capsys.readouterr().err == ""
-
+    """The plant's logs take a minute or two: a line per log on stderr as they are made; with
+    --json stdout is the one object and nothing is said."""
+    assert main(["sim", "plant", "--out", str(tmp_path / "p"), "--cells", "1", "--logs", "2", "--poses", "6",
+                 "--drift-cell", "0"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    lines = [line for line in err if line.startswith("sim plant: [")]
+    assert [line.split()[3] for line in lines] == ["0/3", "1/3", "2/3", "3/3"], err
+    assert "left" in lines[1] and "cell-01" in lines[1]
+    assert main(["sim", "plant", "--out", str(tmp_path / "q"), "--cells", "1", "--logs", "2", "--poses", "6",
+                 "--drift-cell", "0", "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["logs"] == 2 and "sim plant: [" not in captured.err
 
 def test_pictures_axes_labels_arrows_and_colours():
     """The report's absolute-error axis, the view's arrows, the history's colours and time axis."""
@@ -355,3 +356,35 @@ def test_stream_refuses_a_calibration_effect_it_does_not_model_before_starting(t
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "link_compliance (cl2x)" in err and "--without link_compliance" in err
     assert not (tmp_path / "s.mcap").exists()
+
+
+def test_one_progress_line_for_every_command():
+    """elastocal/progress.py: redrawn in place on a terminal, a line per unit to a file or pipe (per
+    tenth when there are many), silent when quiet (--json); the procedure's bar is the same line."""
+    import io
+
+    from elastocal.acquisition.ui import progress_line as procedure_line
+    from elastocal.progress import Progress, progress_line
+
+    assert procedure_line is progress_line
+    ticks = iter(range(100))
+    pipe = io.StringIO()
+    p = Progress("fleet identify", 40, stream=pipe, clock=lambda: float(next(ticks)))
+    for done in range(41):
+        p(done, f"log{done}.mcap", failed=done // 20)
+    lines = pipe.getvalue().splitlines()
+    assert len(lines) == 11 and lines[-1].startswith("fleet identify: [########################] 40/40")
+    assert lines[-1].endswith(", 2 failed") and "0:05 elapsed, ~0:45 left" in lines[1]   # 4 of 40 in 5 s
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Terminal()
+    p = Progress("sim plant", 3, stream=tty, clock=lambda: 0.0)
+    p(1, "cell-01")
+    p.done()
+    assert tty.getvalue().count("\r\x1b[2K") == 2 and tty.getvalue().endswith("done  0:00 elapsed, ~0:00 left\n")
+    quiet = io.StringIO()
+    Progress("fleet check", 3, stream=quiet, quiet=True).done()
+    assert quiet.getvalue() == ""

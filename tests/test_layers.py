@@ -26,9 +26,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 #: layer of each package, bottom (0) to top (4), by folder; a module belongs to the longest prefix.
 #: The bottom layer: the robot model and the effects (model/), the file formats (formats/), the
-#: package's own root and its typed errors (elastocal.errors).
+#: package's own root, its typed errors (elastocal.errors) and its progress line (elastocal.progress).
 LAYER = {
-    "elastocal": 0, "elastocal.errors": 0, "elastocal.model": 0, "elastocal.formats": 0,
+    "elastocal": 0, "elastocal.errors": 0, "elastocal.progress": 0, "elastocal.model": 0, "elastocal.formats": 0,
     "elastocal.drivers": 1, "elastocal.identify": 1, "elastocal.sims": 1,
     "elastocal.diagnose": 2, "elastocal.design": 2, "elastocal.acquisition": 2, "elastocal.compensation": 2,
     "elastocal.report": 2,

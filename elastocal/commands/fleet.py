@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
+import pathlib
 import time
 
 from elastocal.errors import InputError
@@ -48,28 +48,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", action="store_true",
                         help="identify/check: record the results in each cell's history (once per log)")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
-
-
-class _Progress:
-    """Tasks done / total and failures so far, on stderr: one updated line on a
-    terminal, a line per tenth of the tasks otherwise."""
-
-    def __init__(self, action: str, stream=None) -> None:
-        self.action = action
-        self.stream = sys.stderr if stream is None else stream
-        self.tty = bool(getattr(stream, "isatty", lambda: False)())
-        self.shown = -1
-
-    def __call__(self, done: int, total: int, failed: int, result) -> None:
-        text = f"fleet {self.action}: {done}/{total} done, {failed} failed"
-        if self.tty:
-            end = "\n" if done == total else ""
-            print(f"\r{text}", end=end, file=self.stream, flush=True)
-            return
-        step = max(1, total // 10)
-        if done == total or done // step != self.shown:
-            self.shown = done // step
-            print(text, file=self.stream, flush=True)
 
 
 def _history(args: argparse.Namespace) -> int:
@@ -194,15 +172,19 @@ def run(args: argparse.Namespace) -> int:
     outputs.add(args.out, "--out")
     tasks, early = _tasks(args, inputs, model)
     start = time.perf_counter()
-    progress = _Progress(args.action)
+    from elastocal.progress import Progress
+
     done_early = len(early)
     failed_early = len(early)
+    progress = Progress(f"fleet {args.action}", len(tasks) + done_early, quiet=args.json)
 
     def shown(done: int, total: int, failed: int, result) -> None:
-        progress(done + done_early, total + done_early, failed + failed_early, result)
+        label = "" if result is None else str(getattr(result, "path", "") or "")
+        progress(done + done_early, pathlib.Path(label).name if label else "tasks",
+                 total=total + done_early, failed=failed + failed_early)
 
     if not tasks and early:
-        progress(len(early), len(early), len(early), None)
+        progress(len(early), "inputs", failed=len(early))
     ran = run_tasks([t for _, t in tasks], pool=pool, scheduler=args.scheduler, workers=args.workers,
                     progress=shown)
     results = dict(early)

@@ -129,7 +129,9 @@ def run(args: argparse.Namespace) -> int:
     truth_doc: dict = {"seed": spec.seed, "robot": robot.name, "unit": "N*m/rad", "cells": []}
     for c in range(spec.cells):
         outputs.make_folder(out / spec.cell_name(c) / "logs")
-    progress = Progress(spec.cells * spec.logs + spec.cells, quiet=args.json)
+    from elastocal.progress import Progress
+
+    progress = Progress("sim plant", spec.cells * spec.logs + spec.cells, quiet=args.json)
     with outputs:
         for c in range(spec.cells):
             name, cell = spec.cell_name(c), out / spec.cell_name(c)
@@ -178,31 +180,6 @@ def run(args: argparse.Namespace) -> int:
                   f"(first calibration: {spec.log_name(c, 0)}){drift}")
         print(f"wrote truth  {out / 'truth.json'}")
     return 0
-
-
-class Progress:
-    """One line per unit of work on stderr (the plant takes a minute or two): what is being made,
-    how many of how many, the time so far and the time left at the pace so far."""
-
-    def __init__(self, total: int, *, quiet: bool = False) -> None:
-        import time
-
-        self.total, self.quiet, self.t0 = total, quiet, time.monotonic()
-
-    def __call__(self, done: int, label: str) -> None:
-        import sys
-        import time
-
-        from elastocal.acquisition.ui import progress_line
-
-        if self.quiet:
-            return
-        elapsed = time.monotonic() - self.t0
-        left = elapsed / done * (self.total - done) if done else None
-        print(progress_line(done, self.total, label, elapsed, left), file=sys.stderr, flush=True)
-
-    def done(self) -> None:
-        self(self.total, "done")
 
 
 def _record_first_calibrations(out: pathlib.Path, spec: PlantSpec, progress=None) -> int:

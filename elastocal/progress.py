@@ -1,0 +1,91 @@
+"""Progress of long work on stderr, one way for every command.
+
+``[#########---------------] 4/12  static pose P4  1:23 elapsed, ~3:10 left`` — the units done
+of the total, what is under way, the time so far and the time left at the pace so far. On a
+terminal the line is redrawn in place; to a file or a pipe (a log, a timer's journal, a test)
+a line is written per unit of work, or per tenth of the work when there are many. ``quiet``
+(a command's ``--json``: stdout holds exactly one JSON object, and whoever reads it is a
+program) says nothing. The guided procedure's operator interface (acquisition/ui.py), the
+fleet's tasks and the simulated plant's logs all report through it; a command without units
+of its own gets the heartbeat of elastocal/commands/_heartbeat.py.
+
+Neither ``rich`` nor ``tqdm`` is a dependency of elastocal: this is the one small module
+instead of a third dependency for one line of text.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+#: to a file or pipe, a line per unit of work up to this many units, else a line per tenth
+EVERY_UNIT_UP_TO = 20
+
+
+def format_duration(seconds: float) -> str:
+    seconds = max(0, int(round(seconds)))
+    h, rem = divmod(seconds, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
+def progress_line(done: int, total: int, label: str, elapsed_s: float, left_s: float | None,
+                  width: int = 24) -> str:
+    """``[#########-----] 4/12  static P4  1:23 elapsed, ~3:10 left``"""
+    filled = 0 if total == 0 else int(round(width * done / total))
+    bar = "#" * filled + "-" * (width - filled)
+    left = "" if left_s is None else f", ~{format_duration(left_s)} left"
+    return f"[{bar}] {done}/{total}  {label}  {format_duration(elapsed_s)} elapsed{left}"
+
+
+def is_terminal(stream) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError, OSError):
+        return False
+
+
+class Progress:
+    """``progress(done, label)`` as the work goes, ``progress.done()`` at its end (module docstring).
+    ``total`` may grow (``progress(done, label, total=...)``); ``failed`` adds ``, N failed``."""
+
+    def __init__(self, command: str, total: int, *, stream=None, quiet: bool = False,
+                 clock=time.monotonic) -> None:
+        self.command, self.total, self.quiet = command, int(total), quiet
+        self.stream = sys.stderr if stream is None else stream
+        self.terminal = is_terminal(self.stream)
+        self._clock = clock
+        self._t0 = clock()
+        self._shown = -1              # the last tenth written (files and pipes, many units)
+        self._open = False            # a terminal line is drawn and not yet ended
+
+    def __call__(self, done: int, label: str = "", *, total: int | None = None, failed: int | None = None) -> None:
+        if total is not None:
+            self.total = int(total)
+        if self.quiet:
+            return
+        elapsed = self._clock() - self._t0
+        left = elapsed / done * (self.total - done) if 0 < done < self.total else (0.0 if done else None)
+        text = f"{self.command}: {progress_line(done, self.total, label, elapsed, left)}"
+        if failed:
+            text += f", {failed} failed"
+        finished = done >= self.total
+        if self.terminal:
+            print(f"\r\x1b[2K{text}", end="\n" if finished else "", file=self.stream, flush=True)
+            self._open = not finished
+            return
+        if self.total > EVERY_UNIT_UP_TO:
+            tenth = done * 10 // max(self.total, 1)
+            if tenth == self._shown and not finished:
+                return
+            self._shown = tenth
+        print(text, file=self.stream, flush=True)
+
+    def done(self, label: str = "done", *, failed: int | None = None) -> None:
+        self(self.total, label, failed=failed)
+
+    def close(self) -> None:
+        """End a terminal line left open (the work stopped before its end)."""
+        if self._open and not self.quiet:
+            print(file=self.stream, flush=True)
+            self._open = False
