@@ -94,9 +94,10 @@ def _without_seconds(rows: list[dict]) -> list[dict]:
     return [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def scheduler(tmp_path_factory):
-    """A Dask cluster the tests share through --scheduler (its start costs more than most tests' work)."""
+    """A Dask cluster this module's tests share through --scheduler (its start costs more than most tests'
+    work); module-scoped, so its worker processes end with the module instead of idling to the run's end."""
     import logging
 
     from distributed import LocalCluster
