@@ -7,7 +7,8 @@ A procedure is a list of :class:`Step` built from the plan:
   threshold over a window), then ``repeats`` readings of every marker;
 * ``friction``: the same slow path forward (UV) and backward (VU), at each
   speed and load, recorded continuously;
-* ``sweep``: joint 2 swept forward (+) and backward (-) for the compensator;
+* ``sweep``: joint 2 (the plan's ``[sweep] joint``, the compensator's) swept forward (+) and
+  backward (-) for the compensator;
 * ``check``: a few static poses under one load and one UV/VU pair.
 
 Steps that need a person (hanging or removing a load, clearing the cell

@@ -42,13 +42,11 @@ def _move_s(a: Sequence[float] | None, b: Sequence[float], speed: float) -> floa
 
 
 def _sweep_steps(plan: Plan, last_q: list, settle_s: float, person_s: float) -> list[Step]:
-    """The joint-2 sweep's steps (``last_q[0]``: where the robot stands before them, updated)."""
+    """The sweep's steps, of joint 2 or the plan's [sweep] joint (``last_q[0]``: where the robot
+    stands before them, updated)."""
     steps: list[Step] = []
     w = plan.sweep
-    q_from = list(w.q)
-    q_from[1] = w.q2_from
-    q_to = list(w.q)
-    q_to[1] = w.q2_to
+    q_from, q_to = (list(q) for q in w.ends())
     move_speed = plan.static.speed_rad_s if plan.static else w.speed_rad_s * 4
     for r in range(1, w.repeats + 1):
         est = (_move_s(last_q[0], q_from, move_speed) + 2 * _move_s(q_from, q_to, w.speed_rad_s)
@@ -61,11 +59,11 @@ def _sweep_steps(plan: Plan, last_q: list, settle_s: float, person_s: float) -> 
             s.ensure_load(w.load)
             s.move(q_from, move_speed, markers)
             s.settle(markers, run=f"sweep-{r}")
-            s.run(f"sweep-{r}+", "+", q_from, q_to, w.speed_rad_s, w.load, w.marker, joint=2)
+            s.run(f"sweep-{r}+", "+", q_from, q_to, w.speed_rad_s, w.load, w.marker, joint=w.joint)
             s.settle(markers, run=f"sweep-{r}")
-            s.run(f"sweep-{r}-", "-", q_to, q_from, w.speed_rad_s, w.load, w.marker, joint=2)
+            s.run(f"sweep-{r}-", "-", q_to, q_from, w.speed_rad_s, w.load, w.marker, joint=w.joint)
 
-        steps.append(Step(id=f"sweep/{r}", procedure="sweep", label=f"joint-2 sweep {r}/{w.repeats}",
+        steps.append(Step(id=f"sweep/{r}", procedure="sweep", label=f"joint-{w.joint} sweep {r}/{w.repeats}",
                           estimate_s=est, needs_person=w.load != UNLOADED, action=action))
     return steps
 

@@ -235,7 +235,7 @@ def _test_one(data: RunData, fit: RunModelFit, model_effects: Sequence[Effect], 
             return NotTestable(eff.name, "the runs hold no UV/VU pair or +/- sweep (the same path forward and "
                                          "backward)")
     elif data.sweeps is None:
-        return NotTestable(eff.name, "the runs hold no joint-2 sweep (direction + and -)")
+        return NotTestable(eff.name, f"the runs hold no joint-{data.robot.sweep_joint} sweep (direction + and -)")
     elif eff.name in data.sweep_refused:
         return NotTestable(eff.name, data.sweep_refused[eff.name])
     try:
@@ -252,7 +252,7 @@ def _test_one(data: RunData, fit: RunModelFit, model_effects: Sequence[Effect], 
                         and u not in fit.unidentifiable)
         nominal = None
     else:
-        tested = np.append(np.zeros(6, dtype=bool), True)
+        tested = np.append(np.zeros(len(fit.friction_rss), dtype=bool), True)
         q = len(data.sweep_terms[eff.name].names)
         unident = ()
         nominal = data.sweep_terms[eff.name].nominal is not None
@@ -274,7 +274,7 @@ def _run_structure(data: RunData, fit: RunModelFit) -> tuple[str, ...]:
     joints: list[tuple[float, int]] = []      # (residual / noise, joint) of the joints above their noise
     if data.friction is not None and data.friction_var is not None and fit.friction_residual is not None:
         r, var, s = fit.friction_residual, data.friction_var, data.friction
-        for j in range(6):
+        for j in range(r.shape[1]):
             ok = np.isfinite(r[:, j]) & np.isfinite(var[:, j])
             dof = fit.friction_n[j] - fit.friction_p[j]
             if ok.sum() < 5 or dof <= 0:
@@ -293,7 +293,7 @@ def _run_structure(data: RunData, fit: RunModelFit) -> tuple[str, ...]:
                     found.append((pr, f"it {'grows' if rho > 0 else 'falls'} with {name} on joint {j + 1} "
                                       f"(rank correlation {rho:+.2f} over {int(ok.sum())} samples)"))
             if s.q is not None and np.ptp(s.q[ok, j]) > 0.0:     # any pattern in the angle, not only a trend
-                idx, labels = _bins(s.q[ok, j], 6, "rad", ".2f")
+                idx, labels = _bins(s.q[ok, j], 6, "m" if data.robot.prismatic[j] else "rad", ".2f")
                 groups = [r[ok, j][idx == b] for b in range(len(labels))]
                 if len(groups) > 1 and all(len(g) > 1 for g in groups):
                     _, pk = scipy.stats.kruskal(*groups)
@@ -305,8 +305,9 @@ def _run_structure(data: RunData, fit: RunModelFit) -> tuple[str, ...]:
         if dof > 0:
             p = float(scipy.stats.chi2.sf(fit.sweep_chi2, dof))
             if p < FEATURE_P:
-                found.append((0.0, f"joint-2 sweep means stay {math.sqrt(fit.sweep_chi2 / dof):.1f}x their noise "
-                                 f"(they follow q2: see where['sweep q2'])"))
+                j = data.sweeps.joint + 1
+                found.append((0.0, f"joint-{j} sweep means stay {math.sqrt(fit.sweep_chi2 / dof):.1f}x their noise "
+                                 f"(they follow q{j}: see where['sweep q2'], the swept joint's angle)"))
     found.sort(key=lambda x: x[0])
     head = ()
     if joints:
@@ -321,18 +322,19 @@ def diagnose_runs(robot, table, *, model: Sequence[str] = ("joint_stiffness",),
                   sweep_effects: Sequence[Effect] | None = None) -> RunDiagnosis:
     """Test the run-data effects the model lacks, stepwise, against the runs' noise floor.
 
-    ``stiffness`` (k1..k6 [N·m/rad], from a static fit) puts the sweeps at the deflected
+    ``stiffness`` (k1..kN [N·m/rad, N/m], from a static fit) puts the sweeps at the deflected
     configuration; without it robot.toml's nominal stiffness, else the rigid model with its
     bias stated (identify/runmodel.py). ``friction_effects`` (default: the table's "uv/vu"
     effects, the constant one first) and ``sweep_effects`` (default: the "sweep" effects)
     are the candidates' strategies; effects of ``model`` outside them are fitted with the model.
     """
     model = tuple(dict.fromkeys(["joint_stiffness", *model]))
-    model_effects_all = [get_effect(name) for name in model]
-    friction_effects = tuple(get_effect(e) for e in FRICTION_EFFECTS) if friction_effects is None \
+    model_effects_all = [get_effect(name, robot) for name in model]
+    friction_effects = tuple(get_effect(e, robot) for e in FRICTION_EFFECTS) if friction_effects is None \
         else tuple(friction_effects)
-    sweep_effects = tuple(get_effect(e) for e in SWEEP_EFFECTS) if sweep_effects is None else tuple(sweep_effects)
-    constant = friction_effects[0] if friction_effects else get_effect(FRICTION_EFFECTS[0])
+    sweep_effects = tuple(get_effect(e, robot) for e in SWEEP_EFFECTS) if sweep_effects is None \
+        else tuple(sweep_effects)
+    constant = friction_effects[0] if friction_effects else get_effect(FRICTION_EFFECTS[0], robot)
     pool = (*friction_effects, *sweep_effects)
     in_model = [e for e in model_effects_all if e.run_part is not None]
     by_name = {e.name: e for e in (*pool, *in_model)}
@@ -415,7 +417,7 @@ def _run_groups(data: RunData, fit: RunModelFit) -> tuple[GroupSummary, ...]:
         moving = np.isfinite(resid)
         var = data.friction_var[moving] if data.friction_var is not None else None
         joint = np.nonzero(moving)[1]
-        out.append(summary("joint", joint, resid[moving], var, [f"j{j + 1}" for j in range(6)]))
+        out.append(summary("joint", joint, resid[moving], var, [f"j{j + 1}" for j in range(resid.shape[1])]))
         pair = np.broadcast_to(data.friction.pair[:, None], resid.shape)[moving]
         out.append(summary("uv/vu pair", pair, resid[moving], var, [f"{u}/{v}" for u, v in data.friction.pairs]))
     if fit.sweep is not None and len(fit.sweep.residuals):

@@ -109,7 +109,8 @@ class FrictionSpec:
 
 @dataclass(frozen=True)
 class SweepSpec:
-    """Joint 2 from ``q2_from`` to ``q2_to`` (+) and back (-), the other joints at ``q``."""
+    """Joint ``joint`` (2 by default; the compensator's on any chain) from ``q2_from`` to ``q2_to``
+    (+) and back (-), the other joints at ``q``."""
 
     q: tuple[float, ...]
     q2_from: float
@@ -118,6 +119,12 @@ class SweepSpec:
     repeats: int = 1
     load: str = UNLOADED
     marker: str | None = None
+    joint: int = 2
+
+    def ends(self) -> tuple[tuple[float, ...], ...]:
+        """The joint values the sweep starts at and turns at: ``q`` with the swept joint set."""
+        j = self.joint - 1
+        return tuple(tuple(self.q[:j]) + (v,) + tuple(self.q[j + 1:]) for v in (self.q2_from, self.q2_to))
 
 
 @dataclass(frozen=True)
@@ -188,9 +195,7 @@ class Plan:
             check_marker(f.marker, f"friction[{f.id}].marker")
         if self.sweep:
             s = self.sweep
-            for q2, key in ((s.q2_from, "q2_from"), (s.q2_to, "q2_to")):
-                q = list(s.q)
-                q[1] = q2
+            for q, key in zip(s.ends(), ("q2_from", "q2_to")):
                 check_q(q, f"sweep.{key}")
             check_marker(s.marker, "sweep.marker")
 
@@ -413,12 +418,14 @@ def _friction(top: _Table, load_ids: Sequence[str], source: str) -> list[Frictio
 def _sweep(w: _Table | None, load_ids: Sequence[str]) -> SweepSpec | None:
     if w is None:
         return None
-    w.check_keys(("q", "q2_from", "q2_to", "speed_rad_s", "repeats", "load", "marker"))
+    w.check_keys(("q", "q2_from", "q2_to", "speed_rad_s", "repeats", "load", "marker", "joint"))
     lid = w.text("load", UNLOADED)
     _check_load(w, "load", lid, load_ids, allow_unloaded=True)
     sweep = SweepSpec(q=w.joint_vector("q"), q2_from=w.number("q2_from"), q2_to=w.number("q2_to"),
                       speed_rad_s=w.number("speed_rad_s", positive=True), repeats=w.integer("repeats", 1),
-                      load=lid, marker=w.optional_text("marker"))
+                      load=lid, marker=w.optional_text("marker"), joint=w.integer("joint", 2))
+    if sweep.joint > len(sweep.q):
+        raise w.fail("joint", f"joint {sweep.joint} of a sweep whose q has {len(sweep.q)} joints")
     if sweep.q2_from == sweep.q2_to:
         raise w.fail("q2_to", "the sweep has no length: q2_from and q2_to are equal")
     return sweep
@@ -515,7 +522,8 @@ def plan_toml(*, poses: Sequence[Sequence[float]] | Mapping[str, Sequence[float]
     if sweep is not None:
         doc["sweep"] = {"q": _floats(sweep.q), "q2_from": float(sweep.q2_from), "q2_to": float(sweep.q2_to),
                         "speed_rad_s": float(sweep.speed_rad_s), "repeats": int(sweep.repeats), "load": sweep.load,
-                        **({"marker": sweep.marker} if sweep.marker else {})}
+                        **({"marker": sweep.marker} if sweep.marker else {}),
+                        **({"joint": sweep.joint} if sweep.joint != 2 else {})}
     if check is not None:
         doc["check"] = {"poses": [str(p) for p in check.poses], "load": check.load,
                         **({"friction": check.friction} if check.friction else {})}

@@ -1,7 +1,9 @@
 """Gravity-compensator parameters from joint-2 currents over a sweep (Yang §4.1, Klimchik §III).
 
 Joint 2 moves slowly through a range, forward and backward, the other joints
-held. At one q2 the load torque joint 2 carries is the same both ways and
+held. (On any chain the swept joint is the one the ``+``/``-`` runs move, the
+compensator's: joint 3 of an arm on a track; "joint 2", "q2" and "q3" below
+are that joint and the next one.) At one q2 the load torque joint 2 carries is the same both ways and
 friction changes sign (the drive supplies it in the direction of motion, docs/formats.md §3:
 ``xi i = tau_load + f sign(dq)``), so
 the mean of the two directions is friction-free::
@@ -46,7 +48,7 @@ from elastocal.model.kinds import CompensatorKind
 class SweepMeans:
     """Friction-free joint-2 torque along the forward/backward sweeps."""
 
-    theta: np.ndarray        # (n, 6) link-side configuration at each forward sample
+    theta: np.ndarray        # (n, N) link-side configuration at each forward sample
     q2: np.ndarray           # (n,) compensator coordinate (link-side q2) [rad]
     torque: np.ndarray       # (n,) xi2 (i_fwd + i_bwd)/2 [N·m]
     friction: np.ndarray     # (n,) xi2 (i_fwd - i_bwd)/2 at forward speed: joint-2 friction [N·m], > 0
@@ -55,6 +57,7 @@ class SweepMeans:
     #: (n,) variance of the interpolated backward reading per unit variance of one reading,
     #: ``(1 - f)^2 + f^2``: the mean's noise variance is ``xi2^2 sigma2^2 (1 + weight) / 4``
     weight: np.ndarray | None = None
+    joint: int = 1           # 0-based index of the swept joint (1: joint 2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,10 +96,32 @@ class CompensatorFit:
 HELD_TOL_RAD = 1e-3
 
 
-def _sweep_groups(q: np.ndarray, direction: np.ndarray, load: np.ndarray, run: np.ndarray) -> list[np.ndarray]:
+def swept_joint(q: np.ndarray, direction: np.ndarray, run: np.ndarray | None = None,
+                 source: str | None = None) -> int:
+    """0-based index of the joint the ``+``/``-`` runs move (the one of widest travel in each
+    run; ``run`` None: contiguous samples of one direction). Every sweep must move the same one."""
+    sweeps = np.isin(direction, ("+", "-"))
+    if run is None:
+        new = np.ones(len(q), dtype=bool)
+        new[1:] = direction[1:] != direction[:-1]
+        run = np.cumsum(new).astype(str)
+    moved = set()
+    for r in dict.fromkeys(run[sweeps]):
+        qr = q[(run == r) & sweeps]
+        if len(qr) > 1:
+            moved.add(int(np.argmax(np.ptp(qr, axis=0))))
+    if len(moved) > 1:
+        raise InputError("the +/- sweeps move joints " + " and ".join(str(j + 1) for j in sorted(moved)) +
+                         "; sweeps of one joint (the compensator's) are one model", source=source,
+                         column="direction")
+    return moved.pop() if moved else 1
+
+
+def _sweep_groups(q: np.ndarray, direction: np.ndarray, load: np.ndarray, run: np.ndarray,
+                  joint: int) -> list[np.ndarray]:
     """Sample indices of each sweep: the ``+``/``-`` runs with the same load whose
-    held joints (all but joint 2) agree within HELD_TOL_RAD."""
-    held = np.delete(q, 1, axis=1)
+    held joints (all but the swept one) agree within HELD_TOL_RAD."""
+    held = np.delete(q, joint, axis=1)
     groups: list[tuple[str, np.ndarray, list[int]]] = []
     for r in dict.fromkeys(run[np.isin(direction, ("+", "-"))]):
         idx = np.flatnonzero(run == r)
@@ -110,9 +135,9 @@ def _sweep_groups(q: np.ndarray, direction: np.ndarray, load: np.ndarray, run: n
     return [np.array(members) for _, _, members in groups]
 
 
-def _contiguous_runs(q: np.ndarray, direction: np.ndarray, load: np.ndarray) -> np.ndarray:
+def _contiguous_runs(q: np.ndarray, direction: np.ndarray, load: np.ndarray, joint: int) -> np.ndarray:
     """Run labels from contiguous samples of one direction, load and held configuration."""
-    held = np.delete(q, 1, axis=1)
+    held = np.delete(q, joint, axis=1)
     new = np.ones(len(q), dtype=bool)
     new[1:] = ((direction[1:] != direction[:-1]) | (load[1:] != load[:-1])
                | (np.max(np.abs(np.diff(held, axis=0)), axis=1) >= HELD_TOL_RAD))
@@ -128,8 +153,9 @@ def sweep_means(robot: Robot, q: np.ndarray, currents: np.ndarray, direction: np
     and held configuration) with the
     same held joints (all but joint 2, within 1 mrad) and the same load form one
     sweep. The backward torque is interpolated in q2 at the forward
-    samples inside the common range. ``stiffness`` (6,) [N·m/rad], when given,
-    puts the joints at their deflected angles ``q + offset + xi i / k``.
+    samples inside the common range. ``stiffness`` (N,) [N·m/rad, N/m], when given,
+    puts the joints at their deflected angles ``q + offset + xi i / k``. The swept joint
+    is the one the runs move (:func:`swept_joint`).
     """
     q = np.asarray(q, dtype=float)
     currents = np.asarray(currents, dtype=float)
@@ -144,68 +170,69 @@ def sweep_means(robot: Robot, q: np.ndarray, currents: np.ndarray, direction: np
                          "(fx..mz) or load 0", source=source, column="fx")
     w[unknown] = 0.0
     xi = robot.torque_constants
-    run = _contiguous_runs(q, direction, load) if run is None else np.asarray(run, dtype=str)
-    groups = _sweep_groups(q, direction, load, run)
+    j = swept_joint(q, direction, None if run is None else np.asarray(run, dtype=str), source)
+    run = _contiguous_runs(q, direction, load, j) if run is None else np.asarray(run, dtype=str)
+    groups = _sweep_groups(q, direction, load, run, j)
     theta, q2s, torque, friction, wrenches, sweep, weights = [], [], [], [], [], [], []
     for g, idx in enumerate(groups):
         fwd = idx[direction[idx] == "+"]
         bwd = idx[direction[idx] == "-"]
         if len(fwd) < 2 or len(bwd) < 2:
             continue
-        if not (np.all(np.isfinite(currents[fwd, 1])) and np.all(np.isfinite(currents[bwd, 1]))):
-            raise InputError("a joint-2 sweep has empty currents; the compensator needs i2", source=source,
-                             column="i2")
-        tau_f = xi[1] * currents[fwd, 1]
-        tau_b = xi[1] * currents[bwd, 1]
-        qb = q[bwd, 1]
+        if not (np.all(np.isfinite(currents[fwd, j])) and np.all(np.isfinite(currents[bwd, j]))):
+            raise InputError(f"a joint-{j + 1} sweep has empty currents; the compensator needs i{j + 1}",
+                             source=source, column=f"i{j + 1}")
+        tau_f = xi[j] * currents[fwd, j]
+        tau_b = xi[j] * currents[bwd, j]
+        qb = q[bwd, j]
         order = np.argsort(qb, kind="stable")
         qb, tb = qb[order], tau_b[order]
-        inside = (q[fwd, 1] >= qb[0]) & (q[fwd, 1] <= qb[-1])
+        inside = (q[fwd, j] >= qb[0]) & (q[fwd, j] <= qb[-1])
         fwd, tau_f = fwd[inside], tau_f[inside]
-        tb_at = np.interp(q[fwd, 1], qb, tb)
-        right = np.clip(np.searchsorted(qb, q[fwd, 1]), 1, len(qb) - 1)
+        tb_at = np.interp(q[fwd, j], qb, tb)
+        right = np.clip(np.searchsorted(qb, q[fwd, j]), 1, len(qb) - 1)
         span = qb[right] - qb[right - 1]
-        frac = np.clip(np.where(span > 0, (q[fwd, 1] - qb[right - 1]) / np.where(span > 0, span, 1.0), 0.0), 0, 1)
+        frac = np.clip(np.where(span > 0, (q[fwd, j] - qb[right - 1]) / np.where(span > 0, span, 1.0), 0.0), 0, 1)
         mean = (tau_f + tb_at) / 2.0
         th = robot.theta(q[fwd])
         if stiffness is not None:
             k = np.asarray(stiffness, dtype=float)
             i_mean = currents[fwd].copy()
-            i_mean[:, 1] = mean / xi[1]
+            i_mean[:, j] = mean / xi[j]
             th = th + xi * i_mean / k
         theta.append(th)
-        q2s.append(th[:, 1] - robot.joints[1].offset)
+        q2s.append(th[:, j] - robot.joints[j].offset)
         torque.append(mean)
         friction.append((tau_f - tb_at) / 2.0)
         wrenches.append(w[fwd])
         sweep.append(np.full(len(fwd), g))
         weights.append((1.0 - frac) ** 2 + frac ** 2)
     if not torque:
-        raise InputError("no joint-2 sweep run both forward (+) and backward (-) under the same load and "
-                         "held joints", source=source, column="direction")
+        raise InputError(f"no joint-{j + 1} sweep run both forward (+) and backward (-) under the same load "
+                         "and held joints", source=source, column="direction")
     return SweepMeans(theta=np.vstack(theta), q2=np.concatenate(q2s), torque=np.concatenate(torque),
                       friction=np.concatenate(friction), wrench=np.vstack(wrenches), sweep=np.concatenate(sweep),
-                      weight=np.concatenate(weights))
+                      weight=np.concatenate(weights), joint=j)
 
 
 # --------------------------------------------------------------- the fit
-def _external_torque2(robot: Robot, theta: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+def _external_torque(robot: Robot, theta: np.ndarray, wrench: np.ndarray, joint: int) -> np.ndarray:
     out = np.zeros(len(theta))
     nz = np.any(wrench != 0.0, axis=1)
     data = robot.create_data()
     for k in np.flatnonzero(nz):
         jac = robot.jacobians(theta[k], [LOAD_FRAME], data=data)[0]
-        out[k] = (jac.T @ wrench[k])[1]
+        out[k] = (jac.T @ wrench[k])[joint]
     return out
 
 
 def known_torque(robot: Robot, means: SweepMeans, *, gravity: bool = True) -> np.ndarray:
     """``y`` of identify/sweepfit.py: the mean torque less the external wrench's, plus the
     description's gravity (``gravity=False``: without it)."""
-    y = means.torque - _external_torque2(robot, means.theta, means.wrench)
+    y = means.torque - _external_torque(robot, means.theta, means.wrench, means.joint)
     if gravity and robot.has_masses:
         data = robot.create_data()
-        y = y + np.array([robot.gravity_torque(th, data=data)[1] for th in means.theta])
+        y = y + np.array([robot.gravity_torque(th, data=data)[means.joint] for th in means.theta])
     return y
 
 
@@ -227,7 +254,7 @@ def identify_compensator(robot: Robot, means: SweepMeans, *, gravity: str = "mod
         raise InputError("the robot description gives no link masses: identify the gravity with the "
                          "compensator (sweeps at two or more q3)", source=robot.source)
     effects = [get_effect("compensator")] + ([get_effect("gravity")] if gravity == "identify" else [])
-    terms, refused = sweep_terms(robot, means.q2, means.theta, effects)
+    terms, refused = sweep_terms(robot, means.q2, means.theta, effects, means.joint)
     if refused:
         name, reason = next(iter(refused.items()))
         raise UnidentifiableError(f"{name}: {reason}")
@@ -261,7 +288,7 @@ def compensator_from_run_table(robot: Robot, table, *, gravity: str = "auto",
         gravity = "model" if robot.has_masses else "identify"
     sweeps = np.isin(table.direction, ("+", "-"))
     if not np.any(sweeps):
-        raise InputError("the table has no joint-2 sweeps (direction + and -)", source=table.source,
+        raise InputError("the table has no joint sweeps (direction + and -)", source=table.source,
                          column="direction")
     sub = table.subset(sweeps)
     means = sweep_means(robot, sub.q, sub.currents, sub.direction, sub.load, sub.wrench, run=sub.run,

@@ -90,15 +90,17 @@ def match_path(q_a: np.ndarray, q_b: np.ndarray) -> PathMatch:
 class FrictionSamples:
     """Matched UV/VU samples: the half difference and half sum of Y48, in torque."""
 
-    friction: np.ndarray   # (n, 6) sign(dq_UV) xi (i_UV - i_VU)/2 [N·m], > 0 for real friction; NaN where still
-    speed: np.ndarray      # (n, 6) (|dq_UV| + |dq_VU|)/2 [rad/s]
-    load_torque: np.ndarray  # (n, 6) xi (i_UV + i_VU)/2 [N·m]
+    #: (n, N) sign(dq_UV) xi (i_UV - i_VU)/2 [N·m; N on a prismatic joint], > 0 for real friction;
+    #: NaN where still
+    friction: np.ndarray
+    speed: np.ndarray      # (n, N) (|dq_UV| + |dq_VU|)/2 [rad/s; m/s]
+    load_torque: np.ndarray  # (n, N) xi (i_UV + i_VU)/2 [N·m; N]
     pair: np.ndarray       # (n,) index of the UV/VU pair
     pairs: tuple[tuple[str, str], ...]  # (UV run, VU run) or (+ sweep, - sweep)
     #: (n,) variance of the interpolated backward reading per unit variance of one reading,
     #: ``(1 - f)^2 + f^2``: a half-difference's noise variance is ``xi^2 sigma^2 (1 + weight) / 4``
     weight: np.ndarray | None = None
-    q: np.ndarray | None = None  # (n, 6) joint angles of the forward run's samples [rad]
+    q: np.ndarray | None = None  # (n, N) joint values of the forward run's samples [rad; m]
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,25 +108,36 @@ class FrictionFit:
     """Per-joint friction parameters with their covariance."""
 
     terms: tuple[str, ...]           # fitted terms, order of values' columns
-    values: np.ndarray               # (6, len(terms)); NaN where not identified
-    covariance: np.ndarray           # (6, len(terms), len(terms))
-    n: np.ndarray                    # (6,) matched samples used per joint
-    residual_rms: np.ndarray         # (6,) [N·m]; NaN for a joint that did not move
+    values: np.ndarray               # (N, len(terms)); NaN where not identified
+    covariance: np.ndarray           # (N, len(terms), len(terms))
+    n: np.ndarray                    # (N,) matched samples used per joint
+    residual_rms: np.ndarray         # (N,) [N·m; N]; NaN for a joint that did not move
     samples: FrictionSamples
-    #: the effect of each term (the strategies that gave the columns)
+    #: the effect of each term (the strategies that gave the columns), sized for the robot's
+    #: joints when it was given (a prismatic joint's units in N, N*s/m)
     effects: tuple[Effect, ...] = ()
 
     def _effect(self, term: str) -> Effect:
         return self.effects[self.terms.index(term)] if self.effects else get_effect(TERM_EFFECT[term])
 
     @property
+    def n_joints(self) -> int:
+        return int(self.values.shape[0])
+
+    def unit(self, term: str, joint: int) -> str:
+        """The unit of ``term``'s parameter on joint ``joint`` (0-based; a prismatic joint's in N
+        when the effects were sized for the robot)."""
+        units = self._effect(term).units
+        return units[joint] if joint < len(units) else units[0]
+
+    @property
     def std(self) -> np.ndarray:
         return np.sqrt(np.einsum("jii->ji", self.covariance))
 
     def term(self, name: str) -> np.ndarray:
-        """Values (6,) of one term; NaN where not fitted or not identified."""
+        """Values (N,) of one term; NaN where not fitted or not identified."""
         if name not in self.terms:
-            return np.full(6, np.nan)
+            return np.full(self.n_joints, np.nan)
         return self.values[:, self.terms.index(name)]
 
     @property
@@ -144,7 +157,7 @@ class FrictionFit:
         """Parameter names (fc1, fv3, ...) the data could not determine."""
         out = []
         for k, term in enumerate(self.terms):
-            for j in range(6):
+            for j in range(self.n_joints):
                 if not np.isfinite(self.values[j, k]):
                     out.append(f"{self._effect(term).run_prefix}{j + 1}")
         return tuple(out)
@@ -155,14 +168,14 @@ class FrictionFit:
         std = self.std
         for k, term in enumerate(self.terms):
             effect = self._effect(term)
-            for j in range(6):
+            for j in range(self.n_joints):
                 if np.isfinite(self.values[j, k]):
                     out[f"{effect.run_prefix}{j + 1}"] = {"value": float(self.values[j, k]),
-                                                          "std": float(std[j, k]), "unit": effect.units[0]}
+                                                          "std": float(std[j, k]), "unit": self.unit(term, j)}
         return out
 
     def torque(self, dq: np.ndarray, load_torque: np.ndarray) -> np.ndarray:
-        """Friction torque ``sign(dq) (fc + fv |dq| + fl |tau|)`` (n, 6) the drive supplies on
+        """Friction torque ``sign(dq) (fc + fv |dq| + fl |tau|)`` (n, N) the drive supplies on
         top of the load torque (``xi i = tau_load + torque``), with the identified terms
         (unidentified ones count as zero)."""
         dq = np.atleast_2d(dq)
@@ -245,8 +258,8 @@ def friction_samples(q: np.ndarray, dq: np.ndarray, currents: np.ndarray, run: n
     for k, (ru, rv) in enumerate(pairs):
         mu, mv = run == ru, run == rv
         if not np.all(np.isfinite(currents[mu])) or not np.all(np.isfinite(currents[mv])):
-            raise InputError(f"runs {ru}/{rv} have empty currents; friction needs i1..i6", source=source,
-                             column="i1")
+            raise InputError(f"runs {ru}/{rv} have empty currents; friction needs i1..i{currents.shape[1]}",
+                             source=source, column="i1")
         qv = q[mv]
         match = match_path(q[mu], qv)
         spacing = float(np.median(np.linalg.norm(np.diff(qv, axis=0), axis=1)))
@@ -296,11 +309,11 @@ def _fit_joint(y: np.ndarray, columns: list[np.ndarray], names: list[str]) -> tu
     return values, covs, float(np.sqrt(np.mean(res ** 2)))
 
 
-def friction_strategies(terms: Sequence[str] = FRICTION_TERMS,
-                        effects: Sequence[Effect] | None = None) -> tuple[tuple[str, ...], tuple[Effect, ...]]:
+def friction_strategies(terms: Sequence[str] = FRICTION_TERMS, effects: Sequence[Effect] | None = None,
+                        robot=None) -> tuple[tuple[str, ...], tuple[Effect, ...]]:
     """(terms, effects) of a friction model: ``effects`` injected as they are (the first
     must be the constant, Coulomb-like one: its column is never dropped), else the table's
-    effects for ``terms`` in the table's order."""
+    effects for ``terms`` in the table's order, sized for ``robot``'s joints."""
     if effects is not None:
         effects = tuple(effects)
         if not effects or any(e.run_column is None for e in effects):
@@ -313,20 +326,22 @@ def friction_strategies(terms: Sequence[str] = FRICTION_TERMS,
     if FRICTION_TERMS[0] not in terms:
         raise InputError("the friction model needs the Coulomb term")
     terms = tuple(t for t in FRICTION_TERMS if t in terms)
-    return terms, tuple(get_effect(TERM_EFFECT[t]) for t in terms)
+    return terms, tuple(get_effect(TERM_EFFECT[t], robot) for t in terms)
 
 
 def identify_friction(samples: FrictionSamples, *, terms: Sequence[str] = FRICTION_TERMS,
-                      effects: Sequence[Effect] | None = None, min_samples: int = 5) -> FrictionFit:
+                      effects: Sequence[Effect] | None = None, min_samples: int = 5, robot=None) -> FrictionFit:
     """Per-joint friction ``fc + fv |dq| + fl |tau|`` from matched UV/VU samples; the
-    columns are the effects' own (``effects`` injected, else those of ``terms``)."""
-    terms, effects = friction_strategies(terms, effects)
+    columns are the effects' own (``effects`` injected, else those of ``terms`` sized for
+    ``robot``: a prismatic joint's parameters in N, N*s/m)."""
+    terms, effects = friction_strategies(terms, effects, robot)
     nt = len(terms)
-    values = np.full((6, nt), np.nan)
-    cov = np.full((6, nt, nt), np.nan)
-    n = np.zeros(6, dtype=int)
-    rms = np.full(6, np.nan)
-    for j in range(6):
+    nj = samples.friction.shape[1]
+    values = np.full((nj, nt), np.nan)
+    cov = np.full((nj, nt, nt), np.nan)
+    n = np.zeros(nj, dtype=int)
+    rms = np.full(nj, np.nan)
+    for j in range(nj):
         ok = np.isfinite(samples.friction[:, j])
         n[j] = int(ok.sum())
         if n[j] < max(min_samples, nt + 1):
@@ -345,14 +360,15 @@ def identify_friction(samples: FrictionSamples, *, terms: Sequence[str] = FRICTI
 
 
 def friction_from_run_table(table, torque_constants: Sequence[float], *, terms: Sequence[str] = FRICTION_TERMS,
-                            effects: Sequence[Effect] | None = None, min_speed_rad_s: float = 1e-3) -> FrictionFit:
+                            effects: Sequence[Effect] | None = None, min_speed_rad_s: float = 1e-3,
+                            robot=None) -> FrictionFit:
     """:func:`identify_friction` on the UV/VU runs and the ``+``/``-`` sweeps of a run table
     (docs/formats.md §3): both are the same path forward and backward."""
     samples = table_friction_samples(table, torque_constants, min_speed_rad_s=min_speed_rad_s)
     if samples is None:
         raise InputError("the table has no UV/VU runs and no +/- sweeps (the same path forward and backward)",
                          source=table.source, column="direction")
-    return identify_friction(samples, terms=terms, effects=effects)
+    return identify_friction(samples, terms=terms, effects=effects, robot=robot)
 
 
 def table_friction_samples(table, torque_constants: Sequence[float], *,

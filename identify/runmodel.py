@@ -35,7 +35,7 @@ compliance for any other.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -43,6 +43,7 @@ import scipy.stats
 
 from elastocal.errors import UnidentifiableError
 from elastocal.model.effects.base import Effect
+from elastocal.model.robot import DEFAULT_PRIOR_PRISMATIC_STIFFNESS
 from elastocal.identify.static import Parameter
 
 #: a scaled friction design worse conditioned than this cannot separate a term from Coulomb
@@ -86,9 +87,10 @@ def _difference(i: np.ndarray, lag: int) -> np.ndarray:
 
 
 def current_noise(table) -> np.ndarray:
-    """Repeatability sigma [A] (6,) of one current reading per joint, from the fourth
+    """Repeatability sigma [A] (N,) of one current reading per joint, from the fourth
     differences within each run (NaN for a joint without enough samples)."""
-    out = np.full(6, np.nan)
+    n_joints = np.asarray(table.currents).shape[1]
+    out = np.full(n_joints, np.nan)
     lag_diffs = {1: [], 3: []}
     for r in dict.fromkeys(table.run):
         i = table.currents[table.run == r]
@@ -97,7 +99,7 @@ def current_noise(table) -> np.ndarray:
                 lag_diffs[lag].append(_difference(i, lag))
     if not lag_diffs[1]:
         return out
-    for j in range(6):
+    for j in range(n_joints):
         s1 = _robust_sigma(np.concatenate([d[:, j] for d in lag_diffs[1]]))
         s3 = _robust_sigma(np.concatenate([d[:, j] for d in lag_diffs[3]])) if lag_diffs[3] else float("nan")
         out[j] = s3 if np.isfinite(s3) and s3 > CORRELATED_NOISE_RATIO * s1 else s1
@@ -110,12 +112,19 @@ class StiffnessUsed:
     """Where the joint stiffness that places the sweeps came from, and the rigid model's bias."""
 
     source: str                                  # "static fit", "robot.toml" or "rigid"
-    values: tuple[float, ...] | None             # k1..k6 [N·m/rad]; None for the rigid model
+    values: tuple[float, ...] | None             # k1..kN [N·m/rad, N/m]; None for the rigid model
     #: rigid model: rms change of the sweep torques [N·m] with REFERENCE_STIFFNESS on every joint
     bias_torque_rms: float | None = None
     #: rigid model: (name, relative bias) of each fitted sweep parameter, the rigid value against
     #: the value with that stiffness, (rigid - deflected) / deflected
     bias_parameters: tuple[tuple[str, float], ...] = ()
+    joint: int = 2                               # the swept joint (1-based) whose torque the bias is of
+    #: whether the robot has prismatic joints (the bias then holds them at a track's prior N/m)
+    prismatic: bool = False
+
+    @property
+    def _prismatic(self) -> str:
+        return (f" (a prismatic one at {DEFAULT_PRIOR_PRISMATIC_STIFFNESS:.0e} N/m)" if self.prismatic else "")
 
     @property
     def note(self) -> str:
@@ -124,8 +133,9 @@ class StiffnessUsed:
         text = ("rigid model: robot.toml gives no joint stiffness, so the joint deflections xi i / k are "
                 "neglected")
         if self.bias_torque_rms is not None:
-            text += (f"; with every joint at {REFERENCE_STIFFNESS:.0e} N*m/rad they would change the joint-2 "
-                     f"sweep torque by {self.bias_torque_rms:.2g} N*m rms")
+            text += (f"; with every joint at {REFERENCE_STIFFNESS:.0e} N*m/rad{self._prismatic} they would "
+                     "change the "
+                     f"joint-{self.joint} sweep torque by {self.bias_torque_rms:.2g} N*m rms")
         if self.bias_parameters:
             text += (", and the rigid model's " + ", ".join(f"{n} would be off by {100 * v:+.2g} %"
                                                              for n, v in self.bias_parameters))
@@ -158,13 +168,13 @@ class RunData:
     robot: object
     source: str
     friction: object | None          # identify.friction.FrictionSamples (forward/backward pairs)
-    friction_var: np.ndarray | None  # (n, 6) noise variance of each half-difference [N·m^2]
+    friction_var: np.ndarray | None  # (n, N) noise variance of each half-difference [N·m^2]
     sweeps: object | None            # identify.compensator.SweepMeans
     sweep_y: np.ndarray | None       # (n,) what the sweep terms explain (identify/sweepfit.py) [N·m]
     sweep_var: np.ndarray | None     # (n,) noise variance of each sweep mean [N·m^2]
     sweep_terms: dict = field(default_factory=dict)     # effect -> SweepTerm
     sweep_refused: dict = field(default_factory=dict)   # effect -> why not
-    current_noise: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
+    current_noise: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))   # (N,) [A]
     stiffness: StiffnessUsed = StiffnessUsed("rigid", None)
 
 
@@ -178,7 +188,7 @@ def _sweep_part(robot, table, stiffness: Sequence[float] | None, sweep_effects: 
     sub = table.subset(sweeps)
     means = sweep_means(robot, sub.q, sub.currents, sub.direction, sub.load, sub.wrench, run=sub.run,
                         stiffness=stiffness, source=table.source)
-    terms, refused = sweep_terms(robot, means.q2, means.theta, sweep_effects)
+    terms, refused = sweep_terms(robot, means.q2, means.theta, sweep_effects, means.joint)
     return means, known_torque(robot, means), terms, refused
 
 
@@ -200,7 +210,8 @@ def prepare_run_data(robot, table, *, stiffness: Sequence[float] | None = None,
     s_var = None
     if means is not None:
         w = means.weight if means.weight is not None else np.ones(len(y))
-        s_var = (xi[1] * sigma[1]) ** 2 * (1.0 + w) / 4.0
+        s_var = (xi[means.joint] * sigma[means.joint]) ** 2 * (1.0 + w) / 4.0
+        used = replace(used, joint=means.joint + 1, prismatic=bool(np.any(robot.prismatic)))
     return RunData(robot=robot, source=table.source, friction=samples, friction_var=f_var, sweeps=means,
                    sweep_y=y, sweep_var=s_var, sweep_terms=terms, sweep_refused=refused, current_noise=sigma,
                    stiffness=used)
@@ -209,11 +220,11 @@ def prepare_run_data(robot, table, *, stiffness: Sequence[float] | None = None,
 def with_rigid_bias(data: RunData, table, sweep_effects: Sequence[Effect], fitted: Sequence[str]) -> RunData:
     """``data`` whose rigid-model note states the bias: the sweep fit of ``fitted`` again with
     REFERENCE_STIFFNESS on every joint."""
-    from dataclasses import replace
-
     if data.stiffness.source != "rigid" or data.sweeps is None:
         return data
-    ref = prepare_run_data(data.robot, table, stiffness=np.full(6, REFERENCE_STIFFNESS), sweep_effects=sweep_effects)
+    # a prismatic joint's reference is in N/m: a track's prior stiffness (model/robot.py)
+    ref_k = np.where(data.robot.prismatic, DEFAULT_PRIOR_PRISMATIC_STIFFNESS, REFERENCE_STIFFNESS)
+    ref = prepare_run_data(data.robot, table, stiffness=ref_k, sweep_effects=sweep_effects)
     torque_rms = float(np.sqrt(np.mean((ref.sweep_y - data.sweep_y) ** 2)))
     rel: tuple[tuple[str, float], ...] = ()
     wanted = [e for e, t in data.sweep_terms.items() if (e in fitted or t.required) and e in ref.sweep_terms]
@@ -240,18 +251,18 @@ class RunModelFit:
     model: tuple[str, ...]
     parameters: tuple[Parameter, ...]
     unidentifiable: tuple[str, ...]
-    friction_pred: np.ndarray | None     # (n, 6) the model's friction (NaN where the joint is still)
-    friction_rss: np.ndarray             # (6,) [N·m^2]
-    friction_n: np.ndarray               # (6,)
-    friction_floor_ss: np.ndarray        # (6,) sum of var (1 - h)
-    friction_chi2: np.ndarray            # (6,) sum of r^2 / var
-    friction_p: np.ndarray               # (6,) parameters fitted per joint
-    #: which friction effect's column each joint holds: effect -> (6,) bool
+    friction_pred: np.ndarray | None     # (n, N) the model's friction (NaN where the joint is still)
+    friction_rss: np.ndarray             # (N,) [N·m^2, N^2 on a prismatic joint]
+    friction_n: np.ndarray               # (N,)
+    friction_floor_ss: np.ndarray        # (N,) sum of var (1 - h)
+    friction_chi2: np.ndarray            # (N,) sum of r^2 / var
+    friction_p: np.ndarray               # (N,) parameters fitted per joint
+    #: which friction effect's column each joint holds: effect -> (N,) bool
     friction_columns: dict
     sweep: object | None                 # identify.sweepfit.SweepFit
     sweep_floor_ss: float = 0.0
     sweep_chi2: float = 0.0
-    friction_residual: np.ndarray | None = None   # (n, 6) measured - model
+    friction_residual: np.ndarray | None = None   # (n, N) measured - model
 
     @property
     def sweep_rss(self) -> float:
@@ -300,7 +311,7 @@ class RunModelFit:
         return float(scipy.stats.chi2.sf(stat, dof)) if dof > 0 else None
 
     def group_rss(self) -> np.ndarray:
-        """(7,) rss of the six joints' half-differences and of the sweep means."""
+        """(N + 1,) rss of the N joints' half-differences and of the sweep means."""
         return np.append(self.friction_rss, self.sweep_rss)
 
     def group_n(self) -> np.ndarray:
@@ -323,15 +334,15 @@ def _fit_friction(data: RunData, effects: Sequence[Effect], constant: Effect | N
     """Per joint, least squares of the half-differences on the columns of ``effects``
     that these samples separate (from each other and from ``constant``)."""
     s = data.friction
-    n_all = len(s.pair)
-    pred = np.full((n_all, 6), np.nan)
-    rss, floor, chi2 = np.zeros(6), np.zeros(6), np.zeros(6)
-    n, p = np.zeros(6, dtype=int), np.zeros(6, dtype=int)
-    cols_in = {e.name: np.zeros(6, dtype=bool) for e in effects}
+    n_all, n_joints = s.friction.shape
+    pred = np.full((n_all, n_joints), np.nan)
+    rss, floor, chi2 = np.zeros(n_joints), np.zeros(n_joints), np.zeros(n_joints)
+    n, p = np.zeros(n_joints, dtype=int), np.zeros(n_joints, dtype=int)
+    cols_in = {e.name: np.zeros(n_joints, dtype=bool) for e in effects}
     params: list[Parameter] = []
     unident: list[str] = []
     std_all = {}
-    for j in range(6):
+    for j in range(n_joints):
         ok = np.isfinite(s.friction[:, j])
         n[j] = int(ok.sum())
         if n[j] == 0:
@@ -343,7 +354,8 @@ def _fit_friction(data: RunData, effects: Sequence[Effect], constant: Effect | N
         for e in effects:
             col = e.run_column(s.speed[ok, j], s.load_torque[ok, j])
             check = [*cols, col]
-            if constant is not None and constant not in (*kept, e):
+            # by name: the same effect sized for another robot is another object
+            if constant is not None and constant.name not in {k.name for k in (*kept, e)}:
                 check = [constant.run_column(s.speed[ok, j], s.load_torque[ok, j]), *check]
             if n[j] <= max(MIN_SAMPLES - 1, len(check) + 1) or _scaled_condition(np.column_stack(check)) > \
                     MAX_FRICTION_CONDITION:
@@ -371,7 +383,7 @@ def _fit_friction(data: RunData, effects: Sequence[Effect], constant: Effect | N
         chi2[j] = float(np.sum(res ** 2 / var))
         p[j] = len(cols)
     for e in effects:
-        for j in range(6):
+        for j in range(n_joints):
             if (e.name, j) in std_all:
                 v, sd = std_all[(e.name, j)]
                 params.append(Parameter(f"{e.run_prefix}{j + 1}", v, sd, e.units[j]))
@@ -393,7 +405,7 @@ def fit_run_model(data: RunData, effects: Sequence[Effect], *, constant: Effect 
     if constant is None:
         from elastocal.model.effects import get_effect, run_effects
 
-        constant = get_effect(run_effects("uv/vu")[0])
+        constant = get_effect(run_effects("uv/vu")[0], data.robot)
     model = tuple(e.name for e in effects)
     params: list[Parameter] = []
     unident: list[str] = []
@@ -404,8 +416,9 @@ def fit_run_model(data: RunData, effects: Sequence[Effect], *, constant: Effect 
         resid = data.friction.friction - pred
     else:
         pred = resid = None
-        rss, floor, chi2, n, p = np.zeros(6), np.zeros(6), np.zeros(6), np.zeros(6, int), np.zeros(6, int)
-        cols_in = {e.name: np.zeros(6, dtype=bool) for e in friction_effects}
+        nj = data.robot.n_joints
+        rss, floor, chi2, n, p = np.zeros(nj), np.zeros(nj), np.zeros(nj), np.zeros(nj, int), np.zeros(nj, int)
+        cols_in = {e.name: np.zeros(nj, dtype=bool) for e in friction_effects}
     sweep = None
     s_floor = s_chi2 = 0.0
     if data.sweeps is not None:

@@ -67,7 +67,7 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
                   stiffness: Sequence[float] | None = None) -> RunFit:
     """Fit the run-data effects named in ``model`` to a run table.
 
-    ``stiffness`` (k1..k6 from a static fit) places the sweeps; without it robot.toml's
+    ``stiffness`` (k1..kN from a static fit) places the sweeps; without it robot.toml's
     nominal stiffness, else the rigid model (its bias stated in the result).
     """
     wanted = [m for m in model if m != "joint_stiffness"]
@@ -78,12 +78,13 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
     if not wanted:
         raise InputError("run data alone do not give the joint stiffness; name the run effects to fit, e.g. "
                          "compensator,coulomb_friction,viscous_friction", argument="model")
-    effects = [get_effect(m) for m in wanted]
+    effects = [get_effect(m, robot) for m in wanted]
     sweep_effects = [e for e in effects if e.run_part == "sweep"]
     data = prepare_run_data(robot, table, stiffness=stiffness,
-                            sweep_effects=[get_effect(e) for e in SWEEP_EFFECTS])
+                            sweep_effects=[get_effect(e, robot) for e in SWEEP_EFFECTS])
     if sweep_effects and data.sweeps is None:
-        raise InputError("the table has no joint-2 sweeps (direction + and -)", source=table.source,
+        raise InputError(f"the table has no joint-{robot.sweep_joint} sweeps (direction + and -)",
+                         source=table.source,
                          column="direction")
     for e in sweep_effects:
         if e.name in data.sweep_refused:
@@ -93,7 +94,7 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
                          source=table.source, column="direction")
     fit = fit_run_model(data, effects)
     if sweep_effects:
-        data = with_rigid_bias(data, table, [get_effect(e) for e in SWEEP_EFFECTS], fit.model)
+        data = with_rigid_bias(data, table, [get_effect(e, robot) for e in SWEEP_EFFECTS], fit.model)
     residuals = []
     if any(e.run_part == "uv/vu" for e in effects) and fit.friction_residual is not None:
         r = fit.friction_residual

@@ -68,10 +68,12 @@ class SweepFit:
         return tuple(out)
 
 
-def sweep_terms(robot, q2: np.ndarray, theta: np.ndarray,
-                effects: Sequence[Effect]) -> tuple[dict[str, SweepTerm], dict[str, str]]:
-    """(effect -> its term, effect -> why these sweeps cannot hold it) for the sweep ``effects``."""
-    ctx = SweepContext(robot=robot, q2=np.asarray(q2, dtype=float), theta=np.asarray(theta, dtype=float))
+def sweep_terms(robot, q2: np.ndarray, theta: np.ndarray, effects: Sequence[Effect],
+                joint: int = 1) -> tuple[dict[str, SweepTerm], dict[str, str]]:
+    """(effect -> its term, effect -> why these sweeps cannot hold it) for the sweep ``effects``
+    of sweeps moving joint ``joint`` (0-based; 1 is joint 2)."""
+    ctx = SweepContext(robot=robot, q2=np.asarray(q2, dtype=float), theta=np.asarray(theta, dtype=float),
+                       joint=joint)
     terms: dict[str, SweepTerm] = {}
     refused: dict[str, str] = {}
     for eff in effects:
@@ -138,7 +140,8 @@ def fit_sweeps(y: np.ndarray, fitted: Sequence[tuple[str, SweepTerm]],
     scale = np.linalg.norm(jac, axis=0)
     if np.any(scale == 0) or np.linalg.cond(jac / scale) > MAX_CONDITION:
         raise UnidentifiableError("the sweeps cannot separate " + " from ".join(names) +
-                                  "; sweep joint 2 over a wider range (and at two or more q3)")
+                                  "; sweep the compensator's joint over a wider range (and at two or more "
+                                  "values of the next joint)")
     q, _ = np.linalg.qr(jac / scale)
     s2 = float(res @ res) / (len(res) - n_par)
     cov = s2 * np.linalg.pinv(jac.T @ jac)

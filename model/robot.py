@@ -358,6 +358,12 @@ class Robot:
         return any(j.mass > 0.0 for j in self.joints)
 
     @property
+    def sweep_joint(self) -> int:
+        """The joint (1-based) the run table's ``+``/``-`` sweeps move: the compensator's, joint 2
+        of a six-axis arm without one."""
+        return self.compensator.joint if self.compensator is not None else 2
+
+    @property
     def link_spring_names(self) -> tuple[str, ...]:
         """Parameters of link_model's passive springs, in its order: ``cl<l>x, cl<l>y`` per spring link."""
         return tuple(f"cl{l}{a}" for l in self.spring_links for a in "xy")

@@ -37,17 +37,19 @@ def compensator_truth(robot: Robot) -> dict:
 
 
 def _plane_frame(robot: Robot, q: np.ndarray) -> pin.SE3:
-    """Joint 2's frame with q2 = 0 (fixed to link 1 while q1 is)."""
+    """The compensated joint's frame (joint 2 of a six-axis arm) at its zero (fixed to the link
+    before it)."""
+    j = robot.compensator.joint
     q = np.array(q, dtype=float)
-    q[1] = 0.0
+    q[j - 1] = 0.0
     model = robot.model
     data = model.createData()
     pin.forwardKinematics(model, data, robot.theta(q))
-    return data.oMi[model.getJointId("joint2")]
+    return data.oMi[model.getJointId(f"joint{j}")]
 
 
 def marker_positions(robot: Robot, q: np.ndarray) -> dict[str, np.ndarray]:
-    """Base-frame positions of P1, P01, P02 at joint values ``q`` (n, 6)."""
+    """Base-frame positions of P1, P01, P02 at joint values ``q`` (n, N)."""
     c = robot.compensator
     a, b, h = c.geo("a"), c.geo("b"), c.geo("h")
     r, alpha = math.hypot(a, h), math.atan2(a, h)
@@ -56,7 +58,7 @@ def marker_positions(robot: Robot, q: np.ndarray) -> dict[str, np.ndarray]:
     for row in q:
         frame = _plane_frame(robot, row)
         p0 = np.array([b, 0.0, 0.0])
-        phi = math.pi / 2 - alpha + row[1]
+        phi = math.pi / 2 - alpha + row[c.joint - 1]
         p1 = r * np.array([math.cos(phi), math.sin(phi), 0.0])
         beta = math.atan2(p1[1] - p0[1], p1[0] - p0[0])
         out[PIVOT].append(frame.act(p1))
@@ -67,11 +69,13 @@ def marker_positions(robot: Robot, q: np.ndarray) -> dict[str, np.ndarray]:
 
 def compensator_sweep(robot: Robot, rng: np.random.Generator, *, q2_start: float = -0.6, q2_end: float = 1.7,
                       steps: int = 47, noise_m: float = 10e-6, source: str = "<compensator sweep>") -> RunTable:
-    """Run table of a slow joint-2 sweep at rest points, one row per marker reading."""
-    q2 = np.linspace(q2_start, q2_end, steps)
-    q = np.zeros((steps, 6))
-    q[:, 1] = q2
-    q[:, 4] = math.pi / 2
+    """Run table of a slow sweep of the compensated joint (joint 2 of a six-axis arm) at rest
+    points, one row per marker reading; the other joints as :class:`~elastocal.sims.runs.SweepPlan`
+    holds them (a prismatic joint mid-travel)."""
+    from elastocal.sims.runs import SweepPlan
+
+    q = np.tile(SweepPlan.for_robot(robot).q_base, (steps, 1))
+    q[:, robot.compensator.joint - 1] = np.linspace(q2_start, q2_end, steps)
     pos = marker_positions(robot, q)
     rows = {k: [] for k in ("run", "direction", "load", "t", "q", "marker", "xyz")}
     for n in range(steps):

@@ -1,8 +1,9 @@
-"""Slow motions on the simulated cell: joint-2 sweeps and UV/VU friction runs (docs/formats.md §3).
+"""Slow motions on the simulated cell: compensator-joint sweeps and UV/VU friction runs (docs/formats.md §3).
 
-* Joint-2 sweeps (Y §5, Table 7): joint 2 moves at constant speed through a
-  range, forward (``+``) and backward (``-``), the other joints held, at one or
-  more values of q3. Friction changes sign with the direction; the mean of the
+* Joint sweeps (Y §5, Table 7): the compensated joint (joint 2 of a six-axis arm,
+  the joint the robot's ``[compensator]`` names on any chain) moves at constant
+  speed through a range, forward (``+``) and backward (``-``), the other joints
+  held, at one or more values of the next joint (q3 on a six-axis arm). Friction changes sign with the direction; the mean of the
   two directions leaves gravity, payload and compensator (Y32-34).
 * UV/VU runs (Y §6): the same joint-space straight line from U to V and back,
   at two speeds (viscous friction) and two loads (load-dependent friction),
@@ -22,6 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from elastocal.model.kinds import JointKind
 from elastocal.model.robot import Robot
 from elastocal.formats.tables import RunTable, run_table_from_arrays, write_run_table
 from elastocal.sims.cell import CellTruth, SimCell
@@ -57,20 +59,47 @@ def _check_size(robot: Robot, name: str, value: tuple[float, ...]) -> None:
         raise ValueError(f"{name}: {len(value)} values for the {robot.n_joints} joints of {robot.name!r}")
 
 
+def _place(robot: Robot, revolute: tuple[float, ...], fraction: float) -> tuple[float, ...]:
+    """One value per joint of ``robot``: a six-axis arm's ``revolute`` values in order for its
+    revolute joints (the last one repeated beyond six), a prismatic joint at ``fraction`` of its
+    travel between its limits [m]."""
+    out, r = [], 0
+    for joint in robot.joints:
+        if joint.kind is JointKind.PRISMATIC:
+            out.append(joint.lower + fraction * (joint.upper - joint.lower))
+        else:
+            out.append(revolute[min(r, len(revolute) - 1)])
+            r += 1
+    return tuple(float(v) for v in out)
+
+
 @dataclass(frozen=True)
 class SweepPlan:
-    """Joint-2 sweeps forward and backward at each q3 (Y Table 7 style)."""
+    """Sweeps of joint ``joint`` forward and backward at each value of the next joint (Y Table 7
+    style; the field names are a six-axis arm's, where ``joint`` is 2 and the next one q3)."""
 
     q_base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 1.5707963267948966, 0.0)
-    q2_start: float = -0.6          # [rad]
+    q2_start: float = -0.6          # [rad] the swept joint's range
     q2_end: float = 1.7             # [rad]
-    q3_values: tuple[float, ...] = (0.0, -0.7)
+    q3_values: tuple[float, ...] = (0.0, -0.7)   # the next joint's values [rad]
     speed_rad_s: float = 0.05
-    step_rad: float = 0.01          # joint-2 travel between two samples
+    step_rad: float = 0.01          # the swept joint's travel between two samples
     wrench: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # payload on the load point
+    joint: int = 2                  # the swept joint (1-based), followed by the one q3_values sets
+
+    @classmethod
+    def for_robot(cls, robot: Robot, **changes) -> "SweepPlan":
+        """The default plan placed on ``robot``'s joints: the compensator's joint swept (joint 2
+        without one), the others held at a six-axis arm's values, a prismatic joint mid-travel."""
+        base = cls()
+        if robot.n_joints == 6 and not np.any(robot.prismatic) and robot.sweep_joint == 2:
+            return replace(base, **changes) if changes else base
+        return replace(base, q_base=_place(robot, base.q_base, 0.5), joint=robot.sweep_joint, **changes)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "q_base", _six(self.q_base, "q_base", None))
+        if isinstance(self.joint, bool) or not isinstance(self.joint, int) or not 1 <= self.joint < len(self.q_base):
+            raise ValueError("joint: the swept joint's number, with a joint after it")
         object.__setattr__(self, "wrench", _six(self.wrench, "wrench"))
         if not self.q2_end > self.q2_start:
             raise ValueError("q2_end must be above q2_start")
@@ -94,6 +123,16 @@ class FrictionPlan:
         ("1", (900.0, -700.0, -1500.0, 200.0, -200.0, 250.0)),
     )
     samples: int = 240              # samples per run
+
+    @classmethod
+    def for_robot(cls, robot: Robot, **changes) -> "FrictionPlan":
+        """The default runs placed on ``robot``'s joints: a six-axis arm's U and V on its revolute
+        joints, a prismatic joint from 45 % to 55 % of its travel (it then moves at a tenth of a
+        metre or so per second at most, a carriage's slow run)."""
+        base = cls()
+        if robot.n_joints == 6 and not np.any(robot.prismatic):
+            return replace(base, **changes) if changes else base
+        return replace(base, q_u=_place(robot, base.q_u, 0.45), q_v=_place(robot, base.q_v, 0.55), **changes)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "q_u", _six(self.q_u, "q_u", None))
@@ -137,8 +176,9 @@ def _record(cols: _Columns, cell: SimCell, rng: np.random.Generator, *, run: str
 
 def simulate_sweeps(robot: Robot, truth: CellTruth, plan: SweepPlan, rng: np.random.Generator, *,
                     t0: float = 0.0, cols: _Columns | None = None) -> tuple[_Columns, float]:
-    """Joint-2 sweeps (``+`` then ``-``) at each q3 of ``plan``."""
+    """Sweeps of ``plan.joint`` (``+`` then ``-``) at each value of the next joint."""
     _check_size(robot, "q_base", plan.q_base)
+    swept = plan.joint - 1
     cell = SimCell(robot, truth)
     cols = _Columns.empty() if cols is None else cols
     n = int(round((plan.q2_end - plan.q2_start) / plan.step_rad)) + 1
@@ -149,10 +189,10 @@ def simulate_sweeps(robot: Robot, truth: CellTruth, plan: SweepPlan, rng: np.ran
     for k, q3 in enumerate(plan.q3_values, start=1):
         for direction, path in (("+", q2), ("-", q2[::-1])):
             q = np.tile(plan.q_base, (n, 1))
-            q[:, 2] = q3
-            q[:, 1] = path
+            q[:, swept + 1] = q3
+            q[:, swept] = path
             dq = np.zeros((n, robot.n_joints))
-            dq[:, 1] = plan.speed_rad_s if direction == "+" else -plan.speed_rad_s
+            dq[:, swept] = plan.speed_rad_s if direction == "+" else -plan.speed_rad_s
             times = t + dt * np.arange(n)
             _record(cols, cell, rng, run=f"sweep{k}{direction}", direction=direction, load=load, t=times, q=q,
                     dq=dq, wrench=np.array(plan.wrench))
@@ -187,9 +227,19 @@ def simulate_friction_runs(robot: Robot, truth: CellTruth, plan: FrictionPlan, r
     return cols, t
 
 
-def simulate_runs(robot: Robot, truth: CellTruth, *, seed: int, sweeps: SweepPlan | None = SweepPlan(),
-                  friction: FrictionPlan | None = FrictionPlan(), source: str = "<simulated runs>") -> RunTable:
-    """Run table (docs/formats.md §3) of joint-2 sweeps then UV/VU runs on the simulated cell."""
+#: the default plans of :func:`simulate_runs`, placed on the robot's joints (``for_robot``)
+DEFAULT_SWEEPS = SweepPlan()
+DEFAULT_FRICTION = FrictionPlan()
+
+
+def simulate_runs(robot: Robot, truth: CellTruth, *, seed: int, sweeps: SweepPlan | None = DEFAULT_SWEEPS,
+                  friction: FrictionPlan | None = DEFAULT_FRICTION, source: str = "<simulated runs>") -> RunTable:
+    """Run table (docs/formats.md §3) of compensator-joint sweeps then UV/VU runs on the simulated
+    cell; the default plans are placed on ``robot``'s joints."""
+    if sweeps is DEFAULT_SWEEPS:
+        sweeps = SweepPlan.for_robot(robot)
+    if friction is DEFAULT_FRICTION:
+        friction = FrictionPlan.for_robot(robot)
     rng = np.random.default_rng(seed)
     cols = _Columns.empty()
     t = 0.0

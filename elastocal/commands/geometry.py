@@ -13,7 +13,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pivot", required=True, help="marker on the compensator pivot P1 (turns with joint 2)")
     parser.add_argument("--cylinder", required=True,
                         help="comma-separated markers on the compensator cylinder (turn about P0)")
-    parser.add_argument("--joint", type=int, default=2, help="joint whose angle turns the pivot (default 2)")
+    parser.add_argument("--joint", type=int, default=2,
+                        help="joint whose angle turns the pivot (default 2; the compensator's, 3 on an arm on a track)")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
 
 
@@ -39,12 +40,12 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.identify.geometry import geometry_from_run_table
     from elastocal.formats.tables import read_run_table
 
-    if not 1 <= args.joint <= 6:
-        raise InputError("must be a joint number 1..6", source="--joint")
     cylinder = [c.strip() for c in args.cylinder.split(",") if c.strip()]
     if not cylinder:
         raise InputError("give at least one cylinder marker", source="--cylinder")
     table = read_run_table(args.runs)
+    if not 1 <= args.joint <= table.n_joints:
+        raise InputError(f"must be a joint number 1..{table.n_joints}", source="--joint")
     pivot_rows = table.marker == args.pivot.strip()
     if pivot_rows.any():
         import numpy as np

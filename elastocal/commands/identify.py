@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(obj))
     else:
         how = (f"({obj['torque']}-based, {obj['form']} form)" if "form" in obj
-               else "(run data: joint-2 sweeps and UV/VU runs)")
+               else f"(run data: joint-{inputs.robot.sweep_joint} sweeps and UV/VU runs)")
         print(format_fit(obj, title=f"{inputs.robot.name}: {', '.join(obj['model'])} {how}"))
         line = prior_line(prior, obj.get("registration"))
         if line:

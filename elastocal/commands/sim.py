@@ -19,7 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="sim_command", metavar="{static,runs,path,plant,serve}")
     sub.required = True
     for name, text in (("static", "a static before/after-load experiment: robot.toml, static.csv, truth.json"),
-                       ("runs", "friction runs and joint-2 sweeps: robot.toml, runs.csv, truth.json")):
+                       ("runs", "friction runs and sweeps of the compensator's joint (joint 2; joint 3 on the track): "
+                                "robot.toml, runs.csv, truth.json")):
         p = sub.add_parser(name, help=text, description=text)
         effects = ("link_compliance, thermal_drift, static_friction, backlash, kinematic_errors (the real DH "
                    "table off by 0.02-0.05 deg and 0.1-0.5 mm), tracker_frame (the tracker on another stand), "
@@ -38,9 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         add_json(p)
         if name == "runs":
             p.add_argument("--compensator-sweep", action="store_true",
-                           help="also write sweep.csv: a joint-2 sweep reading markers P1 (compensator pivot) and "
-                                "P01, P02 (its cylinder), for `elastocal geometry --runs sweep.csv --pivot P1 "
-                                "--cylinder P01,P02`; truth.json gets the compensator geometry")
+                           help="also write sweep.csv: a sweep of the compensator's joint reading markers P1 "
+                                "(compensator pivot) and P01, P02 (its cylinder), for `elastocal geometry --runs "
+                                "sweep.csv --pivot P1 --cylinder P01,P02` (with --joint 3 on the track); "
+                                "truth.json gets the compensator geometry")
         if name == "static":
             p.add_argument("--poses", type=int, default=12, help="number of poses (default 12)")
             add_aliased(p, "--loads-per-pose", "--loads", dest="loads", type=int,

@@ -95,11 +95,12 @@ class StaticContext:
 
 @dataclass(frozen=True, eq=False)
 class SweepContext:
-    """Joint-2 sweep means an effect may use to build its :class:`SweepTerm`."""
+    """Sweep means (of joint 2 on a six-axis arm) an effect may use to build its :class:`SweepTerm`."""
 
     robot: object               # the Robot (model/robot.py)
-    q2: np.ndarray              # (n,) compensator coordinate of each mean [rad]
+    q2: np.ndarray              # (n,) the swept joint's coordinate of each mean (the compensator's) [rad]
     theta: np.ndarray           # (n, N) link-side configuration of each mean (deflected when known)
+    joint: int = 1              # 0-based index of the swept joint (1: joint 2)
 
 
 @dataclass(frozen=True, eq=False)

@@ -58,6 +58,9 @@ def _sweep_term(ctx: SweepContext) -> SweepTerm | str:
     spec = ctx.robot.compensator
     if spec is None:
         return "the robot description has no [compensator]"
+    if spec.index != ctx.joint:
+        return (f"the sweeps move joint {ctx.joint + 1}; the compensator acts on joint {spec.joint} "
+                f"(sweep joint {spec.joint})")
     q2 = np.asarray(ctx.q2, dtype=float)
     lower = np.full(2, -np.inf)
     if spec.kind == "hydropneumatic":       # the cylinder's gas volume: l_c beyond its longest stroke

@@ -27,12 +27,13 @@ def _refusal(ctx: StaticContext) -> str:
     return "gravity cancels in before/after-load differences; it shows in run torques"
 
 
-def joint2_regressor(robot, theta: np.ndarray) -> np.ndarray:
-    """Joint-2 rows of Pinocchio's joint-torque regressor at rest: g2 = Y2 pi."""
+def joint_regressor(robot, theta: np.ndarray, joint: int = 1) -> np.ndarray:
+    """The swept joint's rows (0-based ``joint``; 1 is joint 2) of Pinocchio's joint-torque
+    regressor at rest: g_j = Y_j pi."""
     model = robot.model
     data = model.createData()
     zero = np.zeros(model.nv)
-    return np.array([pin.computeJointTorqueRegressor(model, data, th, zero, zero)[1].copy() for th in theta])
+    return np.array([pin.computeJointTorqueRegressor(model, data, th, zero, zero)[joint].copy() for th in theta])
 
 
 def excited_basis(regressor: np.ndarray) -> np.ndarray:
@@ -56,7 +57,7 @@ def excited_basis(regressor: np.ndarray) -> np.ndarray:
 
 
 def _sweep_term(ctx: SweepContext) -> SweepTerm | str:
-    reg = joint2_regressor(ctx.robot, np.asarray(ctx.theta, dtype=float))
+    reg = joint_regressor(ctx.robot, np.asarray(ctx.theta, dtype=float), ctx.joint)
     phi = reg @ excited_basis(reg)
     rank = phi.shape[1]
     if rank == 0 or len(phi) <= rank + 1:
