@@ -123,3 +123,43 @@ def test_the_plan_sweep_names_its_joint():
 
     with pytest.raises(InputError, match="joint 8 of a sweep whose q has 7 joints"):
         parse_plan(text.replace("joint = 3", "joint = 8"), source="plan.toml")
+
+
+@pytest.mark.slow
+def test_the_guided_friction_pair_and_sweep_run_on_the_simulated_track_cell(tmp_path):
+    """The plan's sweep of joint 3 and a UV/VU pair that moves the carriage, through the real
+    drivers against the simulated seven-joint devices (wall-clock time)."""
+    from dataclasses import replace
+
+    from elastocal.acquisition.procedures import run_calibration
+    from elastocal.drivers.config import PathSpec
+    from elastocal.formats.plan import FrictionSpec, LoadSpec, SettleSpec
+    from elastocal.sims.serve import SimulatedCell, example_cell_config
+
+    u, v = (2.9, 0.1, 0.3, -0.4, 0.0, 0.6, 0.0), (3.1, 0.25, 0.4, -0.35, 0.05, 0.65, 0.05)
+    w0 = (3.0, 0.0, 0.2, -0.5, 0.0, 0.5, 0.0)
+    w1 = (3.0, 0.0, 0.45, -0.5, 0.0, 0.5, 0.0)
+    config = example_cell_config(can_channel="track-runs", robot="hh150_track", move_speed_rad_s=2.0)
+    config = replace(config, controller=replace(config.controller, paths=(PathSpec(1, u, v, 0.1),
+                                                                          PathSpec(2, w0, w1, 0.1))))
+    plan = parse_plan(plan_toml(poses=[], loads=(LoadSpec("L1", mass_kg=80.0),), markers=(),
+                                friction=(FrictionSpec("F1", start=u, end=v, speeds_rad_s=(0.1,), loads=("L1",)),),
+                                sweep=SweepSpec(q=w0, q2_from=0.2, q2_to=0.45, speed_rad_s=0.25, joint=3),
+                                settle=SettleSpec(spread_m=20e-6, window_s=0.15, timeout_s=10.0)), source="plan")
+    log = tmp_path / "runs.mcap"
+    with SimulatedCell(config) as sim:
+        assert run_calibration(sim.config, plan, log, yes=True, world=sim.world).status == "completed"
+    robot, static, runs = load_log(log)
+    assert static is None and robot.n_joints == 7 and runs.n_joints == 7
+    assert list(dict.fromkeys(runs.run)) == ["F1-1-UV", "F1-1-VU", "sweep-1+", "sweep-1-"]
+    plus = runs.run == "sweep-1+"
+    assert np.ptp(runs.q[plus][:, 2]) == pytest.approx(0.25, abs=3e-3)          # joint 3 swept
+    assert np.max(np.ptp(runs.q[plus][:, [0, 1, 3, 4, 5, 6]], axis=0)) < 1e-6    # the others held
+    # the carriage's friction from the UV/VU pair: the drive pushes harder forward (docs/physics.md),
+    # a force in N (xi1 in N/A) of the size the simulated cell's track has
+    uv, vu = runs.run == "F1-1-UV", runs.run == "F1-1-VU"
+    mid = lambda rows: np.abs(runs.q[rows][:, 0] - 3.0) < 0.03  # noqa: E731
+    xi1 = robot.torque_constants[0]
+    f1 = xi1 * (runs.currents[uv][mid(uv), 0].mean() - runs.currents[vu][mid(vu), 0].mean()) / 2
+    # Coulomb 400 N plus viscous 3000 N*s/m at up to 0.1 m/s (sims/data/sim_cell_track.toml)
+    assert 350.0 < f1 < 900.0, f1
