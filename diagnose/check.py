@@ -133,6 +133,7 @@ class FrictionJoint:
     std_nm: float                # std of the difference
     p_value: float
     n: int
+    unit: str = "N*m"            # the friction's unit: N on a prismatic joint
 
     @property
     def relative(self) -> float:
@@ -158,7 +159,8 @@ class FrictionCheck:
         bad = self.failing()
         if bad:
             return "; ".join(f"friction of joint {j.joint} is {j.relative * 100:+.0f} % off the calibration "
-                             f"({j.measured_nm:.1f} N·m measured, {j.predicted_nm:.1f} predicted, p = {j.p_value:.2g})"
+                             f"({j.measured_nm:.1f} {j.unit.replace('*', '·')} measured, {j.predicted_nm:.1f} "
+                             f"predicted, p = {j.p_value:.2g})"
                              for j in bad)
         if not self.joints:
             return "friction not checked: no joint moved in the check run"
@@ -170,7 +172,7 @@ class FrictionCheck:
     def to_json(self) -> dict:
         return {"passed": self.passed, "alpha": self.alpha, "tolerance": self.tolerance,
                 "joints": {str(j.joint): {"measured": j.measured_nm, "predicted": j.predicted_nm, "std": j.std_nm,
-                                          "relative": j.relative, "p_value": j.p_value, "n": j.n}
+                                          "relative": j.relative, "p_value": j.p_value, "n": j.n, "unit": j.unit}
                            for j in self.joints},
                 "missing_terms": list(self.missing_terms), "unit": "N*m"}
 
@@ -329,7 +331,7 @@ def check_friction(robot: Robot, calibration: Calibration, runs: RunTable, *, al
                                robot.torque_constants, t=sub.t, source=runs.source)
     joints: list[FrictionJoint] = []
     missing: list[str] = []
-    for j in range(6):
+    for j in range(robot.n_joints):
         fc = _param(calibration, f"fc{j + 1}")
         if fc is None:
             continue
@@ -354,7 +356,8 @@ def check_friction(robot: Robot, calibration: Calibration, runs: RunTable, *, al
         z = float(np.mean(d)) / std if std > 0 else math.inf
         p_value = float(2.0 * stats.t.sf(abs(z), FRICTION_BATCHES - 1))
         joints.append(FrictionJoint(joint=j + 1, measured_nm=float(np.mean(f)), predicted_nm=float(np.mean(pred)),
-                                    std_nm=std, p_value=p_value, n=int(ok.sum())))
+                                    std_nm=std, p_value=p_value, n=int(ok.sum()),
+                                    unit="N" if robot.prismatic[j] else "N*m"))
     return FrictionCheck(joints=tuple(joints), alpha=alpha, tolerance=tolerance, missing_terms=tuple(missing))
 
 
