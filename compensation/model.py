@@ -25,6 +25,7 @@ from elastocal.errors import Arg, InputError
 from elastocal.formats.calibration import Calibration
 from elastocal.model.kinds import CompensatorKind
 from elastocal.model.robot import LOAD_FRAME, Robot
+from elastocal.model.effects import having
 
 #: fixed-point tolerance on the joint angles [rad]
 FIXED_POINT_TOL_RAD = 1e-13
@@ -101,7 +102,7 @@ class CompensationModel:
             if any(cal.has(n) for n in other):
                 raise InputError(f"compensator parameters {', '.join(other)} do not fit the robot's "
                                  f"{spec.kind} compensator", source=source, column="parameters")
-        if "kinematic_errors" in cal.model:        # the real geometry, not the drawing's
+        if having("geometry", cal.model):        # the calibration's geometry: the real robot's
             from elastocal.identify.accuracy import calibrated_robot
 
             return cls(robot=calibrated_robot(robot, cal), stiffness=k, compensator=comp, nominal=robot)
@@ -115,21 +116,19 @@ class CompensationModel:
         return replace(self, tool=tool)
 
 
-#: calibration effects compensation models, and those that move no tool point of a planned path
-#: (measurement-side session effects, and friction: a torque, not a deflection at rest)
-MODELLED_EFFECTS = ("joint_stiffness", "compensator", "gravity", "kinematic_errors")
-NO_PATH_DEFLECTION = ("thermal_drift", "tracker_frame", "coulomb_friction", "viscous_friction",
-                      "load_dependent_friction")
 
 
 def unmodelled_effects(cal: Calibration) -> dict[str, list[str]]:
     """Effects of the calibration that deflect the robot but compensation leaves out, with
     the calibration's parameters of each (cal.json names them; docs/cli.md's effect table)."""
     from elastocal.model.effects import get_effect
+    from elastocal.model.effects.base import Compensation
 
     out = {}
     for name in cal.model:
-        if name in MODELLED_EFFECTS or name in NO_PATH_DEFLECTION:
+        # each effect's module says whether compensation models it or it moves no tool point of a
+        # path (Effect.compensation)
+        if get_effect(name).compensation is not Compensation.UNMODELLED:
             continue
         names = get_effect(name).parameters
         out[name] = [p for p in cal.names if p in names] or [p for p in names if cal.has(p)]

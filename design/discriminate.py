@@ -44,7 +44,7 @@ from elastocal.design.candidates import Workspace, load_directions, sample_candi
 from elastocal.diagnose.verdict import VERDICT_DELTA_BIC
 from elastocal.identify.design_matrix import planned_dataset, refusals, regressor
 from elastocal.identify.static import StaticDataset
-from elastocal.model.effects import ALL_EFFECTS, get_effect
+from elastocal.model.effects import ALL_EFFECTS, BASE_EFFECT, get_effect
 from elastocal.model.robot import DEFAULT_PRIOR_STIFFNESS, Robot
 
 #: time model of the static procedure [s]: a move to a pose, a load change, one marker reading
@@ -186,9 +186,9 @@ class _Problem:
 
     def __init__(self, robot: Robot, given: GivenData, targets: Sequence[str], rivals: Sequence[str]):
         self.robot, self.given, self.targets, self.rivals = robot, given, tuple(targets), tuple(rivals)
-        model_extra = tuple(m for m in given.model if m != "joint_stiffness" and m not in targets)
+        model_extra = tuple(m for m in given.model if m != BASE_EFFECT and m not in targets)
         self.effects = tuple(dict.fromkeys([*model_extra, *targets, *rivals]))
-        names = ("joint_stiffness", *self.effects)
+        names = (BASE_EFFECT, *self.effects)
         self.param_names = tuple(p for n in names for p in get_effect(n).parameters)
         self.block = {}
         start = 0
@@ -196,10 +196,10 @@ class _Problem:
             k = len(get_effect(n).parameters)
             self.block[n] = np.arange(start, start + k)
             start += k
-        self.base = np.concatenate([self.block[n] for n in ("joint_stiffness", *model_extra)])
+        self.base = np.concatenate([self.block[n] for n in (BASE_EFFECT, *model_extra)])
         fitted = dict(given.fitted)
         scale = np.ones(len(self.param_names))
-        scale[self.block["joint_stiffness"]] = given.compliance
+        scale[self.block[BASE_EFFECT]] = given.compliance
         self.size: dict[str, np.ndarray] = {}
         for n in targets:
             eff = get_effect(n)
@@ -212,7 +212,7 @@ class _Problem:
             scale[self.block[n]] = s
         self.scale = scale
         self.beta = np.zeros(len(self.param_names))
-        self.beta[self.block["joint_stiffness"]] = given.compliance
+        self.beta[self.block[BASE_EFFECT]] = given.compliance
         self.m_given = np.zeros((len(self.param_names),) * 2)
         self.n_given = 0
         if given.dataset is not None:

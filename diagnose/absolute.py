@@ -11,7 +11,7 @@ carry the gravity sag, which pins the stiffness far better than the
 deflections do, so an elastic model held at its deflection estimate would
 leave a significant excess on complete data and make any refitted candidate
 look significant. ``tracker_frame`` is therefore never a missing effect here
-(``TRACKER_FRAME_NOTE``).
+(``REGISTRATION_NOTE``).
 
 ``kinematic_errors`` is tested by the drop of the noise-weighted residual sum of
 squares: a chi-square test (F with unknown noise) with as many degrees of
@@ -47,7 +47,7 @@ import scipy.stats
 
 from elastocal.errors import EffectRefused, InputError
 from elastocal.identify.absolute import ABSOLUTE_EFFECTS, AbsoluteFit, identify_absolute
-from elastocal.model.effects import get_effect
+from elastocal.model.effects import get_effect, having
 from elastocal.model.robot import Robot
 from elastocal.identify.static import StaticDataset
 from elastocal.diagnose.stepwise import FLOOR_RATIO
@@ -56,20 +56,11 @@ from elastocal.model.kinds import KinematicForm, TorqueSource
 #: a candidate is significant below this p-value and delta BIC (docs/cli.md)
 VERDICT_P = 0.01
 VERDICT_DELTA_BIC = -10.0
-#: what each absolute candidate is fitted with (the registration is always in). Thermal drift
-#: is a candidate here too: it moves every reading with time, and over a whole experiment
-#: (hours) the absolute positions see far more of it than a deflection does (seconds apart)
-CANDIDATE_MODELS = {"kinematic_errors": ("kinematic_errors", "tracker_frame"), "thermal_drift": ("thermal_drift",),
-                    # on a table without loads (diagnose/absolute_only.py): the twist under the robot's own weight
-                    "joint_stiffness": ("joint_stiffness",),
-                    # the play of a joint whose weight torque changes sign across the poses, with the
-                    # twist the same weight gives the springs (an arm carrying its weight twists its gears)
-                    "backlash": ("backlash", "joint_stiffness")}
 #: steps are named to the user only when the final absolute model leaves at most this x its floor
 NAMED_RATIO = 2.0
 #: the explanation holds across the data unless a split disagrees below this p (over the splits)
 HOLDS_P = 0.01
-TRACKER_FRAME_NOTE = ("the registration is part of every absolute comparison (fitted with the elastic model on the "
+REGISTRATION_NOTE = ("the registration is part of every absolute comparison (fitted with the elastic model on the "
                       "absolute positions); it is never missing")
 
 
@@ -307,7 +298,7 @@ def _explained(before: AbsoluteFit, after: AbsoluteFit) -> float:
 def _evidence(effect: str, before: AbsoluteFit, after: AbsoluteFit) -> str:
     text = (f"absolute positions {before.rms * 1e6:.1f} → {after.rms * 1e6:.1f} µm rms "
             f"(max {before.max * 1e3:.2f} mm → {after.max * 1e6:.1f} µm)")
-    if effect == "kinematic_errors":
+    if get_effect(effect).geometry:
         big = sorted((p for p in after.parameters if p.name in after.kinematic_names and p.std > 0),
                      key=lambda p: -abs(p.value) / p.std)[:3]
         text += "; clearest: " + ", ".join(f"{p.name} = {p.value:.3g} {p.unit}" for p in big)
@@ -321,9 +312,11 @@ def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *,
     """Compare ``model`` (with its registration) with the absolute positions and
     test the absolute effects it lacks; ``tracker_prior`` (base coordinates [m]) is a
     prior on the registration of every fit."""
-    base = identify_absolute(robot, ds, model=tuple(dict.fromkeys([*model, "tracker_frame"])), torque=torque,
+    base = identify_absolute(robot, ds, model=tuple(dict.fromkeys([*model, *having("registration")])), torque=torque,
                              form=form, tracker_prior=tracker_prior)
-    pool = tuple(p for p in pool if p in CANDIDATE_MODELS)
+    # every effect of the pool is a candidate (each fitted with what its module says,
+    # Effect.fitted_with) but the registration: it is in every fit
+    pool = tuple(p for p in pool if not get_effect(p).registration)
     first: tuple[AbsoluteCandidate, ...] | None = None
     steps: list[AbsoluteCandidate] = []
     refused: dict[str, str] = {}
@@ -333,7 +326,7 @@ def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *,
         for name in pool:
             if name in fit.model:
                 continue
-            names = tuple(dict.fromkeys([*fit.model, *CANDIDATE_MODELS[name]]))
+            names = tuple(dict.fromkeys([*fit.model, name, *get_effect(name).fitted_with]))
             try:
                 aug = identify_absolute(robot, ds, model=names, torque=torque, form=form,
                                         tracker_prior=tracker_prior)
@@ -349,7 +342,7 @@ def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *,
             if p < VERDICT_P and dbic < VERDICT_DELTA_BIC and implausible is None:
                 holds = explanation_holds(aug, eff.parameters, aug.dataset)
             cands.append(AbsoluteCandidate(
-                effect=name, fitted_with=CANDIDATE_MODELS[name][1:], explanation=eff.explanation,
+                effect=name, fitted_with=get_effect(name).fitted_with, explanation=eff.explanation,
                 evidence=_evidence(name, fit, aug), rms_before=fit.rms, rms_after=aug.rms, max_after=aug.max,
                 noise_floor_after=aug.noise_floor, delta_bic=dbic, p_value=p, statistic=stat, dof=dof, fit=aug,
                 dispersion=_dispersion(aug), implausible=implausible, does_not_hold=holds,

@@ -21,18 +21,10 @@ from typing import Sequence
 from elastocal.diagnose.absolute import AbsoluteDiagnosis, diagnose_absolute
 from elastocal.diagnose.stepwise import FLOOR_RATIO
 from elastocal.diagnose.verdict import NotTestable
+from elastocal.model.effects import ABSOLUTE_ONLY_POOL, absolute_only_untested, get_effect, having
 from elastocal.model.robot import Robot
 from elastocal.identify.static import StaticDataset
 
-#: the effects a table without loads can show, tested when the model lacks them
-POOL = ("kinematic_errors", "joint_stiffness", "backlash", "thermal_drift")
-#: why the others are not tested there
-NOT_TESTABLE = {
-    "joint_stiffness": "needs the link masses (mass and com per [[joint]]): the torques are the robot's own weight",
-    "thermal_drift": "needs the time t of the readings",
-    "backlash": "needs the link masses (mass and com per [[joint]]): the play shows where a joint's weight torque "
-                "changes sign",
-}
 NO_FLOOR = ("no noise floor is known (no repeated readings, no u95 or sx,sy,sz columns, no tracker noise model): "
             "whether anything is missing cannot be said; the residual is not compared with noise")
 
@@ -116,17 +108,18 @@ class AbsoluteOnlyDiagnosis:
 def diagnose_absolute_only(robot: Robot, ds: StaticDataset, model: Sequence[str], *,
                            tracker_prior: Sequence[float] | None = None) -> AbsoluteOnlyDiagnosis:
     """The stepwise diagnosis of a table without loads (module docstring)."""
-    pool = [e for e in POOL if e not in model]
-    skipped = []
-    for name in ("joint_stiffness", "backlash"):
-        if name in pool and not robot.has_masses:
-            pool.remove(name)
-            skipped.append((name, NOT_TESTABLE[name]))
-    if "thermal_drift" in pool and (ds.abs_t is None or not (ds.abs_t == ds.abs_t).all()):
-        pool.remove("thermal_drift")
-        skipped.append(("thermal_drift", NOT_TESTABLE["thermal_drift"]))
+    # the effects such a table can show, each unless its module says why this table cannot test it;
+    # then those such tables never test, with their modules' reasons
+    pool, skipped = [], []
+    for name in (e for e in ABSOLUTE_ONLY_POOL if e not in model):
+        reason = get_effect(name).absolute_only_refusal(robot, ds)
+        if reason is None:
+            pool.append(name)
+        else:
+            skipped.append((name, reason))
+    skipped += [(name, get_effect(name).absolute_only_refusal(robot, ds)) for name in absolute_only_untested()]
     diag = diagnose_absolute(robot, ds, tuple(model), pool=tuple(pool), tracker_prior=tracker_prior)
     skipped += list(diag.refused)             # what the poses cannot show (no joint's torque changes sign)
-    return AbsoluteOnlyDiagnosis(model=tuple(dict.fromkeys([*model, "tracker_frame"])), absolute=diag,
+    return AbsoluteOnlyDiagnosis(model=tuple(dict.fromkeys([*model, *having("registration")])), absolute=diag,
                                  not_testable=tuple(NotTestable(e, r) for e, r in skipped),
                                  outliers=tuple(ds.outliers))

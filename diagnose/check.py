@@ -44,13 +44,11 @@ from scipy import stats
 from elastocal.diagnose.check_positions import PositionCheck, check_positions
 from elastocal.errors import InputError
 from elastocal.formats.calibration import Calibration
-from elastocal.model.effects import get_effect
+from elastocal.model.effects import get_effect, having
 from elastocal.model.robot import Robot
 from elastocal.formats.tables import RunTable, StaticTable
 from elastocal.model.kinds import KinematicForm
 
-#: effects whose parameters belong to a measuring session, not to the robot
-SESSION_EFFECTS = ("thermal_drift", "tracker_frame")
 #: contiguous batches the friction samples of a joint are averaged in
 FRICTION_BATCHES = 10
 VERDICTS = ("holds", "recalibrate")
@@ -244,7 +242,7 @@ def check_static(robot: Robot, calibration: Calibration, table: StaticTable, *, 
     if fit.noise_blocks is None:
         raise InputError("the check data hold no repeated readings: the check needs repeats >= 2 per marker and "
                          "load state to know the noise", source=table.source)
-    session = {p for name in fit.model if name in SESSION_EFFECTS for p in get_effect(name).parameters}
+    session = {p for name in having("session", fit.model) for p in get_effect(name).parameters}
     identifiable = [i for i, b in enumerate(fit.beta_names) if _reported_name(b) not in fit.unidentifiable]
     a = fit.design
     if a is None or a.shape[1] != len(identifiable):

@@ -59,7 +59,7 @@ import scipy.sparse
 import scipy.stats
 
 from elastocal.errors import EffectRefused, UnidentifiableError
-from elastocal.model.effects import ALL_EFFECTS, get_effect
+from elastocal.model.effects import ALL_EFFECTS, get_effect, having
 from elastocal.model.robot import Robot
 from elastocal.identify.static import (
     Parameter,
@@ -408,7 +408,7 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
         data, excluded = without_outliers(data)
     from elastocal.identify.absolute import ABSOLUTE_EFFECTS, has_absolute_positions, split_model
     from elastocal.diagnose.absolute import (
-        TRACKER_FRAME_NOTE,
+        REGISTRATION_NOTE,
         absolute_unexplained,
         combined_verdict,
         diagnose_absolute,
@@ -425,7 +425,8 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     ds_abs = ds
     ds = base.dataset          # the deflections turned to base axes once: every candidate sees the same data
     pool = ALL_EFFECTS if effects is None else tuple(effects)
-    absolute_pool = tuple(e for e in pool if e in (*ABSOLUTE_EFFECTS, "thermal_drift")) if absolute else ()
+    absolute_pool = tuple(e for e in pool if e in ABSOLUTE_EFFECTS or get_effect(e).absolute_shows_more) \
+        if absolute else ()
     pool = tuple(e for e in pool if e not in ABSOLUTE_EFFECTS or not absolute)
     skipped_first: list[NotTestable] = []
 
@@ -448,8 +449,8 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
         abs_diag = diagnose_absolute(robot, ds_abs, (*final.model, *absolute_model), torque=torque, form=form,
                                      pool=absolute_pool, tracker_prior=tracker_prior)
         verdict = combined_verdict(verdict, len(steps), detail is not None, abs_diag)
-        if "tracker_frame" in absolute_pool and "tracker_frame" not in absolute_model:
-            skipped_first.append(NotTestable("tracker_frame", TRACKER_FRAME_NOTE))
+        skipped_first += [NotTestable(e, REGISTRATION_NOTE) for e in having("registration", absolute_pool)
+                          if e not in absolute_model]
         extra = absolute_unexplained(abs_diag) if noise_known else None
         if extra:
             unexplained = (*unexplained, extra)

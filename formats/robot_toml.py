@@ -285,7 +285,7 @@ def _tool(tool: Mapping, *, source: str) -> ToolSpec:
 
 
 def _compensator(doc: Mapping, *, source: str) -> CompensatorSpec | None:
-    if "compensator" not in doc:
+    if doc.get("compensator") is None:      # robot.toml's [compensator] table
         return None
     c = _table(doc["compensator"], source=source, column="compensator")
     try:

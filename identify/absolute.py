@@ -51,7 +51,7 @@ import scipy.stats
 from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
-from elastocal.model.effects import absolute_effects, get_effect
+from elastocal.model.effects import BASE_EFFECT, absolute_effects, get_effect, having
 from elastocal.identify.registration import Registration, kabsch, register
 from elastocal.identify.toolpoints import ToolPoints, find_tool_points, fit_tool_points, needs_prefit, usable
 from elastocal.model.kinds import NoiseSource
@@ -345,6 +345,49 @@ def _whitened(st: _Setup, r: np.ndarray, jac: np.ndarray | None):
     return rw, jw
 
 
+@dataclass(frozen=True, eq=False)
+class _Start:
+    """Where the absolute fit starts: the robot (with the tool-point pre-fit's markers), the
+    deflection fit (or an absolute-only table's rigid start), the model's bases per state and
+    the kinematic parameters the model fits."""
+
+    robot: Robot                  # robot.toml's, or with the pre-fit's markers
+    tools: ToolPoints | None      # the tool-point pre-fit (None: robot.toml's markers)
+    registration: Registration    # the nominal model's (or the pre-fit's) rigid registration
+    kin_names: tuple[str, ...]
+    fit: StaticFit
+    effects: tuple
+    pr: Problem
+    bases: tuple[np.ndarray, np.ndarray, np.ndarray]
+    el_mask: np.ndarray           # the elastic parameters the deflection fit identified
+
+
+@dataclass(frozen=True, eq=False)
+class _Solved:
+    """The free parameters (elastic, frame, kinematic) and their values at the solution."""
+
+    x_full: np.ndarray
+    free: np.ndarray              # (n_el + 6 + n_kin,) bool
+    ident: kin.IdentifiableSet | None
+    iterations: int
+
+    @property
+    def idx(self) -> np.ndarray:
+        return np.flatnonzero(self.free)
+
+
+@dataclass(frozen=True, eq=False)
+class _AbsoluteUncertainty:
+    """The solution's prediction, covariance of the free parameters and the noise floor."""
+
+    pred: np.ndarray              # (S, M, 3) tracker frame
+    jac: np.ndarray               # (S, M, 3, n_el + 6 + n_kin)
+    cov_free: np.ndarray
+    floor: float | None
+    rss_whitened: float
+    n_params: int
+
+
 @one_blas_thread
 def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
                       model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
@@ -379,21 +422,38 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
         s2 = excess_variance(first.residuals, ds0.abs_var, first.n_params)
         return identify_absolute(robot, ds0, excess_var=s2, **kwargs)
     only = is_absolute_only(ds0)      # no loads: geometry, registration, the twist under self-weight
-    names = tuple(dict.fromkeys(model if only else ["joint_stiffness", *model]))
+    names = tuple(dict.fromkeys(model if only else [BASE_EFFECT, *model]))
     static_model, absolute = split_model(names)
+    start = _start(robot, ds0, static_model, absolute, torque=torque, form=form,
+                   sag_theta=sag_theta if only else None, only=only)
+    st, known = _setup(start, ds0, excess_var if stated else None)
+    solved = _solve(st, start, absolute, max_iter=max_iter, tracker_prior=tracker_prior)
+    fit, n_el = start.fit, len(start.fit.beta_names)
+    unc = _uncertainty(st, solved, n_el, ds0, known, excess_var if stated else None)
+    beta, dr, dt, kv = _unpack(st, solved.x_full, n_el)
+    if only and fit.beta_names and sag_theta is None and np.any(beta):
+        # the weight's torques at the configuration it sags to (the first pass took them at the commanded one)
+        sag = start.pr.nominal_theta + start.bases[0] @ beta
+        return identify_absolute(start.robot, ds0, model=model, torque=torque, form=form, max_iter=max_iter,
+                                 tracker_prior=tracker_prior, excess_var=excess_var, sag_theta=sag)
+    return _absolute_fit(st, start, solved, unc, ds0, names=names, absolute=absolute, nominal_robot=robot,
+                         tracker_prior=tracker_prior)
+
+
+def _start(robot: Robot, ds0: StaticDataset, static_model: tuple[str, ...], absolute: tuple[str, ...], *,
+           torque: str, form: str, sag_theta: np.ndarray | None, only: bool) -> _Start:
+    """The registration (after the tool-point pre-fit when robot.toml's markers leave the
+    readings unexplained), the deflection fit and the model's absolute bases at its solution."""
     reg = register(robot, ds0) if ds0.abs_xyz is not None else None
-    nominal_robot = robot
-    tools = _tool_prefit(robot, ds0, reg, fits_markers="kinematic_errors" in absolute)
+    geometry = bool(having("geometry", absolute))       # the model corrects the robot's geometry and markers
+    tools = _tool_prefit(robot, ds0, reg, fits_markers=geometry)
     if tools is not None:              # the full model starts from the markers the pre-fit found
         robot, reg = tools.robot(robot), tools.registration
     if reg is None:
         raise InputError("this table holds no absolute positions of the robot's markers (a rigid fit of the "
                          "model leaves more than 5 cm, or too few points to fix a rotation); "
                          f"{' and '.join(absolute) or 'an absolute comparison'} needs them", source=ds0.source)
-    if "kinematic_errors" in absolute:
-        kin_names = kin.parameter_names(robot, ds0.markers)
-    else:
-        kin_names = ()
+    kin_names = kin.parameter_names(robot, ds0.markers) if geometry else ()
     work = robot.create_data()        # the static fit's and the absolute bases' buffers
     if only:
         fit = absolute_only_start(robot, ds0, static_model)
@@ -405,84 +465,102 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     pr = Problem(robot, ds, effects, torque, form, frames, work)
     if fit.beta_names:
-        tau = state_torques(pr, sag_theta if only else None)
+        tau = state_torques(pr, sag_theta)
         iterative = any(e.iterative for e in effects)
         bases = absolute_bases(pr, static_context(pr, tau, fit.beta if iterative else None))
     else:                             # a rigid model: no elastic parameters
         bases = (np.zeros((ds.n_states, robot.n_joints, 0)),
                  np.zeros((ds.n_states, len(robot.springs_in_link_model), 0)),
                  np.zeros((ds.n_states, len(ds.markers), 3, 0)))
-    n_el = len(fit.beta_names)
-    el_mask = _elastic_mask(fit, effects)
-    y = ds0.abs_xyz
+    return _Start(robot=robot, tools=tools, registration=reg, kin_names=kin_names, fit=fit, effects=effects, pr=pr,
+                  bases=bases, el_mask=_elastic_mask(fit, effects))
 
-    # start: the deflection fit's elasticity, registered in closed form
-    st0 = _Setup(robot, ds, bases, frames, (), np.eye(3), np.zeros(3), (), (), y)
+
+def _setup(start: _Start, ds0: StaticDataset, excess_var: float | None) -> tuple[_Setup, bool]:
+    """The deflection fit's elasticity registered in closed form, and the readings' weights:
+    the noise of the mean readings, or (``excess_var`` given) the readings' own stated
+    variance plus the excess, per coordinate. Also whether the noise level is known."""
+    robot, fit, pr = start.robot, start.fit, start.pr
+    ds, frames, y = pr.ds, pr.frames, ds0.abs_xyz
+    st0 = _Setup(robot, ds, start.bases, frames, (), np.eye(3), np.zeros(3), (), (), y)
     base_p, _ = _model(st0, fit.beta, np.zeros(3), np.zeros(3), np.zeros(0), jacobian=False)
-    start = kabsch(base_p.reshape(-1, 3), y.reshape(-1, 3), ds0.abs_n.reshape(-1)) or reg
-    chols, whitens, known = _noise(robot, ds, torque, fit.beta[:robot.n_joints], start.rotation, frames)
-    if stated:                  # the readings' own variance plus the excess, per coordinate
+    rigid = kabsch(base_p.reshape(-1, 3), y.reshape(-1, 3), ds0.abs_n.reshape(-1)) or start.registration
+    chols, whitens, known = _noise(robot, ds, pr.torque, fit.beta[:robot.n_joints], rigid.rotation, frames)
+    if excess_var is not None:
         total = (ds0.abs_var + excess_var).reshape(ds.n_states, -1)
         chols = tuple(np.apply_along_axis(np.diag, 1, np.sqrt(total)))
         whitens = tuple(np.apply_along_axis(np.diag, 1, 1.0 / np.sqrt(total)))
         known = True
-    st = _Setup(robot, ds, bases, frames, kin_names, start.rotation, start.translation, whitens, chols, y,
-                kin.columns(kin_names, ds.markers))
+    st = _Setup(robot, ds, start.bases, frames, start.kin_names, rigid.rotation, rigid.translation, whitens, chols,
+                y, kin.columns(start.kin_names, ds.markers))
+    return st, known
+
+
+def _solve(st: _Setup, start: _Start, absolute: tuple[str, ...], *, max_iter: int,
+           tracker_prior: Sequence[float] | None) -> _Solved:
+    """Without absolute effects, the registration alone is free (the closed-form start is the
+    answer). With them, the elastic parameters the deflections identified, the frame and the
+    identifiable kinematic parameters (a QR of the whitened regressor: elastic first, then the
+    frame, the markers, the DH errors) refined by Gauss-Newton."""
+    fit, kin_names, el_mask = start.fit, start.kin_names, start.el_mask
+    n_el = len(fit.beta_names)
     x_full = np.concatenate([fit.beta, np.zeros(6), np.zeros(len(kin_names))])
+    if not absolute:
+        return _Solved(x_full, np.concatenate([np.zeros(n_el, dtype=bool), np.ones(6, dtype=bool)]), None, 0)
     all_names = (*fit.beta_names, *FRAME_NAMES, *kin_names)
-    pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True)
-    _, jw = _whitened(st, y - pred, jac)
-    if absolute:
-        free = np.concatenate([el_mask, np.ones(6, dtype=bool), np.zeros(len(kin_names), dtype=bool)])
-        ident = None
-        if kin_names:
-            markers_first = [n for n in kin_names if n.startswith(("dx_", "dy_", "dz_"))]
-            priority = [n for n, k in zip(fit.beta_names, el_mask) if k] + list(FRAME_NAMES) + markers_first
-            ident = kin.identifiable_set(jw[:, np.concatenate([el_mask, np.ones(6 + len(kin_names), dtype=bool)])],
-                                         [n for n, k in zip(all_names, np.concatenate(
-                                             [el_mask, np.ones(6 + len(kin_names), dtype=bool)])) if k], priority)
-            kept = dict(zip([n for n, k in zip(all_names, np.concatenate(
-                [el_mask, np.ones(6 + len(kin_names), dtype=bool)])) if k], ident.keep))
-            free = np.array([kept.get(n, False) for n in all_names])
-        idx = np.flatnonzero(free)
+    free = np.concatenate([el_mask, np.ones(6, dtype=bool), np.zeros(len(kin_names), dtype=bool)])
+    ident = None
+    if kin_names:
+        pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True)
+        _, jw = _whitened(st, st.y - pred, jac)
+        candidate = np.concatenate([el_mask, np.ones(6 + len(kin_names), dtype=bool)])
+        cand_names = [n for n, k in zip(all_names, candidate) if k]
+        markers_first = [n for n in kin_names if n.startswith(("dx_", "dy_", "dz_"))]
+        priority = [n for n, k in zip(fit.beta_names, el_mask) if k] + list(FRAME_NAMES) + markers_first
+        ident = kin.identifiable_set(jw[:, candidate], cand_names, priority)
+        kept = dict(zip(cand_names, ident.keep))
+        free = np.array([kept.get(n, False) for n in all_names])
+    idx = np.flatnonzero(free)
+    prior = None if tracker_prior is None else np.asarray(tracker_prior, dtype=float)
 
-        def evaluate(xf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            xx = x_full.copy()
-            xx[idx] = xf
-            p, j = _model(st, *_unpack(st, xx, n_el), jacobian=True)
-            rw, jw_ = _whitened(st, y - p, j)
-            rw, jac_ = rw, -jw_[:, idx]
-            if tracker_prior is not None:       # three rows: the tracker's position against the cell's
-                r_p, j_p = _prior_rows(st, xx, n_el, np.asarray(tracker_prior, dtype=float))
-                rw = np.concatenate([rw, r_p])
-                jac_ = np.vstack([jac_, j_p[:, idx]])
-            return rw, jac_
+    def evaluate(xf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xx = x_full.copy()
+        xx[idx] = xf
+        p, j = _model(st, *_unpack(st, xx, n_el), jacobian=True)
+        rw, jw_ = _whitened(st, st.y - p, j)
+        jac_ = -jw_[:, idx]
+        if prior is not None:       # three rows: the tracker's position against the cell's
+            r_p, j_p = _prior_rows(st, xx, n_el, prior)
+            rw = np.concatenate([rw, r_p])
+            jac_ = np.vstack([jac_, j_p[:, idx]])
+        return rw, jac_
 
-        x_free, iterations = _gauss_newton(evaluate, x_full[idx], max_iter=max_iter)
-        x_full = x_full.copy()
-        x_full[idx] = x_free
-    else:
-        free = np.concatenate([np.zeros(n_el, dtype=bool), np.ones(6, dtype=bool)])
-        idx = np.flatnonzero(free)
-        ident = None
-        iterations = 0
-    pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True)
-    resid = y - pred
-    rw, jw = _whitened(st, resid, jac)
+    x_free, iterations = _gauss_newton(evaluate, x_full[idx], max_iter=max_iter)
+    x_full = x_full.copy()
+    x_full[idx] = x_free
+    return _Solved(x_full, free, ident, iterations)
+
+
+def _uncertainty(st: _Setup, solved: _Solved, n_el: int, ds0: StaticDataset, known: bool,
+                 excess_var: float | None) -> _AbsoluteUncertainty:
+    """Covariance of the free parameters and what noise alone would leave:
+    ``trace(Σ) - trace(A (A^T Σ^-1 A)^-1 A^T)``, A the unwhitened Jacobian; with stated noise
+    (``excess_var`` given) that of the stated noise alone, the fit weighted with the excess in."""
+    pred, jac = _model(st, *_unpack(st, solved.x_full, n_el), jacobian=True)
+    rw, jw = _whitened(st, st.y - pred, jac)
+    idx = solved.idx
     a_w = jw[:, idx]
     p = len(idx)
     n = rw.size
     m_inv = np.linalg.pinv(a_w.T @ a_w)
     rss_w = float(rw @ rw)
     inflation = max(1.0, rss_w / max(n - p, 1)) if known else rss_w / max(n - p, 1)
-    cov_free = m_inv * inflation
-    # what noise alone leaves: trace(Σ) - trace(A (A^T Σ^-1 A)^-1 A^T), A the unwhitened Jacobian
-    nm = len(ds.markers)
-    a_raw = np.einsum("sij,sjp->sip", np.asarray(st.chol), jw[:, idx].reshape(ds.n_states, 3 * nm, -1))
+    nm = len(st.ds.markers)
+    a_raw = np.einsum("sij,sjp->sip", np.asarray(st.chol), jw[:, idx].reshape(st.ds.n_states, 3 * nm, -1))
     a_raw = a_raw.reshape(-1, len(idx))
     trace_sigma = float(np.sum(np.asarray(st.chol) ** 2))
     expected = trace_sigma - float(np.trace(m_inv @ (a_raw.T @ a_raw)))
-    if stated:                  # E|r|^2 under the stated noise alone, the fit weighted with the excess in
+    if excess_var is not None:
         v_read = ds0.abs_var.reshape(-1)
         w = 1.0 / (v_read + excess_var)
         awv = a_raw.T * (w * v_read)                       # A^T W Sigma
@@ -492,64 +570,74 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     if not known:
         expected *= rss_w / max(n - p, 1)
     floor = float(np.sqrt(max(expected, 0.0) / n)) if known else None
-    r_flat = resid.reshape(-1)
+    return _AbsoluteUncertainty(pred, jac, m_inv * inflation, floor, rss_w, p)
 
-    beta, dr, dt, kv = _unpack(st, x_full, n_el)
+
+def _frame_parameters(st: _Setup, solved: _Solved, unc: _AbsoluteUncertainty, n_el: int) -> list[Parameter]:
+    """The registration as reported: rotation vector of R and t (p_tracker = R p_base + t); their
+    covariance from the base-axes perturbations through d log3 and R0."""
+    _, dr, dt, _ = _unpack(st, solved.x_full, n_el)
     rot = st.rot0 @ pin.exp3(dr)
     t = st.rot0 @ dt + st.t0
-    registration = Registration(rotation=rot, translation=t, rms=float(np.sqrt(np.mean(r_flat ** 2))))
+    rvec = pin.log3(rot)
+    pos_free = {c: k for k, c in enumerate(solved.idx)}
+    cols = [pos_free[n_el + k] for k in range(6)]
+    cov6 = unc.cov_free[np.ix_(cols, cols)]
+    jmap = scipy.linalg.block_diag(pin.Jlog3(rot), st.rot0)
+    std6 = np.sqrt(np.clip(np.diag(jmap @ cov6 @ jmap.T), 0.0, None))
+    return [Parameter(name, float(rvec[k]) if k < 3 else float(t[k - 3]), float(std6[k]), "rad" if k < 3 else "m")
+            for k, name in enumerate(FRAME_NAMES)]
+
+
+def _absolute_fit(st: _Setup, start: _Start, solved: _Solved, unc: _AbsoluteUncertainty, ds0: StaticDataset, *,
+                  names: tuple[str, ...], absolute: tuple[str, ...], nominal_robot: Robot,
+                  tracker_prior: Sequence[float] | None) -> AbsoluteFit:
+    fit, kin_names, free, idx = start.fit, start.kin_names, solved.free, solved.idx
+    n_el = len(fit.beta_names)
+    beta, dr, dt, kv = _unpack(st, solved.x_full, n_el)
+    pred, y = unc.pred, st.y
+    ds = st.ds
+    r_flat = (y - pred).reshape(-1)
+    registration = Registration(rotation=st.rot0 @ pin.exp3(dr), translation=st.rot0 @ dt + st.t0,
+                                rms=float(np.sqrt(np.mean(r_flat ** 2))))
     # deflections predicted by the same model, in the tracker frame
     d_pred = pred[ds.defl_state, ds.defl_marker] - pred[ds.defl_ref, ds.defl_marker]
     # measured deflections in the tracker frame (a dataset already turned to base axes is turned back)
     d_meas = ds0.dP if ds0.tracker_rotation is None else ds0.dP @ ds0.tracker_rotation.T
     d_res = d_meas - d_pred
-
+    all_names = (*fit.beta_names, *FRAME_NAMES, *kin_names)
     std_full = np.zeros(len(all_names))
-    std_full[idx] = np.sqrt(np.clip(np.diag(cov_free), 0.0, None))
+    std_full[idx] = np.sqrt(np.clip(np.diag(unc.cov_free), 0.0, None))
     if not absolute:
         std_full[:n_el] = np.sqrt(np.clip(np.diag(fit.beta_cov), 0.0, None))
-    params, unident = _report(fit, effects, beta, std_full[:n_el], el_mask)
-    absorbed: dict[str, tuple[tuple[str, float], ...]] = {}
-    if "tracker_frame" in absolute:
-        # reported: rotation vector of R and t (p_tracker = R p_base + t); their
-        # covariance from the base-axes perturbations through d log3 and R0
-        rvec = pin.log3(rot)
-        pos_free = {c: k for k, c in enumerate(idx)}
-        cols = [pos_free[n_el + k] for k in range(6)]
-        cov6 = cov_free[np.ix_(cols, cols)]
-        jmap = scipy.linalg.block_diag(pin.Jlog3(rot), st.rot0)
-        std6 = np.sqrt(np.clip(np.diag(jmap @ cov6 @ jmap.T), 0.0, None))
-        for k, name in enumerate(FRAME_NAMES):
-            value = float(rvec[k]) if k < 3 else float(t[k - 3])
-            params.append(Parameter(name, value, float(std6[k]), "rad" if k < 3 else "m"))
+    params, unident = _report(fit, start.effects, beta, std_full[:n_el], start.el_mask)
+    if having("registration", absolute):     # the tracker's placement is a finding of this model
+        params += _frame_parameters(st, solved, unc, n_el)
     kv_total = np.where(free[n_el + 6:], kv, 0.0) if kin_names else np.zeros(0)
-    if tools is not None:              # marker corrections from robot.toml's positions: the pre-fit's and the fit's
-        kv, kv_total = _with_prefit(tools, nominal_robot, kin_names, kv, kv_total)
+    if start.tools is not None:        # marker corrections from robot.toml's positions: the pre-fit's and the fit's
+        kv, kv_total = _with_prefit(start.tools, nominal_robot, kin_names, kv, kv_total)
+    absorbed: dict[str, tuple[tuple[str, float], ...]] = {}
     if kin_names:
         for k, name in enumerate(kin_names):
             col = n_el + 6 + k
             if free[col]:
-                params.append(Parameter(name, float(kv[k]), float(std_full[col]), kin.unit_of(name, robot)))
+                params.append(Parameter(name, float(kv[k]), float(std_full[col]), kin.unit_of(name, start.robot)))
             else:
                 unident.append(name)
-        absorbed = dict(ident.absorbed_by) if ident is not None else {}
-    if only and fit.beta_names and sag_theta is None and np.any(beta):
-        # the weight's torques at the configuration it sags to (the first pass took them at the commanded one)
-        sag = pr.nominal_theta + bases[0] @ beta
-        return identify_absolute(robot, ds0, model=model, torque=torque, form=form, max_iter=max_iter,
-                                 tracker_prior=tracker_prior, excess_var=excess_var, sag_theta=sag)
+        absorbed = dict(solved.ident.absorbed_by) if solved.ident is not None else {}
     return AbsoluteFit(
         model=names, static=fit, parameters=tuple(params), unidentifiable=tuple(unident), absorbed_by=absorbed,
-        identifiable=ident, registration=registration, kinematic_names=kin_names,
+        identifiable=solved.ident, registration=registration, kinematic_names=kin_names,
         kinematic_values=kv_total,
         elastic_beta=beta.copy(), measured=y, predicted=pred, rms=float(np.sqrt(np.mean(r_flat ** 2))),
-        max=float(np.max(np.abs(r_flat))), n=int(r_flat.size), noise_floor=floor, deflection_residuals=d_res,
+        max=float(np.max(np.abs(r_flat))), n=int(r_flat.size), noise_floor=unc.floor, deflection_residuals=d_res,
         deflection_rms=float(np.sqrt(np.mean(d_res ** 2))) if d_res.size else 0.0,
         deflection_max=float(np.max(np.abs(d_res))) if d_res.size else 0.0,
-        rss_whitened=rss_w, n_params=p, iterations=iterations,
+        rss_whitened=unc.rss_whitened, n_params=unc.n_params, iterations=solved.iterations,
         tracker_prior=None if tracker_prior is None else np.asarray(tracker_prior, dtype=float),
-        tool_prefit=tools,
-        design=jac[..., idx], design_names=tuple(all_names[i] for i in idx), design_values=x_full[idx].copy(),
+        tool_prefit=start.tools,
+        design=unc.jac[..., idx], design_names=tuple(all_names[i] for i in idx),
+        design_values=solved.x_full[idx].copy(),
         state_cov=np.einsum("sij,skj->sik", np.asarray(st.chol), np.asarray(st.chol)))
 
 
@@ -655,11 +743,17 @@ def _gauss_newton(evaluate, x0: np.ndarray, *, max_iter: int, rel_tol: float = 1
     return x, max_iter
 
 
+def _reported_names(eff) -> tuple[str, ...]:
+    """The names the static fit reports an effect's parameters under; a value reported through the
+    rest of the model (``report_with_model``) is reported here as its own parameter."""
+    return eff.parameters if eff.report_with_model is not None else eff.reported_names
+
+
 def _elastic_mask(fit: StaticFit, effects) -> np.ndarray:
     """Which static-model parameters the deflection fit identified."""
     mask = []
     for eff in effects:
-        outs = [f"k{c[1:]}" for c in eff.parameters] if eff.name == "joint_stiffness" else list(eff.parameters)
+        outs = _reported_names(eff)
         mask += [o not in fit.unidentifiable for o in outs]
     return np.array(mask, dtype=bool)
 
@@ -677,7 +771,7 @@ def _report(fit: StaticFit, effects, beta: np.ndarray, std: np.ndarray,
             continue
         values, deriv = eff.reported(np.where(mask[sl], beta[sl], 1.0))
         units = eff.report_units or eff.units
-        outs = [f"k{c[1:]}" for c in eff.parameters] if eff.name == "joint_stiffness" else list(eff.parameters)
+        outs = _reported_names(eff)
         for i in range(k):
             if not mask[sl][i]:
                 unident.append(outs[i])

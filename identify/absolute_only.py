@@ -29,9 +29,6 @@ from elastocal.identify.dataset import StaticDataset
 from elastocal.identify.static import StaticFit
 from elastocal.identify.staticmodel import Problem, state_torques, static_context
 
-#: effects an absolute-only table can show beside the geometry and the registration: the twist
-#: and the play of the joints under the robot's own weight
-SELF_WEIGHT_EFFECTS = ("joint_stiffness", "backlash")
 #: a parameter whose angle basis spans, across the poses, less than this fraction of the widest
 #: span among its effect's parameters is not determined (its angle does not change from pose to
 #: pose: a constant twist is a joint offset; a joint whose gravity torque keeps its sign shows no play)
@@ -55,7 +52,7 @@ def absolute_only_start(robot: Robot, ds: StaticDataset, static_model: Sequence[
     no deflections: the elastic parameters of ``static_model`` at zero, those the poses cannot
     determine listed in ``unidentifiable``. Refuses an effect such a table cannot show, by name."""
     for name in static_model:
-        if name not in SELF_WEIGHT_EFFECTS:
+        if not get_effect(name).self_weight:     # shown beside the geometry and the registration
             words = (f"{name} cannot be shown by a table without loads (one absolute reading per pose); "
                      "it takes kinematic_errors, tracker_frame, and joint_stiffness and backlash under the robot's own "
                      "weight")
@@ -99,7 +96,7 @@ def _undetermined(effects, ctx) -> list[str]:
             continue
         span = np.ptp(theta, axis=0).max(axis=0)                # (p,)
         weak = span <= MIN_TORQUE_SPAN * float(span.max())
-        # a compliance c_j is reported as its stiffness k_j (identify/absolute.py's _report)
-        names = [f"k{c[1:]}" for c in eff.parameters] if eff.name == "joint_stiffness" else eff.parameters
+        # under the names the fits report (a compliance c_j as its stiffness k_j: Effect.report_names)
+        names = eff.parameters if eff.report_with_model is not None else eff.reported_names
         out += [names[i] for i in np.flatnonzero(weak)]
     return out

@@ -29,7 +29,7 @@ from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
 from elastocal.formats.calibration import Calibration
-from elastocal.model.effects import absolute_effects, get_effect
+from elastocal.model.effects import BASE_EFFECT, get_effect, having
 from elastocal.identify.registration import Registration, kabsch, nominal_positions
 from elastocal.model.kinds import NoiseSource
 from elastocal.model.robot import MARKER_PREFIX, Robot
@@ -38,9 +38,6 @@ from elastocal.identify.staticmodel import Problem, absolute_bases, absolute_pos
 from elastocal.formats.tables import StaticTable
 from elastocal.model.kinds import TorqueSource
 
-#: effects of a measuring session: not carried to other data
-SESSION_EFFECTS = ("thermal_drift",)
-ABSOLUTE_EFFECTS = absolute_effects()
 
 
 @dataclass(frozen=True)
@@ -125,7 +122,7 @@ def _value(cal: Calibration, name: str) -> float | None:
 
 def calibrated_robot(robot: Robot, calibration: Calibration) -> Robot:
     """The robot with the calibration's kinematic errors (robot itself without them)."""
-    if "kinematic_errors" not in calibration.model:
+    if not having("geometry", calibration.model):
         return robot
     names = kin.parameter_names(robot, robot.marker_names)
     values = [_value(calibration, n) or 0.0 for n in names]
@@ -165,13 +162,14 @@ def _predicted(robot: Robot, calibration: Calibration, ds: StaticDataset) -> tup
     """:func:`predicted_base_positions` and the joints kept rigid (:func:`calibration_compliance`)."""
     from elastocal.identify.absolute_only import is_absolute_only, self_weight_dataset
 
-    model = tuple(m for m in calibration.model if m not in ABSOLUTE_EFFECTS and m not in SESSION_EFFECTS)
+    # the effects only absolute positions show, and those of the measuring session, are not carried to other data
+    model = tuple(m for m in calibration.model if not (get_effect(m).absolute_only or get_effect(m).session))
     model = tuple(dict.fromkeys(m for m in model if "static" in get_effect(m).seen_in))
     effects = tuple(get_effect(n, robot) for n in model)
     beta = []
     rigid: tuple[str, ...] = ()
     for eff in effects:
-        if eff.name == "joint_stiffness":
+        if eff.name == BASE_EFFECT:
             compliance, rigid = calibration_compliance(robot, calibration)
             beta += list(compliance)
         else:
@@ -244,7 +242,7 @@ def validate(robot: Robot, calibration: Calibration, data: StaticTable | StaticD
         deflection_calibrated=ErrorStats.of(d_cal) if d_cal.size else None,
         keep_frame=keep_frame, registration=reg, noise_floor=floor, absolute_residual=calibrated_res,
         nominal_residual=nominal_res, pose_ids=ds.pose_ids, reference_states=refs, markers=ds.markers,
-        rigid=rigid if "joint_stiffness" in calibration.model else ())
+        rigid=rigid if BASE_EFFECT in calibration.model else ())
 
 
 #: a check's absolute accuracy holds while the calibrated rms stays within this many noise floors
@@ -279,7 +277,7 @@ def absolute_check(robot: Robot, calibration: Calibration, table: StaticTable) -
     (kinematic_errors) and the check's table holds repeated absolute readings; else None."""
     from elastocal.identify.absolute import has_absolute_positions
 
-    if "kinematic_errors" not in calibration.model:
+    if not having("geometry", calibration.model):
         return None
     ds = build_dataset(table)
     if ds.sigma_tracker is None or not has_absolute_positions(robot, ds):

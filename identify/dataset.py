@@ -112,6 +112,43 @@ def _in_order(values: np.ndarray, start: np.ndarray | float) -> np.ndarray:
     return np.add.accumulate(np.concatenate([np.asarray(start, dtype=float)[None], values]), axis=0)[-1]
 
 
+@dataclass(frozen=True, eq=False)
+class _States:
+    """The table's (pose, load) states: numbered pose by pose, the reference first."""
+
+    of_row: np.ndarray            # (n,) state of each row
+    first_row: np.ndarray         # (S,) first row of each state
+    pose: np.ndarray              # (S,) index into the poses
+    load: np.ndarray              # (S,) str
+    ref: np.ndarray               # (S,) the pose's reference state
+
+    @property
+    def n(self) -> int:
+        return len(self.first_row)
+
+
+@dataclass(frozen=True, eq=False)
+class _Currents:
+    """Each state's mean of its distinct drive readings, their number, and the spread's sums."""
+
+    mean: np.ndarray              # (S, N) [A], NaN when absent
+    n: np.ndarray                 # (S,) distinct readings averaged
+    sigma: np.ndarray | None      # (N,) repeatability per joint [A], None without repeats
+
+
+@dataclass(frozen=True, eq=False)
+class _Cells:
+    """The (state, marker) cells' mean readings, counts and times, and the tracker's repeatability."""
+
+    count: np.ndarray             # (S*M,) readings averaged
+    xyz: np.ndarray               # (S*M, 3) mean position, tracker frame [m]
+    t: np.ndarray                 # (S*M,) mean time [s], NaN if unknown
+    sigma_tracker: float | None   # from the good readings' repeats, None without repeats
+    u95_var: np.ndarray | None    # (S*M,) variance of the mean from the u95 column, None without it
+    stated_var: np.ndarray | None  # (S*M, 3) per coordinate, from u95 or sx, sy, sz (_reading_variances)
+    repeated: np.ndarray          # (S*M,) bool: cells with more than one good reading
+
+
 def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = None) -> StaticDataset:
     """Average repeated readings and form the deflections of a validated table.
 
@@ -130,32 +167,68 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
     stated_law = tracker_noise if tracker_noise is not None else table.tracker_noise
     noise = tracker_noise_of(table, stated_law)
     outliers = find_outliers(table, noise=noise)
-    bad = outlier_mask(len(table), outliers)
     pose_code, pose_first = first_seen(table.pose)
     marker_code, marker_first = first_seen(table.marker)
     pose_ids = tuple(table.pose[pose_first])
     markers = tuple(table.marker[marker_first])
-    q = table.q[pose_first]
     n_markers = len(markers)
+    states = _states(table, pose_code, pose_first, pose_ids)
+    currents = _state_currents(table, states)
+    wrench = table.wrench[states.first_row].copy()
+    blank_ref = (states.load == "0") & ~np.all(np.isfinite(wrench), axis=1)
+    wrench[blank_ref] = 0.0
+    cells = _cells(table, states.of_row * n_markers + marker_code, states.n * n_markers,
+                   ~outlier_mask(len(table), outliers))
+    noise, abs_cov, sigma_tracker, source = _noise_level(noise, stated_law, cells, states.n, n_markers)
+
+    # deflections: every loaded state against its pose's reference, marker by marker
+    loaded = np.flatnonzero(states.ref != np.arange(states.n))
+    d_state = np.repeat(loaded, n_markers)
+    d_marker = np.tile(np.arange(n_markers), len(loaded))
+    d_ref = states.ref[d_state]
+    c1, c0 = d_state * n_markers + d_marker, d_ref * n_markers + d_marker
+    var_of = cells.u95_var
+    return StaticDataset(
+        source=table.source, pose_ids=pose_ids, q=table.q[pose_first], markers=markers,
+        state_pose=states.pose, state_load=states.load, state_ref=states.ref, state_currents=currents.mean,
+        state_n_currents=currents.n, state_wrench=wrench, defl_state=d_state, defl_ref=d_ref,
+        defl_marker=d_marker, dP=(cells.xyz[c1] - cells.xyz[c0]).reshape(-1, 3),
+        defl_n=cells.count[c1], defl_n_ref=cells.count[c0], defl_dt=cells.t[c1] - cells.t[c0],
+        defl_t=cells.t[c1], sigma_tracker=sigma_tracker, sigma_current=currents.sigma,
+        defl_u95_var=var_of[c1] + var_of[c0] if var_of is not None else None,
+        defl_u95_var_ref=var_of[c0] if var_of is not None else None,
+        outliers=outliers,
+        abs_xyz=cells.xyz.reshape(states.n, n_markers, 3), abs_n=cells.count.reshape(states.n, n_markers),
+        abs_t=cells.t.reshape(states.n, n_markers).astype(float),
+        tracker_noise=noise, abs_cov=abs_cov,
+        abs_var=None if cells.stated_var is None else cells.stated_var.reshape(states.n, n_markers, 3),
+        noise_source=source,
+    )
+
+
+def _states(table: StaticTable, pose_code: np.ndarray, pose_first: np.ndarray, pose_ids: tuple) -> _States:
+    """(pose, load) pairs, the reference first within a pose, then in order of first appearance;
+    refused when a pose has no unloaded reference."""
     missing = sorted(set(range(len(pose_ids))) - set(pose_code[table.load == "0"].tolist()))
     if missing:
         p = pose_ids[missing[0]]
         raise InputError(f"pose {p} has no unloaded reference (load 0)", source=table.source,
                          row=int(table.line[pose_first[missing[0]]]), column="load")
-
-    # states: (pose, load) pairs, the reference first within a pose, then in order of first appearance
     pair_code, pair_first = first_seen(combine(pose_code, first_seen(table.load)[0]))
     order = np.lexsort((pair_first, table.load[pair_first] != "0", pose_code[pair_first]))
     state_of_pair = np.empty(len(order), dtype=np.intp)
     state_of_pair[order] = np.arange(len(order))
-    state = state_of_pair[pair_code]                       # (n,) state of each row
-    first_row = pair_first[order]                          # (S,) first row of each state
-    n_states = len(first_row)
+    first_row = pair_first[order]
     state_pose = pose_code[first_row]
-    state_load = np.array(list(table.load[first_row]), dtype=str)
-    state_ref = np.searchsorted(state_pose, state_pose)    # states are sorted by pose, reference first
+    return _States(of_row=state_of_pair[pair_code], first_row=first_row, pose=state_pose,
+                   load=np.array(list(table.load[first_row]), dtype=str),
+                   ref=np.searchsorted(state_pose, state_pose))    # sorted by pose, reference first
 
-    # currents: the distinct drive readings of each state (distinct_readings), averaged
+
+def _state_currents(table: StaticTable, states: _States) -> _Currents:
+    """The distinct drive readings of each state (distinct_readings), averaged; the currents'
+    repeatability from their spread."""
+    state, n_states = states.of_row, states.n
     currents = table.currents
     row_finite = np.all(np.isfinite(currents), axis=1)
     state_finite = group_count(state[~row_finite], n_states) == 0
@@ -174,16 +247,13 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
     per_state = group_sum(state[rows_i], (currents[rows_i] - cur[state[rows_i]]) ** 2, n_states)[noisy]
     dev_sq_i = _in_order(per_state, np.zeros(table.n_joints))
     dof_i = int(np.sum(ncur[noisy] - 1))
+    return _Currents(mean=cur, n=ncur, sigma=np.sqrt(dev_sq_i / dof_i) if dof_i else None)
 
-    wrench = table.wrench[first_row].copy()
-    blank_ref = (state_load == "0") & ~np.all(np.isfinite(wrench), axis=1)
-    wrench[blank_ref] = 0.0
 
-    # (state, marker) cells: mean position, readings, mean time; repeatability from the good readings
-    cell = state * n_markers + marker_code
-    n_cells = n_states * n_markers
+def _cells(table: StaticTable, cell: np.ndarray, n_cells: int, good: np.ndarray) -> _Cells:
+    """Mean position, readings and mean time of each (state, marker) cell; the tracker's
+    repeatability from the ``good`` readings (not outliers) of cells read more than once."""
     count = group_count(cell, n_cells)
-    good = ~bad
     n_good = group_count(cell[good], n_cells)
     with np.errstate(invalid="ignore", divide="ignore"):
         xyz_mean = group_sum(cell, table.xyz, n_cells) / count[:, None]
@@ -197,48 +267,33 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
     u95 = table.optional("u95")
     if u95 is not None and not (np.all(np.isfinite(u95)) and np.all(u95 > 0)):
         u95 = None                  # weights only when every reading has its uncertainty
+    var_of = None
     if u95 is not None:             # variance of the mean of the state's readings
         with np.errstate(invalid="ignore", divide="ignore"):
             var_of = group_sum(cell, (u95 / 1.96) ** 2, n_cells) / count.astype(float) ** 2
-    abs_var = _reading_variances(table, cell, count, n_cells)
+    return _Cells(count=count, xyz=xyz_mean, t=t_mean, sigma_tracker=float(np.sqrt(dev_sq_p / dof_p)) if dof_p else None,
+                  u95_var=var_of, stated_var=_reading_variances(table, cell, count, n_cells), repeated=n_good > 1)
 
-    # deflections: every loaded state against its pose's reference, marker by marker
-    loaded = np.flatnonzero(state_ref != np.arange(n_states))
-    d_state = np.repeat(loaded, n_markers)
-    d_marker = np.tile(np.arange(n_markers), len(loaded))
-    d_ref = state_ref[d_state]
-    c1, c0 = d_state * n_markers + d_marker, d_ref * n_markers + d_marker
-    sigma_tracker = float(np.sqrt(dev_sq_p / dof_p)) if dof_p else None
-    sigma_current = np.sqrt(dev_sq_i / dof_i) if dof_i else None
-    # the noise level: the repeats, else the readings' own uncertainty, else the law (docs/cli.md)
+
+def _noise_level(noise: TrackerNoise | None, stated_law: TrackerNoise | None, cells: _Cells, n_states: int,
+                 n_markers: int) -> tuple[TrackerNoise | None, np.ndarray | None, float | None, NoiseSource]:
+    """The noise level and where it comes from: the repeats, else the readings' own uncertainty,
+    else the law (docs/cli.md); the law in force (a stated one at the repeats' level) and each mean
+    reading's covariance (S, M, 3, 3) under it."""
+    sigma_tracker = cells.sigma_tracker
     source = (NoiseSource.REPEATS if sigma_tracker is not None else
-              NoiseSource.UNCERTAINTY_COLUMNS if abs_var is not None else
+              NoiseSource.UNCERTAINTY_COLUMNS if cells.stated_var is not None else
               NoiseSource.TRACKER_LAW if noise is not None else NoiseSource.NONE)
-    abs_cov = None
-    if noise is not None:          # each mean reading's covariance under the law
-        finite = np.all(np.isfinite(xyz_mean), axis=1)
-        if source is NoiseSource.REPEATS and noise is stated_law:
-            noise = _at_repeats_level(noise, xyz_mean[finite & (n_good > 1)], sigma_tracker)
-        abs_cov = np.full((n_cells, 3, 3), np.nan)
-        abs_cov[finite] = noise.covariance(xyz_mean[finite]) / count[finite][:, None, None]
-        abs_cov = abs_cov.reshape(n_states, n_markers, 3, 3)
-        if source is NoiseSource.TRACKER_LAW:  # no repeats, no stated uncertainty: the law sets the level
-            sigma_tracker = noise.rms_sigma(xyz_mean[finite])
-    return StaticDataset(
-        source=table.source, pose_ids=pose_ids, q=q, markers=markers,
-        state_pose=state_pose, state_load=state_load, state_ref=state_ref, state_currents=cur,
-        state_n_currents=ncur, state_wrench=wrench, defl_state=d_state, defl_ref=d_ref,
-        defl_marker=d_marker, dP=(xyz_mean[c1] - xyz_mean[c0]).reshape(-1, 3),
-        defl_n=count[c1], defl_n_ref=count[c0], defl_dt=t_mean[c1] - t_mean[c0],
-        defl_t=t_mean[c1], sigma_tracker=sigma_tracker, sigma_current=sigma_current,
-        defl_u95_var=var_of[c1] + var_of[c0] if u95 is not None else None,
-        defl_u95_var_ref=var_of[c0] if u95 is not None else None,
-        outliers=outliers,
-        abs_xyz=xyz_mean.reshape(n_states, n_markers, 3), abs_n=count.reshape(n_states, n_markers),
-        abs_t=t_mean.reshape(n_states, n_markers).astype(float),
-        tracker_noise=noise, abs_cov=abs_cov,
-        abs_var=None if abs_var is None else abs_var.reshape(n_states, n_markers, 3), noise_source=source,
-    )
+    if noise is None:
+        return None, None, sigma_tracker, source
+    finite = np.all(np.isfinite(cells.xyz), axis=1)
+    if source is NoiseSource.REPEATS and noise is stated_law:
+        noise = _at_repeats_level(noise, cells.xyz[finite & cells.repeated], sigma_tracker)
+    abs_cov = np.full((n_states * n_markers, 3, 3), np.nan)
+    abs_cov[finite] = noise.covariance(cells.xyz[finite]) / cells.count[finite][:, None, None]
+    if source is NoiseSource.TRACKER_LAW:  # no repeats, no stated uncertainty: the law sets the level
+        sigma_tracker = noise.rms_sigma(cells.xyz[finite])
+    return noise, abs_cov.reshape(n_states, n_markers, 3, 3), sigma_tracker, source
 
 
 def _at_repeats_level(law: TrackerNoise, repeated_xyz: np.ndarray, sigma: float) -> TrackerNoise:

@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.model.effects import get_effect, run_effects
+from elastocal.model.effects import BASE_EFFECT, get_effect, run_effects
 from elastocal.model.robot import Robot
 from elastocal.identify.runmodel import RunModelFit, StiffnessUsed, fit_run_model, prepare_run_data, with_rigid_bias
 from elastocal.identify.static import Parameter
@@ -70,7 +70,7 @@ def identify_runs(robot: Robot, table: RunTable, *, model: Sequence[str] = ("joi
     ``stiffness`` (k1..kN from a static fit) places the sweeps; without it robot.toml's
     nominal stiffness, else the rigid model (its bias stated in the result).
     """
-    wanted = [m for m in model if m != "joint_stiffness"]
+    wanted = [m for m in model if m != BASE_EFFECT]
     unknown = [m for m in wanted if m not in RUN_EFFECTS]
     if unknown:
         raise InputError(f"{unknown[0]} cannot be identified from run data alone; it needs a static table",

@@ -1,7 +1,7 @@
 """Static identification from before/after-load deflections (Y35, Y39-42, K37).
 
 Pure functions: a robot and a table (or dataset) in, a frozen :class:`StaticFit`
-out. The model is a set of effects (identify/effects), each entering linearly
+out. The model is a set of effects (model/effects), each entering linearly
 through angle, link-spring and additive bases. Two forms:
 
 * ``first-order``: ``dP = J_m(q) (dtheta_load - dtheta_ref)`` as in the papers,
@@ -17,9 +17,11 @@ The noise floor is the residual rms that measurement noise alone leaves: the
 tracker's and the currents' repeatability, estimated from repeated readings and
 propagated through the fitted model and the hat matrix.
 
-Why one module over 500 lines: the dataset, the problem and its two forms (first
-order, exact secant Gauss-Newton) share private state of one solve; the effects'
-physics is not here but in identify/effects, one module each.
+Why one module over 500 lines: the fit's two forms (first order, exact secant
+Gauss-Newton), its noise weighting (the per-pose blocks and their Cholesky
+factors) and its uncertainty share the typed state of one solve (:class:`_Solve`,
+:class:`_Linearisation`); the dataset is in identify/dataset.py, the static model
+in identify/staticmodel.py, the effects' physics in model/effects, one module each.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from elastocal.identify.dataset import StaticDataset, build_dataset
 from elastocal.identify.evidence import check_loads_changed, mark_stiffness
 from elastocal.identify.registration import in_base_axes, refine_registration
 from elastocal.identify.staticmodel import Problem, evaluate, fitted_positions, state_torques, static_bases, static_context
-from elastocal.model.effects import get_effect
+from elastocal.model.effects import BASE_EFFECT, get_effect
 from elastocal.model.effects.base import Effect, StaticContext
 from elastocal.model.robot import MARKER_PREFIX, Robot, RobotData
 from elastocal.formats.tables import StaticTable
@@ -485,7 +487,7 @@ def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: 
     selections of its selectable effects: each restricted to the components the data
     support (identify/selection.py), from the fit with all of them."""
     given = {m.name: m for m in model if isinstance(m, Effect)}   # effects restricted to some parameters
-    names = tuple(dict.fromkeys(["joint_stiffness", *(m if isinstance(m, str) else m.name for m in model)]))
+    names = tuple(dict.fromkeys([BASE_EFFECT, *(m if isinstance(m, str) else m.name for m in model)]))
     effects = tuple(given.get(n) or get_effect(n, robot) for n in names)
     selections = []
     for k, eff in enumerate(effects):
@@ -682,7 +684,7 @@ def _reported(effects: Sequence[Effect], beta: np.ndarray, mask: np.ndarray, cov
         if eff.report_with_model is not None:
             values, own_std = eff.report_with_model(beta_names, beta, cov, sl)
         units = eff.report_units or eff.units
-        names_out = [f"k{c[1:]}" for c in eff.parameters] if eff.name == "joint_stiffness" else list(eff.reported_names)
+        names_out = eff.reported_names
         for i in range(k):
             if not mask[sl][i]:
                 unident.append(names_out[i])

@@ -9,6 +9,7 @@ import html
 import numpy as np
 
 from elastocal.identify.absolute import AbsoluteFit
+from elastocal.model.effects import get_effect
 from elastocal.report.html import AFTER_COLOUR, BEFORE_COLOUR, FLOOR_COLOUR, _figure, figure_svg
 
 UM = 1e6
@@ -88,7 +89,8 @@ def _vector_plot(fits: list[tuple[str, AbsoluteFit, str]], ident: str) -> str:
 def absolute_html(absolute) -> str:
     """The report's section on the absolute positions."""
     base = absolute.base
-    fits = [(f"model: {', '.join(m for m in base.model if m != 'tracker_frame')}", base, BEFORE_COLOUR)]
+    # the registration is in every absolute fit: the model named is what the fit adds to it
+    fits = [(f"model: {', '.join(m for m in base.model if not get_effect(m).registration)}", base, BEFORE_COLOUR)]
     if absolute.steps:
         final = absolute.final
         fits.append((f"+ {', '.join(s.effect for s in absolute.steps)}", final, AFTER_COLOUR))

@@ -206,7 +206,6 @@ LONG_FUNCTION_LINES = 80
 #: long functions not yet split (owners named in the report); the test fails when one of them
 #: is split or given a reason, so that this list only shrinks
 NOT_YET_SPLIT = {
-    "identify/absolute.py:identify_absolute", "identify/dataset.py:build_dataset",
     "elastocal/commands/fleet.py:run",
 }
 
@@ -249,3 +248,99 @@ def test_a_long_function_without_a_reason_is_named(tree):
     path.write_text(path.read_text(encoding="utf-8").replace("def sprawling():", "def sprawling():  # long: a test"),
                     encoding="utf-8")
     assert "model/units.py:sprawling" not in long_functions(tree)
+
+
+# ------------------------------------------------------------------ effects closed for modification
+#: the package whose modules are the effects (one module per effect, beside base.py)
+EFFECTS_PACKAGE = "elastocal.model.effects"
+
+
+def effect_names(root: pathlib.Path) -> frozenset[str]:
+    """The effects' names: the modules of model/effects/ other than base.py and the private ones
+    (__init__.py, _friction.py: the friction laws' factory)."""
+    return frozenset(p.stem for p in (root / "model" / "effects").glob("*.py")
+                     if p.stem != "base" and not p.stem.startswith("_"))
+
+
+def _named_effects(node: ast.AST, names: frozenset[str], collections: dict[str, set[str]]) -> set[str]:
+    """The effect names an operand of a comparison spells: a string literal, a tuple, list, set or
+    dict literal of them (``x in ("backlash", ...)``), or a module-level constant bound to one."""
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        return {node.value} & names
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        return set().union(*(_named_effects(e, names, collections) for e in node.elts))
+    if isinstance(node, ast.Dict):
+        return set().union(*(_named_effects(k, names, collections) for k in node.keys if k is not None))
+    if isinstance(node, ast.Starred):
+        return _named_effects(node.value, names, collections)
+    if isinstance(node, ast.Name):
+        return collections.get(node.id, set())
+    return set()
+
+
+def name_branches(text: str, names: frozenset[str]) -> list[tuple[int, str]]:
+    """(line, effect) of every comparison or membership test in a module's source that names an
+    effect: generic code asks an effect what it can do, it never branches on which one it is."""
+    tree = ast.parse(text)
+    collections: dict[str, set[str]] = {}
+    for stmt in tree.body:           # module-level constants that list effects (NO_DRIFT = ("backlash",))
+        if isinstance(stmt, (ast.Assign, ast.AnnAssign)) and stmt.value is not None \
+                and isinstance(stmt.value, (ast.Tuple, ast.List, ast.Set, ast.Dict)):
+            listed = _named_effects(stmt.value, names, {})
+            targets = stmt.targets if isinstance(stmt, ast.Assign) else [stmt.target]
+            for target in targets:
+                if listed and isinstance(target, ast.Name):
+                    collections[target.id] = listed
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            for operand in (node.left, *node.comparators):
+                found += [(node.lineno, name) for name in sorted(_named_effects(operand, names, collections))]
+    return found
+
+
+#: packages the check does not read: the effects themselves, and the simulator, which may not use them
+#: (test_the_simulator_uses_no_fitting_or_effect_code): it is an independent witness whose hidden
+#: physics (``--hidden``: "base_tilt", "friction", ... beside some effects' names) is its own vocabulary
+NOT_GENERIC = (EFFECTS_PACKAGE, "elastocal.sims")
+
+
+def effect_name_branches(root: pathlib.Path) -> list[str]:
+    names = effect_names(root)
+    return [f"{path.relative_to(root)}:{line}: branches on the effect {effect!r}"
+            for module, path in modules(root).items()
+            if not any(module == p or module.startswith(p + ".") for p in NOT_GENERIC)
+            for line, effect in name_branches(path.read_text(encoding="utf-8"), names)]
+
+
+def test_no_generic_code_branches_on_an_effect_name():
+    """An effect's behaviour lives in its module (model/effects/), declared as what it can do;
+    generic code asks for that, never compares names."""
+    problems = effect_name_branches(ROOT)
+    assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize("source,expected", [
+    ('if eff.name == "backlash":\n    pass\n', [(1, "backlash")]),
+    ('ok = "joint_stiffness" in model\n', [(1, "joint_stiffness")]),
+    ('x = [m for m in model if m not in ("link_compliance", "gravity")]\n', [(1, "gravity"), (1, "link_compliance")]),
+    ('SESSION = ("thermal_drift",)\n\n\ndef f(m):\n    return m in SESSION\n', [(5, "thermal_drift")]),
+    ('NOTES = {"tracker_frame": "x"}\nif name in NOTES:\n    pass\n', [(2, "tracker_frame")]),
+    # naming an effect to fetch it, or a word that is no effect, is no branch
+    ('eff = get_effect("backlash")\nif mode == "identify":\n    pass\n', []),
+])
+def test_the_name_branch_check_catches_a_deliberate_branch(source, expected):
+    assert name_branches(source, effect_names(ROOT)) == expected
+
+
+def test_a_name_branch_added_to_generic_code_fails_the_check(tree):
+    before = set(effect_name_branches(tree))
+    path = tree / "identify" / "static.py"
+    path.write_text(path.read_text(encoding="utf-8") + '\n\ndef _sneaky(eff):\n    return eff.name == "backlash"\n',
+                    encoding="utf-8")
+    added = [p for p in effect_name_branches(tree) if p not in before]
+    assert len(added) == 1 and added[0].startswith("identify/static.py:") and "'backlash'" in added[0], added
+    # an effect module may name itself
+    effect = tree / "model" / "effects" / "backlash.py"
+    effect.write_text(effect.read_text(encoding="utf-8") + '\nassert EFFECT.name == "backlash"\n', encoding="utf-8")
+    assert [p for p in effect_name_branches(tree) if p not in before] == added

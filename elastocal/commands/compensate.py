@@ -72,6 +72,7 @@ def calibrated_truth(robot, cal, default):
     import dataclasses
 
     from elastocal.identify.kinematics import parameter_names
+    from elastocal.model.effects import having
 
     changes: dict = {"stiffness": np.array([cal.value(f"k{j}") for j in range(1, robot.n_joints + 1)])}
     holds = ["joint_stiffness"]
@@ -79,16 +80,16 @@ def calibrated_truth(robot, cal, default):
     if spec is not None and all(cal.has(n) for n in spec.parameter_names):
         changes["compensator"] = tuple(cal.value(n) for n in spec.parameter_names)
         holds.append("compensator")
-    if "kinematic_errors" in cal.model and robot.urdf is None:
+    if having("geometry", cal.model) and robot.urdf is None:
         changes["kinematic_errors"] = tuple((n, cal.value(n)) for n in parameter_names(robot, robot.marker_names)
                                             if cal.has(n))
         holds.append("kinematic_errors")
     springs = robot.link_spring_names
-    if "link_compliance" in cal.model and all(cal.has(n) for n in springs):
+    if springs and all(cal.has(n) for n in springs):     # the link springs' compliances
         changes["link_compliance"] = np.array([cal.value(n) for n in springs])
         holds.append("link_compliance")
     plays = [f"b{j}" for j in range(1, robot.n_joints + 1)]
-    if "backlash" in cal.model and all(cal.has(n) for n in plays):
+    if all(cal.has(n) for n in plays):                   # each joint's play
         changes["backlash"] = np.array([cal.value(n) for n in plays])
         holds.append("backlash")
     return dataclasses.replace(default, **changes), tuple(holds)

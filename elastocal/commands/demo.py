@@ -113,9 +113,9 @@ def _um(x: float | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.errors import InputError
-    from elastocal.sims.cell import HIDDEN_EFFECTS
+    from elastocal.sims.cell import CURRENTS_SEE, HIDDEN_EFFECTS
 
-    if args.hidden not in HIDDEN_EFFECTS or args.hidden == "static_friction":
+    if args.hidden not in HIDDEN_EFFECTS or args.hidden in CURRENTS_SEE:   # the demo's model is current-based
         raise InputError(f"choose one of none, link_compliance, thermal_drift, backlash; got {args.hidden!r}",
                          source="--hidden")
     if args.poses < 4:
@@ -155,6 +155,8 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     from elastocal.sims.serve import example_cell_config
     from elastocal.model.kinds import KinematicForm, TorqueSource
     from elastocal.sims.static import random_poses
+    from elastocal.model.effects import get_effect
+    from elastocal.model.effects.base import Compensation
 
     # 1. the simulated cell: built with its real geometry (kinematic errors), the tracker 3.7 m away and turned
     cell_hidden = "kinematic_errors" if args.hidden == "none" else f"{args.hidden},kinematic_errors"
@@ -269,7 +271,7 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     print(f"  {'':<66} {'error':>10} {'noise floor':>12}")
     for label, value, floor in rows:
         print(f"  {label:<66} {_um(value):>10} {_um(floor):>12}")
-    if diag.verdict and diag.verdict != "thermal_drift":
+    if diag.verdict and get_effect(diag.verdict).compensation is not Compensation.NO_PATH_DEFLECTION:
         print(f"  (the compensation model holds the joint springs; what {diag.verdict} adds on the path is what "
               "exact compensation leaves)")
     err = np.abs(k / truth.stiffness - 1) * 100

@@ -33,6 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from elastocal.commands._outputs import Outputs
     from elastocal.identify.accuracy import calibrated_robot
+    from elastocal.model.effects import having
     from elastocal.formats.calibration import read_calibration
     from elastocal.model.urdf_export import controller_urdf_robot
 
@@ -44,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     robot = calibration_robot(args, calibration)
     if robot.name != calibration.robot:
         raise InputError(f"the calibration is of robot {calibration.robot!r}, not {robot.name!r}", source="--robot")
-    if "kinematic_errors" not in calibration.model:
+    if not having("geometry", calibration.model):
         raise InputError("the calibration holds no kinematic_errors; identify with --model "
                          "...,kinematic_errors,tracker_frame", source="--calibration")
     calibrated = calibrated_robot(robot, calibration)

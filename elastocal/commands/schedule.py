@@ -192,6 +192,7 @@ def unattended_check(check_args: argparse.Namespace, config, db: pathlib.Path | 
     known yet (nothing recorded)."""
     from elastocal.commands.check import _calibration, baseline_log
     from elastocal.formats.plan import load_plan, parse_plan
+    from elastocal.model.effects import having
 
     if not check_args.calibration and (db is None or not db.exists()):
         return (f"no calibration recorded yet in {db}: whether the check can run unattended is not known; "
@@ -212,7 +213,7 @@ def unattended_check(check_args: argparse.Namespace, config, db: pathlib.Path | 
     # the check poses read unloaded: compared with the calibration's own log (history add --log), or
     # with its geometry when it holds one
     positions = bool(plan.check.poses) and (baseline_log(db, cal_id) is not None
-                                            or "kinematic_errors" in cal.model)
+                                            or bool(having("geometry", cal.model)))
     if friction_run or positions:
         return None
     raise InputError("the scheduled check would exit 2 every time: without a person it reads the check poses "

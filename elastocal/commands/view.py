@@ -54,7 +54,7 @@ def build_view(args: argparse.Namespace):
     """The :class:`~elastocal.report.view.CellView` of the inputs (no viser needed)."""
     from elastocal.commands._inputs import tracker_prior
     from elastocal.commands.diagnose import diagnose_inputs
-    from elastocal.model.effects import parse_model
+    from elastocal.model.effects import having, parse_model
     from elastocal.report.view import cell_view
 
     inputs = load_inputs(args)
@@ -77,7 +77,7 @@ def build_view(args: argparse.Namespace):
             raise InputError("the calibration's model orders the deflections differently; cannot compare",
                              source=args.calibration)
         calibrated = (f"calibration {args.calibration}", result.predicted)
-        if "kinematic_errors" in cal.model and inputs.robot.urdf is None:
+        if having("geometry", cal.model) and inputs.robot.urdf is None:
             from elastocal.identify.accuracy import calibrated_robot
 
             robot_calibrated = calibrated_robot(inputs.robot, cal)

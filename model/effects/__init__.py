@@ -10,6 +10,7 @@ request for them on static data is refused with the reason.
 from __future__ import annotations
 
 import importlib
+from typing import Sequence
 
 from elastocal.errors import InputError
 from elastocal.model.effects.base import Effect
@@ -38,6 +39,13 @@ EFFECT_MODULES = {
 ALL_EFFECTS = tuple(EFFECT_MODULES)
 
 
+#: the effect every deflection model holds first: the joint springs (:func:`parse_model`)
+BASE_EFFECT = "joint_stiffness"
+#: the effects a table without loads can show, tested in this order when the model lacks them
+#: (diagnose/absolute_only.py; each says why a given table cannot test it: Effect.absolute_only_refusal)
+ABSOLUTE_ONLY_POOL = ("kinematic_errors", "joint_stiffness", "backlash", "thermal_drift")
+
+
 def get_effect(name: str, robot=None) -> Effect:
     """The effect ``name``; with ``robot``, its parameters sized for that robot's joints
     (``k1..kN``; without one, the six-axis table of docs/cli.md)."""
@@ -59,6 +67,18 @@ def absolute_effects() -> tuple[str, ...]:
     return tuple(n for n in ALL_EFFECTS if get_effect(n).absolute_only)
 
 
+def having(capability: str, model: Sequence[str] | None = None) -> tuple[str, ...]:
+    """The effects of ``model`` (names; default: every effect, in the table's order) that declare
+    the capability ``capability`` (a true attribute of :class:`Effect`: ``geometry``,
+    ``registration``, ``session``, ...): what generic code asks instead of naming effects."""
+    return tuple(n for n in (ALL_EFFECTS if model is None else model) if getattr(get_effect(n), capability))
+
+
+def absolute_only_untested() -> tuple[str, ...]:
+    """Effects that say why a table without loads never tests them (besides :data:`ABSOLUTE_ONLY_POOL`)."""
+    return tuple(n for n in ALL_EFFECTS if n not in ABSOLUTE_ONLY_POOL and get_effect(n).absolute_only_refusal)
+
+
 #: the default model of an absolute-only table (docs/cli.md "Absolute-only tables")
 ABSOLUTE_ONLY_MODEL = ("kinematic_errors", "tracker_frame")
 
@@ -72,8 +92,8 @@ def parse_model(text: str | None, *, absolute_only: bool = False) -> tuple[str, 
         for n in names:
             get_effect(n)
         return tuple(dict.fromkeys(names))
-    names = [n.strip() for n in (text or "joint_stiffness").split(",") if n.strip()]
+    names = [n.strip() for n in (text or BASE_EFFECT).split(",") if n.strip()]
     for n in names:
         get_effect(n)
-    out = ["joint_stiffness"] + [n for n in dict.fromkeys(names) if n != "joint_stiffness"]
+    out = [BASE_EFFECT] + [n for n in dict.fromkeys(names) if n != BASE_EFFECT]
     return tuple(out)

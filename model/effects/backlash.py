@@ -131,6 +131,14 @@ def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) 
     return None
 
 
+def _absolute_only_refusal(robot, ds) -> str | None:
+    """A table without loads shows the play where a joint's weight torque changes sign: it needs the masses."""
+    if not robot.has_masses:
+        return ("needs the link masses (mass and com per [[joint]]): the play shows where a joint's weight torque "
+                "changes sign")
+    return None
+
+
 def make(robot=None) -> Effect:
     """The effect for ``robot``'s joints (a six-axis revolute arm without one)."""
     return Effect(
@@ -150,6 +158,11 @@ def make(robot=None) -> Effect:
         static_model="each joint angle gains (b_j/2) tanh(tau_j / 20 N·m) besides the spring's c_j tau_j",
         run_model="at a direction reversal the motor turns through the play before the link follows; "
                   "it shows in tracked positions, not in currents",
+        absolute_only_refusal=_absolute_only_refusal,
+        # on a table without loads: the play under the robot's own weight, with the twist the same
+        # weight gives the springs (an arm carrying its weight twists its gears)
+        self_weight=True,
+        fitted_with=("joint_stiffness",),
     )
 
 

@@ -48,8 +48,9 @@ joint-2 sweep torque (``sweep_term``: a :class:`SweepTerm` built on a
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Optional, Protocol
 
 import numpy as np
 
@@ -144,9 +145,87 @@ class AbsoluteBasis:
     add: np.ndarray | None = None
 
 
+class Compensation(enum.Enum):
+    """How compensation (compensation/model.py) treats an effect a calibration holds."""
+
+    #: the compensation model holds it (the joint springs, the compensator, gravity, the geometry)
+    MODELLED = "modelled"
+    #: it moves no tool point of a planned path: a measurement-side session effect, or friction
+    #: (a torque during motion, not a deflection at rest)
+    NO_PATH_DEFLECTION = "no path deflection"
+    #: it deflects the robot, but compensation leaves it out (refused unless left out knowingly)
+    UNMODELLED = "unmodelled"
+
+
+# What generic code asks of an effect, by capability. :class:`Effect` implements all of them
+# (a capability an effect lacks is None, False or empty there); each effect module fills in
+# the capabilities it has. Generic code asks these, never which effect it is (tests/test_layers.py).
+
+
+class EffectCore(Protocol):
+    """Every effect: its name, parameters and units, and its words for users."""
+
+    name: str
+    parameters: tuple[str, ...]
+    units: tuple[str, ...]
+    seen_in: tuple[str, ...]
+    explanation: str
+    evidence: str
+    static_model: str
+    run_model: str
+    describe: Optional[Callable[[tuple[str, ...], np.ndarray, np.ndarray], str]]
+    plausibility: Optional[Callable[[tuple[str, ...], np.ndarray, np.ndarray], Optional[str]]]
+
+    def for_robot(self, robot) -> "Effect": ...
+
+
+class StaticCapability(Protocol):
+    """How the effect enters the deflection fit (identify/static.py, identify/staticmodel.py)."""
+
+    static_basis: Optional[Callable[[StaticContext], StaticBasis]]
+    static_refusal: Optional[Callable[[StaticContext], Optional[str]]]
+    iterative: bool
+    torque_at_deflection: bool
+    torque_sensitivity: Optional[Callable[[StaticContext, np.ndarray], np.ndarray]]
+    selectable: bool
+    report_names: tuple[str, ...] | None
+
+
+class AbsoluteCapability(Protocol):
+    """How the effect enters the absolute fit (identify/absolute.py) and what a calibration
+    carries of it to another session (identify/accuracy.py, diagnose/check.py)."""
+
+    absolute_basis: Optional[Callable[[StaticContext], AbsoluteBasis]]
+    absolute_only: bool
+    geometry: bool
+    registration: bool
+    session: bool
+    self_weight: bool
+    absolute_only_refusal: Optional[Callable[[object, object], Optional[str]]]
+    fitted_with: tuple[str, ...]
+    absolute_shows_more: bool
+
+
+class RunCapability(Protocol):
+    """How run data show the effect (identify/friction.py, identify/sweepfit.py, diagnose/runs.py)."""
+
+    run_part: Optional[str]
+    run_column: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]]
+    run_needs: str
+    sweep_term: Optional[Callable[[SweepContext], "SweepTerm | str"]]
+
+
+class CompensationCapability(Protocol):
+    """How compensation treats the effect (compensation/model.py)."""
+
+    compensation: Compensation
+
+
 @dataclass(frozen=True, eq=False)
 class Effect:
-    """One physical effect: its parameters, the data that shows it, its words."""
+    """One physical effect: its parameters, the data that shows it, its words (the
+    capabilities above: :class:`EffectCore`, :class:`StaticCapability`,
+    :class:`AbsoluteCapability`, :class:`RunCapability`, :class:`CompensationCapability`)."""
 
     name: str
     parameters: tuple[str, ...]
@@ -210,6 +289,29 @@ class Effect:
     #: "sweep" effects: the joint-2 sweep means -> this effect's SweepTerm, or the
     #: reason these sweeps (or the robot description) cannot hold it
     sweep_term: Optional[Callable[[SweepContext], "SweepTerm | str"]] = None
+    #: its parameters correct the robot's kinematic description (DH errors, marker positions):
+    #: the absolute fit identifies them with the registration, a calibration holding it describes
+    #: a corrected robot (identify/kinematics.py)
+    geometry: bool = False
+    #: its parameters are the tracker's placement, the registration every absolute fit makes:
+    #: reported as findings only when the model holds it
+    registration: bool = False
+    #: it belongs to the measuring session, not to the robot (a drift, the tracker's placement): a
+    #: calibration's prediction for another session leaves it out, a check refits it
+    session: bool = False
+    #: a table without loads shows it, as the twist under the robot's own weight
+    #: (identify/absolute_only.py)
+    self_weight: bool = False
+    #: (robot, dataset) -> why an absolute-only table cannot test it (diagnose/absolute_only.py), or
+    #: None when it can; None here: such tables never test it
+    absolute_only_refusal: Optional[Callable[[object, object], Optional[str]]] = None
+    #: the effects an absolute fit that tests it as a candidate fits with it (diagnose/absolute.py)
+    fitted_with: tuple[str, ...] = ()
+    #: absolute positions show it far more than deflections do (a drift over the hours of an
+    #: experiment, the deflections seconds apart): a diagnosis tests it on them too (diagnose/static.py)
+    absolute_shows_more: bool = False
+    #: how compensation treats it (:class:`Compensation`)
+    compensation: Compensation = Compensation.UNMODELLED
     #: robot -> this effect sized for that robot's joints (module docstring); None: the
     #: parameters do not depend on the robot
     sized: Optional[Callable[[object], "Effect"]] = None

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastocal.model.effects.base import Effect, StaticContext, SweepContext, SweepTerm, wrong_sign
+from elastocal.model.effects.base import Compensation, Effect, StaticContext, SweepContext, SweepTerm, wrong_sign
 
 #: l_c - max(cylinder length) scanned for the hydro-pneumatic start [m]
 _GAP_SCAN_M = np.geomspace(1e-3, 5.0, 400)
@@ -83,4 +83,5 @@ EFFECT = Effect(
     run_part="sweep",
     sweep_term=_sweep_term,
     plausibility=lambda names, values, stds: wrong_sign(names, values, stds, "a compensator force or length"),
+    compensation=Compensation.MODELLED,
 )

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from elastocal.model.effects.base import Effect, StaticContext, SweepContext, SweepTerm
+from elastocal.model.effects.base import Compensation, Effect, StaticContext, SweepContext, SweepTerm
 
 #: relative singular value below which a gravity combination counts as not excited
 GRAVITY_RANK_TOL = 1e-8
@@ -80,4 +80,5 @@ EFFECT = Effect(
     run_model="xi i gains -dg(q): the gravity torque of corrected link mass moments",
     run_part="sweep",
     sweep_term=_sweep_term,
+    compensation=Compensation.MODELLED,
 )

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastocal.model.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis
+from elastocal.model.effects.base import Compensation, Effect, StaticBasis, StaticContext, diagonal_basis
 from elastocal.model.effects.base import joint_names, joint_units
 
 
@@ -18,6 +18,13 @@ def _basis(ctx: StaticContext) -> StaticBasis:
 
 def _report(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return 1.0 / c, -1.0 / c**2
+
+
+def _absolute_only_refusal(robot, ds) -> str | None:
+    """A table without loads shows the twist under the robot's own weight: its torques need the masses."""
+    if not robot.has_masses:
+        return "needs the link masses (mass and com per [[joint]]): the torques are the robot's own weight"
+    return None
 
 
 def make(robot=None) -> Effect:
@@ -36,6 +43,10 @@ def make(robot=None) -> Effect:
         sized=make,
         run_model="the joint torques of a slow motion are the load torques the springs carry; "
                   "k enters the run model only through the deflected configuration",
+        report_names=joint_names("k", robot),
+        self_weight=True,
+        absolute_only_refusal=_absolute_only_refusal,
+        compensation=Compensation.MODELLED,
     )
 
 

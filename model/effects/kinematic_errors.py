@@ -14,7 +14,7 @@ the tracker registration and the elastic model.
 
 from __future__ import annotations
 
-from elastocal.model.effects.base import Effect, StaticContext
+from elastocal.model.effects.base import Compensation, Effect, StaticContext
 
 
 def _refusal(ctx: StaticContext) -> str:
@@ -34,4 +34,8 @@ EFFECT = Effect(
     static_model="absolute positions: FK on the robot rebuilt from the corrected DH table; deflections: none "
                  "(first order in the geometry, below the noise)",
     run_model="tracked absolute positions from the corrected DH table",
+    geometry=True,
+    fitted_with=("tracker_frame",),
+    absolute_only_refusal=lambda robot, ds: None,
+    compensation=Compensation.MODELLED,
 )

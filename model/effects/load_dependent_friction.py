@@ -1,45 +1,23 @@
 """load_dependent_friction: friction grows with the load the gear carries.
 
-Parameters fl1..fl6 [1]. Run model (docs/physics.md, Y §6): during a slow
-motion the drive supplies the load torque and the friction in the direction
-of motion (friction resists the motion; the motor's torque balance),
-``xi i = tau_load + friction``, with this effect's part ``fl_j abs(tau_load_j) sign(dq_j)``.
-UV/VU runs (the same path forward and backward) show it: friction changes sign
-with the direction, load and gravity do not, ``i_f = (i_UV - i_VU)/2`` (Y48).
-It is identified from the run table (identify/friction.py). Static data hold
-no motion, so they cannot show it.
+Parameters fl1..fl6 [1]; this law's part of the run model is
+``fl_j abs(tau_load_j) sign(dq_j)`` (the friction laws' common model:
+model/effects/_friction.py).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from elastocal.model.effects.base import Effect, StaticContext, wrong_sign
-from elastocal.model.effects.base import joint_names, joint_units
+from elastocal.model.effects._friction import friction_law
 
-
-def _refusal(ctx: StaticContext) -> str:
-    return "friction acts during motion; static data hold no motion (use runs at two loads)"
-
-
-def make(robot=None) -> Effect:
-    """The effect for ``robot``'s joints (a six-axis revolute arm without one)."""
-    return Effect(
-        name="load_dependent_friction",
-        parameters=joint_names("fl", robot),
-        units=joint_units("1", "1", robot),
-        seen_in=("runs",),
-        explanation="friction grows with the load the gear carries",
-        evidence="the UV/VU current difference grows with the load",
-        static_refusal=_refusal,
-        static_model="none: static readings are taken at rest",
-        run_model="xi i = tau_load + fl_j abs(tau_load_j) sign(dq_j)",
-        run_part="uv/vu",
-        plausibility=lambda names, values, stds: wrong_sign(names, values, stds, "load-dependent friction"),
-        run_column=lambda speed, load: np.abs(load),
-        sized=make,
-        run_needs="runs under two or more loads",
-    )
-
+make = friction_law(
+    name="load_dependent_friction", prefix="fl", units=("1", "1"),
+    explanation="friction grows with the load the gear carries",
+    evidence="the UV/VU current difference grows with the load",
+    part="fl_j abs(tau_load_j) sign(dq_j)", column=lambda speed, load: np.abs(load),
+    needs="runs under two or more loads", use="runs at two loads",
+    words="load-dependent friction",
+)
 
 EFFECT = make()

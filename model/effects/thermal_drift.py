@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastocal.model.effects.base import AbsoluteBasis, Effect, StaticBasis, StaticContext
+from elastocal.model.effects.base import AbsoluteBasis, Compensation, Effect, StaticBasis, StaticContext
 
 #: drift faster than this is no room warming up (typical: tenths of a mm/h) [m/s]
 MAX_DRIFT_M_S = 5e-3 / 3600.0
@@ -58,6 +58,13 @@ def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) 
     return None
 
 
+def _absolute_only_refusal(robot, ds) -> str | None:
+    """A table without loads shows a drift only through the times of its readings."""
+    if ds.abs_t is None or not (ds.abs_t == ds.abs_t).all():
+        return "needs the time t of the readings"
+    return None
+
+
 EFFECT = Effect(
     name="thermal_drift",
     parameters=("vx", "vy", "vz"),
@@ -72,4 +79,8 @@ EFFECT = Effect(
     plausibility=_plausibility,
     static_model="each deflection gains v (t_loaded - t_reference)",
     run_model="tracked positions of a run gain v t; joint torques are not affected",
+    session=True,
+    absolute_shows_more=True,
+    absolute_only_refusal=_absolute_only_refusal,
+    compensation=Compensation.NO_PATH_DEFLECTION,
 )

@@ -12,7 +12,7 @@ deflection fit refuses it.
 
 from __future__ import annotations
 
-from elastocal.model.effects.base import Effect, StaticContext
+from elastocal.model.effects.base import Compensation, Effect, StaticContext
 
 
 def _refusal(ctx: StaticContext) -> str:
@@ -31,4 +31,7 @@ EFFECT = Effect(
     static_refusal=_refusal,
     static_model="absolute positions: p_tracker = R p_base + t; deflections: turned back by R",
     run_model="tracked absolute positions p = R p_model + t",
+    registration=True,
+    session=True,
+    compensation=Compensation.NO_PATH_DEFLECTION,
 )
