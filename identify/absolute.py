@@ -45,8 +45,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 import scipy.linalg
-import scipy.optimize
-import scipy.stats
+import scipy.special
 
 from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
@@ -144,7 +143,7 @@ class AbsoluteFit:
         noise (above UNEXPLAINED_RATIO x the floor, chi-square p below UNEXPLAINED_P), else None."""
         if self.noise_floor is None or not self.noise_floor > 0 or not any(m in ABSOLUTE_EFFECTS for m in self.model):
             return None
-        p = scipy.stats.chi2.sf(self.rss_whitened, max(self.n - self.n_params, 1))
+        p = scipy.special.chdtrc(max(self.n - self.n_params, 1), self.rss_whitened)    # chi2's survival
         ratio = self.rms / self.noise_floor
         return ratio if ratio > UNEXPLAINED_RATIO and p < UNEXPLAINED_P else None
 
@@ -692,6 +691,8 @@ def excess_variance(residual: np.ndarray, variance: np.ndarray, n_params: int) -
 
     if excess(0.0) <= 0.0:
         return 0.0
+    import scipy.optimize  # imported where used: only readings that state their uncertainty need it
+
     return float(scipy.optimize.brentq(excess, 0.0, float(np.max(r2)) * r2.size + float(np.max(v))))
 
 

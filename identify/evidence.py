@@ -31,7 +31,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 from elastocal.errors import InputError
 from elastocal.formats.calibration import is_stiffness_name
@@ -89,6 +88,8 @@ def load_evidence(ds) -> LoadEvidence:
     n = int(z.size)
     if n == 0:
         return LoadEvidence(quantity, 0, 0.0, 0.0, decided=False)
+    from scipy import stats  # imported where used: scipy.stats costs the commands that never test a quarter second
+
     return LoadEvidence(quantity, n, float(np.max(z)), float(stats.norm.isf(LOADS_ALPHA / (2 * n))), decided=True)
 
 

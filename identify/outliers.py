@@ -30,7 +30,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.stats
 
 from elastocal.identify.grouping import combine, first_seen, group_count, group_sum, sums_per_group
 
@@ -71,6 +70,8 @@ def robust_sigma(xyz: np.ndarray, groups: list[np.ndarray]) -> float | None:
                    for g in groups if len(g) > 1])
     if s2.size == 0:
         return None
+    import scipy.stats  # imported where used: scipy.stats costs the commands that never test a quarter second
+
     # each s2 is sigma^2 chi2(dof)/dof: correct the median by that distribution's median
     median_scale = np.median(scipy.stats.chi2.median(dof) / dof)
     return float(np.sqrt(np.median(s2) / median_scale))
@@ -87,6 +88,8 @@ def _robust_sigma_grouped(xyz: np.ndarray, code: np.ndarray, n_groups: int) -> f
     rows = rows[np.argsort(code[rows], kind="stable")]
     dof = 3 * (n[repeated] - 1)
     s2 = sums_per_group((xyz[rows] - mean[code[rows]]) ** 2, n[repeated]) / dof
+    import scipy.stats  # imported where used: scipy.stats costs the commands that never test a quarter second
+
     # each s2 is sigma^2 chi2(dof)/dof: correct the median by that distribution's median
     median_scale = np.median(scipy.stats.chi2.median(dof) / dof)
     return float(np.sqrt(np.median(s2) / median_scale))
@@ -115,6 +118,8 @@ def find_outliers(table, *, alpha: float = ALPHA, noise=None) -> tuple[Outlier, 
     tested = int(n[n >= 3].sum())
     if sigma is None or not sigma > 0 or tested == 0:
         return ()
+    import scipy.stats  # imported where used: scipy.stats costs the commands that never test a quarter second
+
     w = _inverse_covariances(xyz, code, n_groups, noise, sigma)
     limit = alpha / tested
     big = n >= 3

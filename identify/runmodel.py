@@ -39,7 +39,6 @@ from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
-import scipy.stats
 
 from elastocal.errors import UnidentifiableError
 from elastocal.model.effects.base import Effect
@@ -308,6 +307,8 @@ class RunModelFit:
             return None
         dof = self.n - self.n_parameters
         stat = float(self.friction_chi2.sum()) + self.sweep_chi2
+        import scipy.stats  # imported where used: scipy.stats costs the commands that never test a quarter second
+
         return float(scipy.stats.chi2.sf(stat, dof)) if dof > 0 else None
 
     def group_rss(self) -> np.ndarray:

@@ -20,8 +20,6 @@ estimate it").
 from __future__ import annotations
 
 import numpy as np
-import scipy.optimize
-import scipy.stats
 
 from elastocal.identify.grouping import combine, first_seen, group_count, group_sum
 from elastocal.model.tracker_noise import TrackerNoise
@@ -56,6 +54,8 @@ def _spread(xyz: np.ndarray, code: np.ndarray, n_groups: int):
 
 def _fit_law(rng: np.ndarray, ss: np.ndarray, dof: np.ndarray) -> tuple[float, float]:
     """(a, b) >= 0 maximising the chi-square likelihood of ``ss ~ (a + b R)² chi²(dof)``."""
+    import scipy.optimize  # imported where used: tables without repeats never fit a law
+
     s0 = float(np.sqrt(np.sum(ss) / np.sum(dof)))
     if not s0 > 0:
         return 0.0, 0.0
@@ -93,6 +93,8 @@ def estimate_tracker_noise(table, *, exclude: np.ndarray | None = None,
     rng, ss_al, ss_ac, dof = _spread(xyz[keep], code_k, len(n_k))
     if dof.sum() < min_dof:
         return None
+    import scipy.stats  # imported where used: scipy.stats costs the commands that never test a quarter second
+
     law = None
     use = np.ones(len(rng), dtype=bool)
     for _ in range(2):          # fit, leave out the groups far beyond it, fit again
