@@ -41,7 +41,7 @@ class SimGuidedCell:
 
     def __init__(self, robot, spec: GuidedCellSpec, *, start_q: Sequence[float], truth: CellTruth | None = None,
                  with_sensor: bool) -> None:
-        self.cell = SimCell(robot, truth if truth is not None else CellTruth())
+        self.cell = SimCell(robot, truth)      # None: the cell's default truth, sized for the robot
         self.spec = spec
         self.load = ProcessLoad(np.asarray(spec.start_wrench, dtype=float), np.asarray(spec.end_wrench, dtype=float),
                                 spec.duration_s, spec.engage_s)
@@ -104,7 +104,7 @@ class ServedGuidedCell:
         from elastocal.formats.robot_toml import load_robot
 
         self.spec = spec
-        self.cell = SimCell(load_robot(robot_path), CellTruth())
+        self.cell = SimCell(load_robot(robot_path))
         self.load = ProcessLoad(np.asarray(spec.start_wrench, dtype=float), np.asarray(spec.end_wrench, dtype=float),
                                 spec.duration_s, spec.engage_s)
         args = {"robot": str(robot_path), "spec": _spec_json(spec), "start_q": [float(v) for v in start_q],
