@@ -6,6 +6,15 @@ answer until the cycle ends: an answer in time moves the simulated robot
 the robot where it is and is counted. A controller that hears nothing for
 ``comm_timeout_s`` stops guiding (as EGM's communication timeout and RSI's late-packet limit
 do) and stops sending. Everything goes to the computer's address on this machine only.
+
+Two clocks: on the wall clock (``lockstep=False``) each cycle lasts ``cycle_s`` of this
+machine's time and an answer that misses the cycle's end is late, as on a real controller, so
+a busy machine makes late cycles. In ``lockstep`` (simulated time) each cycle waits for its
+answer up to ``comm_timeout_s`` of wall time and then advances the controller's clock by
+exactly one cycle: the guiding computer sees the controller's time only, and a cycle is late
+only when a fault is injected (a lost message, silence) or the computer does not answer at
+all. Both pace the cycles at most as fast as the wall clock, so a sensor streaming on the
+wall clock keeps up.
 """
 
 from __future__ import annotations
@@ -43,7 +52,8 @@ class SimGuidedController(abc.ABC):
     """Base of the simulated EGM and RSI controllers (see the module docstring)."""
 
     def __init__(self, robot: GuidedRobot, computer: tuple[str, int], *, cycle_s: float,
-                 faults: Faults = Faults(), comm_timeout_s: float = 0.5, bind_host: str = "127.0.0.1") -> None:
+                 faults: Faults = Faults(), comm_timeout_s: float = 0.5, bind_host: str = "127.0.0.1",
+                 lockstep: bool = False) -> None:
         if not computer[0].startswith("127."):
             raise ValueError("a simulated controller talks to this machine only (127.0.0.0/8)")
         self.robot = robot
@@ -51,6 +61,7 @@ class SimGuidedController(abc.ABC):
         self.cycle_s = float(cycle_s)
         self.faults = faults
         self.comm_timeout_s = float(comm_timeout_s)
+        self.lockstep = bool(lockstep)
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind((bind_host, 0))
         self._stop = threading.Event()
@@ -110,11 +121,15 @@ class SimGuidedController(abc.ABC):
             deadline = next_ns + cycle_ns
             target = None
             if not silent:
-                if cycle not in self.faults.lost_cycles:
+                sent = cycle not in self.faults.lost_cycles
+                if sent:
                     self._sock.sendto(self._state_message(cycle, next_ns), self.computer)
                     with self._lock:
                         self._sent += 1
-                target = self._wait_answer(cycle, deadline)
+                if not self.lockstep:
+                    target = self._wait_answer(cycle, deadline)
+                elif sent:         # simulated time: the cycle ends when its answer comes
+                    target = self._wait_answer(cycle, time.monotonic_ns() + int(self.comm_timeout_s * 1e9))
             t_s = self.controller_ms(cycle) * 1e-3
             if target is not None:
                 self.robot.step(target, t_s)

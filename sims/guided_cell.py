@@ -53,11 +53,13 @@ class SimGuidedCell:
     def sensor_url(self) -> str:
         return self.sensor.url()
 
-    def start_controller(self, kind: str, computer: tuple[str, int], cycle_s: float):
-        """Start the simulated controller of ``kind`` ("egm" or "rsi") guiding toward ``computer``."""
+    def start_controller(self, kind: str, computer: tuple[str, int], cycle_s: float, *, lockstep: bool = False):
+        """Start the simulated controller of ``kind`` ("egm" or "rsi") guiding toward ``computer``,
+        on simulated time when ``lockstep`` (:mod:`~elastocal.sims.guidance_peer`)."""
         host = "127.0.0.1" if computer[0] in ("0.0.0.0", "") else computer[0]
         cls = {"egm": SimEgmController, "rsi": SimRsiController}[kind]
-        self.controller = cls(self.robot, (host, computer[1]), cycle_s=cycle_s, faults=self.spec.faults).start()
+        self.controller = cls(self.robot, (host, computer[1]), cycle_s=cycle_s, faults=self.spec.faults,
+                              lockstep=lockstep).start()
         return self.controller
 
     def close(self) -> None:
@@ -122,10 +124,11 @@ class ServedGuidedCell:
     def sensor_url(self) -> str:
         return self._ready["sensor_url"]
 
-    def start_controller(self, kind: str, computer: tuple[str, int], cycle_s: float) -> None:
+    def start_controller(self, kind: str, computer: tuple[str, int], cycle_s: float, *, lockstep: bool = False) -> None:
         import json
 
-        self._proc.stdin.write(json.dumps({"kind": kind, "computer": list(computer), "cycle_s": cycle_s}) + "\n")
+        order = {"kind": kind, "computer": list(computer), "cycle_s": cycle_s, "lockstep": bool(lockstep)}
+        self._proc.stdin.write(json.dumps(order) + "\n")
         self._proc.stdin.flush()
         self.controller = kind
 
@@ -175,7 +178,8 @@ def _serve(argument: str) -> None:
         line = sys.stdin.readline()
         if line.strip():
             order = json.loads(line)
-            cell.start_controller(order["kind"], tuple(order["computer"]), float(order["cycle_s"]))
+            cell.start_controller(order["kind"], tuple(order["computer"]), float(order["cycle_s"]),
+                                  lockstep=bool(order.get("lockstep", False)))
             sys.stdin.readline()                # runs until the parent closes our input
     finally:
         stats = cell.controller.stats() if cell.controller is not None else None

@@ -8,6 +8,9 @@ plus the correction. A cycle is *late* when the message waited longer than the b
 the loop got to it, when the force source has no fresh wrench, or when the computation ran
 past the budget: the answer then holds the last correction (the plan still advances), and
 the cycle is counted. Three late cycles in a row stop the stream (:class:`WatchdogFault`).
+Lateness is judged on the injected ``clock_ns`` (the wall clock for a real controller, the
+controller's own time for a simulated one in lockstep: :mod:`elastocal.stream.clock`); the
+computation's time is measured on ``measure_ns`` (default the same clock).
 Messages the controller lost are counted from the jumps of its clock. Nothing here prints
 or writes a file: every cycle and event goes to the ``sink``.
 """
@@ -120,7 +123,8 @@ class _Counters:
 
 def run_stream(guidance: Guidance, source, plan: StreamPlan, sink: Sink, *,
                settings: StreamSettings = StreamSettings(), clock_ns: Callable[[], int] = time.monotonic_ns,
-               should_stop: Callable[[], bool] = lambda: False) -> StreamResult:
+               should_stop: Callable[[], bool] = lambda: False,
+               measure_ns: Callable[[], int] | None = None) -> StreamResult:
     """Guide the robot along ``plan`` with the corrections of ``source``'s wrenches (see the
     module docstring). Raises the typed faults of the loop and of the devices.
 
@@ -131,13 +135,13 @@ def run_stream(guidance: Guidance, source, plan: StreamPlan, sink: Sink, *,
     collecting = gc.isenabled()
     gc.disable()
     try:
-        return _run(guidance, source, plan, sink, settings, clock_ns, should_stop)
+        return _run(guidance, source, plan, sink, settings, clock_ns, should_stop, measure_ns)
     finally:
         if collecting:
             gc.enable()
 
 
-def _run(guidance, source, plan, sink, settings, clock_ns, should_stop) -> StreamResult:
+def _run(guidance, source, plan, sink, settings, clock_ns, should_stop, measure_ns) -> StreamResult:
     if plan.n_joints != guidance.n_joints:
         raise InputError(f"the path has {plan.n_joints} joints, the guidance channel {guidance.n_joints}")
     cycle_s = guidance.cycle_s
@@ -160,6 +164,7 @@ def _run(guidance, source, plan, sink, settings, clock_ns, should_stop) -> Strea
     cycle, lost, prev_t_ns, prev_ms = 0, 0, None, None
     while True:
         now = clock_ns()
+        started = now if measure_ns is None else measure_ns()
         t_path = (state.controller_time_ms - t0_ms) * 1e-3
         i, w = plan.locate(t_path)
         q_plan = plan.at(plan.q, i, w)
@@ -180,13 +185,13 @@ def _run(guidance, source, plan, sink, settings, clock_ns, should_stop) -> Strea
                     sent, limited = corr.sent, corr.limited
         q_sent = q_plan + sent
         guidance.send(q_sent)
-        done = clock_ns()
+        compute_ns = (clock_ns() if measure_ns is None else measure_ns()) - started
         record = CycleRecord(
             cycle=cycle, sequence=state.sequence, t_ns=state.t_ns, t_path_s=t_path, q_planned=q_plan,
             correction=sent, wanted=wanted, q_sent=q_sent, q_measured=state.q,
             wrench=None if reading is None else reading.wrench,
-            wrench_age_ns=None if reading is None else now - reading.t_ns, compute_ns=done - now,
-            response_ns=done - state.t_ns, period_ns=0 if prev_t_ns is None else state.t_ns - prev_t_ns,
+            wrench_age_ns=None if reading is None else now - reading.t_ns, compute_ns=compute_ns,
+            response_ns=now - state.t_ns + compute_ns, period_ns=0 if prev_t_ns is None else state.t_ns - prev_t_ns,
             late=late, limited=limited, lost_before=lost)
         _count(count, record, prev_t_ns is not None)
         sink.cycle(record)

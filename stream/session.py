@@ -31,12 +31,16 @@ from elastocal.formats.calibration import read_calibration
 from elastocal.stream.correction import Limits
 from elastocal.stream.loop import CycleRecord, StreamResult, StreamSettings, run_stream
 from elastocal.stream.plan import StreamPlan, build_plan
+from elastocal.stream.clock import ControllerTime, measure_ns
 from elastocal.stream.realtime import STREAM_PRIORITY, realtime
 from elastocal.stream.recording import StreamLog
 from elastocal.stream.sources import CurrentsSource, ForceSourceKind, PathSource, SensorSource, tare
 
 #: how long the sensor is averaged for its bias before guidance starts [s]
 TARE_S = 0.2
+#: with a simulated controller in lockstep, a sensor sample is stale only after this long on the wall
+#: clock (the sensor streams on it): a silent sensor still stops the stream, a busy computer does not
+LOCKSTEP_SENSOR_AGE_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,9 @@ class StreamOptions:
     simulate: object | None = None                 # a sims.guided_cell.GuidedCellSpec: serve simulated peers
     priority: int | None = STREAM_PRIORITY         # SCHED_FIFO priority of the stream's threads (None: normal)
     time_scale: float = 1.0                        # a simulated cell runs the path this many times faster
+    #: a simulated controller on this machine's wall clock (late when this machine is busy) instead of
+    #: in lockstep on its own time (late only where the simulated cell injects it)
+    sim_realtime: bool = False
 
 
 @dataclass(frozen=True)
@@ -138,6 +145,8 @@ def _run_devices(config, calibration, path, options, ui, url, plan, planned, kin
     try:
         guidance = open_guidance(url, n_joints=plan.n_joints, source=f"{config.source}, guidance.url")
         closers.append(guidance)
+        if sim is not None and not options.sim_realtime:
+            guidance = ControllerTime(guidance)      # lockstep: judged on the simulated controller's time
         wrench = options.wrench if options.wrench is not None else planned.wrench
         source = _open_source(kind, config, plan, options, guidance.cycle_s, sim, closers, wrench)
         outcome = _record_and_stream(config, calibration, path, options, ui, guidance, source, kind, plan,
@@ -155,6 +164,9 @@ def _open_source(kind, config, plan, options, cycle_s, sim, closers, wrench):
         closers.append(sensor)
         sensor.start()
         sensor.wait_first(1.0)
+        if sim is not None and not options.sim_realtime:
+            return SensorSource(sensor, plan, max_age_s=max(config.force_sensor.max_age_s, LOCKSTEP_SENSOR_AGE_S),
+                                bias=tare(sensor, TARE_S), age_clock_ns=measure_ns)
         return SensorSource(sensor, plan, max_age_s=config.force_sensor.max_age_s, bias=tare(sensor, TARE_S))
     if kind is ForceSourceKind.CURRENTS:
         return CurrentsSource(plan, filter_s=options.current_filter_s, cycle_s=cycle_s)
@@ -184,12 +196,17 @@ def _record_and_stream(config, calibration, path, options, ui, guidance, source,
             return outcome("aborted", str(exc), records=())
         rec.event("answer", procedure="stream", answer="yes", automatic=bool(getattr(ui, "automatic", False)))
         if sim is not None:
-            sim.start_controller(guidance.kind.value, guidance.address, guidance.cycle_s)
+            sim.start_controller(guidance.kind.value, guidance.address, guidance.cycle_s,
+                                 lockstep=isinstance(guidance, ControllerTime))
         ui.message("streaming; Ctrl-C stops (the robot holds the last target)")
         sink = _Keeping(rec, plan, kind.value)
         try:
             try:
-                result = run_stream(guidance, source, plan, sink, settings=settings)
+                if isinstance(guidance, ControllerTime):
+                    result = run_stream(guidance, source, plan, sink, settings=settings, clock_ns=guidance.clock_ns,
+                                        measure_ns=measure_ns)
+                else:
+                    result = run_stream(guidance, source, plan, sink, settings=settings)
             finally:
                 sink.close()             # every cycle written before the end's events
         except DeviceError as exc:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -48,20 +49,26 @@ class SensorSource:
     kind = ForceSourceKind.SENSOR
 
     def __init__(self, sensor: ForceSensor, plan: StreamPlan, *, max_age_s: float,
-                 bias: np.ndarray | None = None) -> None:
+                 bias: np.ndarray | None = None, age_clock_ns: Callable[[], int] | None = None) -> None:
         self.sensor = sensor
         self.plan = plan
         self.max_age_ns = int(max_age_s * 1e9)
         self.bias = np.zeros(6) if bias is None else np.asarray(bias, dtype=float)
+        # the clock the samples' arrivals are stamped on, when the loop runs on another one (a
+        # simulated controller's time): the age is taken on it, the reading put on the loop's
+        self.age_clock_ns = age_clock_ns
 
     def read(self, state: ControllerState, i: int, w: float, now_ns: int) -> WrenchReading | None:
         sample = self.sensor.latest()          # raises what stopped the sensor's stream
-        if sample is None or now_ns - sample.t_ns > self.max_age_ns:
+        if sample is None:
+            return None
+        age_ns = (now_ns if self.age_clock_ns is None else self.age_clock_ns()) - sample.t_ns
+        if age_ns > self.max_age_ns:
             return None
         rot = self.plan.at(self.plan.tool_rotation, i, w)
         local = sample.wrench - self.bias
         wrench = np.concatenate((rot @ local[:3], rot @ local[3:]))
-        return WrenchReading(wrench=wrench, t_ns=sample.t_ns)
+        return WrenchReading(wrench=wrench, t_ns=now_ns - age_ns)
 
 
 def tare(sensor: ForceSensor, duration_s: float, *, clock=None) -> np.ndarray:

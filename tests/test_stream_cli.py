@@ -62,6 +62,7 @@ def _events(log: pathlib.Path) -> list[dict]:
     (["--sim", "--sim-speed", "0"], "--sim-speed"),
     (["--cell", "{root}/cell.toml", "--sim-speed", "2"], "--sim-speed"),
     (["--sim", "--wrench", "1,2"], "--wrench"),
+    (["--cell", "{root}/cell.toml", "--sim-realtime"], "--sim-realtime"),   # a real controller keeps its own clock
 ])
 def test_bad_input_is_one_line_and_exit_2(files, capsys, argv, flag):
     out = files / "bad.mcap"

@@ -204,3 +204,29 @@ def test_the_guidance_and_force_sensor_sections_of_cell_toml_round_trip():
         parse_cell_config(text.replace("max_correction_deg", "max_rate_deg"))
     with pytest.raises(InputError, match="guidance.url"):
         parse_cell_config(text.replace("rsi://0.0.0.0:59152?cycle_ms=12", "modbus+tcp://127.0.0.1:502"))
+
+
+@pytest.mark.parametrize("peer", [SimEgmController, SimRsiController])
+def test_in_lockstep_a_slow_answer_is_waited_for_and_the_clock_advances_one_cycle(quiet_cell, peer):
+    """Every answer comes after the 4 ms cycle has ended on the wall clock (the computer sleeps
+    10 ms first): in lockstep the controller waits for it, applies it, and its clock advances by
+    one cycle per message whatever the wall clock did; on the wall clock the same answers are late."""
+    def drive(lockstep):
+        robot = _guided(quiet_cell)
+        with open_guidance(parse_device_url("egm://127.0.0.1:0" if peer is SimEgmController
+                                            else "rsi://127.0.0.1:0"), n_joints=6) as g:
+            with peer(robot, g.address, lockstep=lockstep) as sim:
+                states = []
+                for _ in range(12):
+                    s = g.receive(timeout_s=2.0)
+                    states.append(s)
+                    time.sleep(0.010)
+                    g.send(Q0)
+                stats = sim.stats()
+        return states, stats
+
+    states, stats = drive(True)
+    assert [s.controller_time_ms for s in states] == [4 * k for k in range(12)]
+    assert stats.late == 0 and stats.answered >= 11
+    _, stats = drive(False)
+    assert stats.late > 0

@@ -20,6 +20,7 @@ from elastocal.drivers.guidance import ControllerLost, ControllerRefused, Contro
 from elastocal.formats import logformat as lf
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.guided import statics
+from elastocal.stream.clock import ControllerTime
 from elastocal.stream.correction import Limits, wrench_from_currents
 from elastocal.stream.loop import LateCause, NotAtStart, StreamSettings, WatchdogFault, run_stream
 from elastocal.stream.plan import build_plan
@@ -263,3 +264,23 @@ def test_every_cycle_goes_to_the_log_with_the_correction_arrow(plan, tmp_path):
 
     x_axis = pin.Quaternion(o["w"], o["x"], o["y"], o["z"]).matrix()[:, 0]
     assert np.allclose(x_axis, moved / np.linalg.norm(moved), atol=1e-9)
+
+
+def test_on_the_controller_s_time_a_slow_computer_is_not_late_but_an_injected_delay_is(plan):
+    """Through :class:`ControllerTime` the loop judges on the controller's clock: every message
+    here waits 10 ms on this computer's (injected) clock before the loop takes it up, which the
+    wall-clock judgement calls late, the controller's time does not; the compute time is still
+    measured (on ``measure_ns``). A message the controller itself sent late is still late."""
+    slow = {k: 10_000_000 for k in range(60)}
+    _, sink, exc = _run(plan, PathSource(plan, WRENCH), 60, delays=slow)
+    assert isinstance(exc, WatchdogFault) and exc.cause is LateCause.SCHEDULE
+
+    clock, wall = Clock(), Clock(step_ns=7_000)
+    ctrl = ControllerTime(ScriptedController(clock, lambda k: plan.q[0], 60, delays=slow, gaps=(30,)))
+    sink = Events()
+    result = run_stream(ctrl, PathSource(plan, WRENCH), plan, sink, clock_ns=ctrl.clock_ns, measure_ns=wall,
+                        settings=StreamSettings(limits=Limits(1.0, 100.0), end_hold_s=0.0))
+    assert result.late == 0 and result.lost == 1
+    assert [r.t_ns - sink.records[0].t_ns for r in sink.records[:3]] == [0, 4_000_000, 8_000_000]
+    assert all(r.compute_ns == 7_000 and r.response_ns == 7_000 for r in sink.records)
+    assert sink.records[30].period_ns == 8_000_000             # across the lost message

@@ -19,7 +19,7 @@ TRUTH_POINTS = 400
 #: the library's arguments as this command's flags (errors name the flag)
 ARGUMENT_FLAGS = {"max_rad": "--max-correction-deg", "max_rate_rad_s": "--max-rate-deg-s",
                   "current_filter_s": "--current-filter-s", "wrench": "--wrench", "source": "--source",
-                  "time_scale": "--sim-speed", "path": "--path"}
+                  "time_scale": "--sim-speed", "path": "--path", "sim_realtime": "--sim-realtime"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -45,6 +45,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sim", action="store_true",
                         help="serve a simulated controller of the [guidance] kind (and a simulated Net F/T) in this "
                              "process, on 127.0.0.1")
+    parser.add_argument("--sim-realtime", action="store_true",
+                        help="with --sim: run the simulated controller on this computer's wall clock, so that a busy "
+                             "computer makes late cycles as with a real robot (default: in lockstep on simulated "
+                             "time: each cycle waits for the stream's answer, so a rehearsal does not fault "
+                             "because the computer is busy; late cycles come only from injected faults)")
     parser.add_argument("--sim-guidance", choices=("egm", "rsi"), default="egm",
                         help="with --sim and no --cell: the simulated controller's channel (default egm)")
     parser.add_argument("--sim-speed", type=float, default=1.0,
@@ -122,6 +127,9 @@ def run(args: argparse.Namespace) -> int:
                          source="--sim-speed")
     if pathlib.Path(args.out).exists() and not args.force:
         raise InputError("already exists; choose another --out, or --force to overwrite it", source=args.out)
+    if args.sim_realtime and not args.sim:
+        raise InputError("a real controller runs on its own clock; --sim-realtime is for a simulated cell",
+                         source="--sim-realtime")
     if args.yes and not args.sim:
         raise InputError("--yes answers the prompt of a simulated cell only; add --sim, or let a person answer",
                          source="--yes")
@@ -159,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     options = StreamOptions(out=pathlib.Path(args.out), source=ForceSourceKind(args.source) if args.source else None,
                             wrench=wrench, settings=StreamSettings(limits=limits),
                             current_filter_s=args.current_filter_s, overwrite=args.force, simulate=spec,
-                            time_scale=args.sim_speed)
+                            time_scale=args.sim_speed, sim_realtime=args.sim_realtime)
     ui = AutoUI(sys.stderr, quiet=args.json, answered_by="--yes") if args.yes else TerminalUI(sys.stderr)
     try:
         outcome = run_online(config, args.calibration, args.path, options, ui)
