@@ -151,6 +151,8 @@ def _run_devices(config, calibration, path, options, ui, url, plan, planned, kin
         source = _open_source(kind, config, plan, options, guidance.cycle_s, sim, closers, wrench)
         outcome = _record_and_stream(config, calibration, path, options, ui, guidance, source, kind, plan,
                                      settings, sim, model)
+        if isinstance(guidance, ControllerTime):
+            sched += "; the simulated controller in lockstep: cycles judged on its clock"
         return dataclasses.replace(outcome, scheduling=sched)
     finally:
         for item in reversed(closers):
