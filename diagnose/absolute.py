@@ -177,7 +177,7 @@ def _test(base: AbsoluteFit, aug: AbsoluteFit) -> tuple[float, float, float, int
     dof = max(aug.n_params - base.n_params, 1)
     n = aug.n
     drop = max(base.rss_whitened - aug.rss_whitened, 0.0)
-    var = base.static.dataset.abs_var
+    var = base.static.dataset.stated_variance
     if var is not None and base.static.dataset.sigma_tracker is None and base.noise_floor is not None:
         # readings weighted with their stated noise plus each fit's own excess: compared under the stated noise
         drop = max(float(np.sum(base.residuals ** 2 / var)) - float(np.sum(aug.residuals ** 2 / var)), 0.0)

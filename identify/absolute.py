@@ -304,11 +304,12 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
     """Per-state Cholesky factors of the covariance of the mean readings (tracker
     frame), and whether the noise level is known: from the repeats, else the readings' own
     uncertainty columns, else the tracker's law (``ds.noise_source``)."""
-    columns = ds.noise_source is NoiseSource.UNCERTAINTY_COLUMNS and ds.abs_var is not None
+    columns = ds.stated_variance is not None
     known = ds.sigma_tracker is not None or columns
     sig_t = ds.sigma_tracker if ds.sigma_tracker is not None else UNIT_NOISE_M
     nm = len(ds.markers)
-    law = ds.abs_cov if known else None      # the tracker's law: each reading at its range and beam
+    # each reading's own covariance (the columns', or the law's at its range and beam)
+    own = ds.reading_cov if known else None
     sig_i = ds.sigma_current if (known and torque == "current" and ds.sigma_current is not None) else None
     covs = np.zeros((ds.n_states, 3 * nm, 3 * nm))
     jac_pose: dict[int, np.ndarray] = {}
@@ -316,9 +317,8 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
     for s in range(ds.n_states):
         cov = np.zeros((3 * nm, 3 * nm))
         for m in range(nm):
-            cov[3 * m:3 * m + 3, 3 * m:3 * m + 3] += (np.diag(ds.abs_var[s, m]) if columns else
-                                                      sig_t ** 2 / ds.abs_n[s, m] * np.eye(3) if law is None
-                                                      else law[s, m])
+            cov[3 * m:3 * m + 3, 3 * m:3 * m + 3] += (sig_t ** 2 / ds.abs_n[s, m] * np.eye(3) if own is None
+                                                      else own[s, m])
         if sig_i is not None:
             pi = int(ds.state_pose[s])
             if pi not in jac_pose:
@@ -417,8 +417,8 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     if stated and excess_var is None:      # a first fit with even weights, then s^2 from its residual
         kwargs = dict(model=model, torque=torque, form=form, max_iter=max_iter, tracker_prior=tracker_prior,
                       sag_theta=sag_theta)
-        first = identify_absolute(robot, ds0, excess_var=float(np.max(ds0.abs_var)) * 1e6, **kwargs)
-        s2 = excess_variance(first.residuals, ds0.abs_var, first.n_params)
+        first = identify_absolute(robot, ds0, excess_var=float(np.max(ds0.stated_variance)) * 1e6, **kwargs)
+        s2 = excess_variance(first.residuals, ds0.stated_variance, first.n_params)
         return identify_absolute(robot, ds0, excess_var=s2, **kwargs)
     only = is_absolute_only(ds0)      # no loads: geometry, registration, the twist under self-weight
     names = tuple(dict.fromkeys(model if only else [BASE_EFFECT, *model]))
@@ -486,7 +486,7 @@ def _setup(start: _Start, ds0: StaticDataset, excess_var: float | None) -> tuple
     rigid = kabsch(base_p.reshape(-1, 3), y.reshape(-1, 3), ds0.abs_n.reshape(-1)) or start.registration
     chols, whitens, known = _noise(robot, ds, pr.torque, fit.beta[:robot.n_joints], rigid.rotation, frames)
     if excess_var is not None:
-        total = (ds0.abs_var + excess_var).reshape(ds.n_states, -1)
+        total = (ds0.stated_variance + excess_var).reshape(ds.n_states, -1)
         chols = tuple(np.apply_along_axis(np.diag, 1, np.sqrt(total)))
         whitens = tuple(np.apply_along_axis(np.diag, 1, 1.0 / np.sqrt(total)))
         known = True
@@ -560,7 +560,7 @@ def _uncertainty(st: _Setup, solved: _Solved, n_el: int, ds0: StaticDataset, kno
     trace_sigma = float(np.sum(np.asarray(st.chol) ** 2))
     expected = trace_sigma - float(np.trace(m_inv @ (a_raw.T @ a_raw)))
     if excess_var is not None:
-        v_read = ds0.abs_var.reshape(-1)
+        v_read = ds0.stated_variance.reshape(-1)
         w = 1.0 / (v_read + excess_var)
         awv = a_raw.T * (w * v_read)                       # A^T W Sigma
         cross = float(np.trace(m_inv @ (awv @ a_raw)))      # tr(H Sigma)

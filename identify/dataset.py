@@ -58,25 +58,32 @@ class StaticDataset:
     abs_xyz: np.ndarray | None = None  # (S, M, 3) mean absolute position per state and marker, tracker frame [m]
     abs_n: np.ndarray | None = None    # (S, M) readings averaged
     abs_t: np.ndarray | None = None    # (S, M) mean time of those readings [s], NaN if unknown
-    #: (S, M, 3) variance per coordinate of those mean readings from the readings' own stated
-    #: uncertainty (``u95`` or ``sx, sy, sz``), None without it [m²]
-    abs_var: np.ndarray | None = None
     #: rotation tracker <- base that dP was turned back by (identify/registration.py); None: dP as measured
     tracker_rotation: np.ndarray | None = None
     #: the tracker's noise law in force (model/tracker_noise.py): estimated from the repeats where
     #: they are enough, else the cell's; None without either
     tracker_noise: TrackerNoise | None = None
-    #: (S, M, 3, 3) covariance of each state's mean reading of each marker under that law,
-    #: tracker frame [m²]; None without a law
-    abs_cov: np.ndarray | None = None
+    #: (S, M, 3, 3) covariance of each state's mean reading of each marker, tracker frame [m²], from
+    #: what ``noise_source`` names: the readings' own uncertainty columns (``u95``: sigma = U95 / 1.96
+    #: on each coordinate; ``sx, sy, sz`` per axis; a diagonal), else the tracker's law in force (at
+    #: each reading's range and beam); None without either (repeats alone: ``sigma_tracker``)
+    reading_cov: np.ndarray | None = None
     #: where the noise level comes from (repeats, the uncertainty columns, a law, none); None:
-    #: from the fields (repeats when ``sigma_tracker`` is set, else the columns when ``abs_var`` is)
+    #: from the fields (repeats when ``sigma_tracker`` is set, else the columns when ``reading_cov`` is)
     noise_source: NoiseSource | None = None
 
     def __post_init__(self) -> None:
         if self.noise_source is None:
             object.__setattr__(self, "noise_source", NoiseSource.REPEATS if self.sigma_tracker is not None else
-                               NoiseSource.UNCERTAINTY_COLUMNS if self.abs_var is not None else NoiseSource.NONE)
+                               NoiseSource.UNCERTAINTY_COLUMNS if self.reading_cov is not None else NoiseSource.NONE)
+
+    @property
+    def stated_variance(self) -> np.ndarray | None:
+        """(S, M, 3) variance per coordinate of each mean reading from the uncertainty columns [m²],
+        when they set the noise (``noise_source``); else None."""
+        if self.noise_source is not NoiseSource.UNCERTAINTY_COLUMNS or self.reading_cov is None:
+            return None
+        return np.diagonal(self.reading_cov, axis1=-2, axis2=-1)
 
     @property
     def n_states(self) -> int:
@@ -156,7 +163,7 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
     (identify/outliers.py); they are listed in ``outliers``. The tracker's noise
     law (identify/trackernoise.py) is estimated from the repeats where they are
     enough, else ``tracker_noise`` (cell.toml ``[tracker] noise``) is taken; it gives
-    every mean reading its covariance (``abs_cov``) and, without repeats, the noise level.
+    every mean reading its covariance (``reading_cov``; the uncertainty columns' when they set the level) and, without repeats, the noise level.
 
     States are numbered pose by pose in order of first appearance, the reference (load 0)
     first, then the pose's loads in order of first appearance; deflections run over the
@@ -200,9 +207,9 @@ def build_dataset(table: StaticTable, *, tracker_noise: TrackerNoise | None = No
         outliers=outliers,
         abs_xyz=cells.xyz.reshape(states.n, n_markers, 3), abs_n=cells.count.reshape(states.n, n_markers),
         abs_t=cells.t.reshape(states.n, n_markers).astype(float),
-        tracker_noise=noise, abs_cov=abs_cov,
-        abs_var=None if cells.stated_var is None else cells.stated_var.reshape(states.n, n_markers, 3),
-        noise_source=source,
+        tracker_noise=noise, noise_source=source,
+        reading_cov=_stated_covariance(cells.stated_var, states.n, n_markers)
+        if source is NoiseSource.UNCERTAINTY_COLUMNS else abs_cov,
     )
 
 
@@ -294,6 +301,13 @@ def _noise_level(noise: TrackerNoise | None, stated_law: TrackerNoise | None, ce
     if source is NoiseSource.TRACKER_LAW:  # no repeats, no stated uncertainty: the law sets the level
         sigma_tracker = noise.rms_sigma(cells.xyz[finite])
     return noise, abs_cov.reshape(n_states, n_markers, 3, 3), sigma_tracker, source
+
+
+def _stated_covariance(stated_var: np.ndarray, n_states: int, n_markers: int) -> np.ndarray:
+    """(S, M, 3, 3) the readings' stated variances per coordinate on the diagonal."""
+    cov = np.zeros((n_states * n_markers, 3, 3))
+    cov[:, np.arange(3), np.arange(3)] = stated_var
+    return cov.reshape(n_states, n_markers, 3, 3)
 
 
 def _at_repeats_level(law: TrackerNoise, repeated_xyz: np.ndarray, sigma: float) -> TrackerNoise:

@@ -193,8 +193,8 @@ def _noise_blocks(pr: Problem, beta: np.ndarray, bases,
         order = np.argsort(ds.state_pose, kind="stable")
     if ds.defl_u95_var is not None:          # the readings' own U95 (docs/import.md)
         v_ref, v_own = ds.defl_u95_var_ref, ds.defl_u95_var
-    elif ds.abs_cov is not None:             # the tracker's law, per coordinate at each reading's range
-        v_cell = np.trace(ds.abs_cov, axis1=-2, axis2=-1) / 3.0          # (S, M)
+    elif ds.reading_cov is not None:         # each reading's own noise (its law at its range), per coordinate
+        v_cell = np.trace(ds.reading_cov, axis1=-2, axis2=-1) / 3.0      # (S, M)
         v_ref = v_cell[ds.defl_ref, ds.defl_marker]
         v_own = v_ref + v_cell[ds.defl_state, ds.defl_marker]
     else:

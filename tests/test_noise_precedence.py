@@ -68,7 +68,7 @@ def test_few_repeats_take_the_stated_laws_shape_at_the_repeats_level(repeated):
     loud, quiet = (build_dataset(dataclasses.replace(few, tracker_noise=law)) for law in (LOUD, QUIET))
     assert loud.noise_source is NoiseSource.REPEATS and "scaled to the repeats' level" in loud.tracker_noise.source
     # too few repeats for a law of their own: the stated law, scaled to what the repeats show
-    np.testing.assert_allclose(loud.abs_cov, quiet.abs_cov, rtol=1e-9)
+    np.testing.assert_allclose(loud.reading_cov, quiet.reading_cov, rtol=1e-9)
     assert floor(dataclasses.replace(few, tracker_noise=LOUD)) == pytest.approx(floor(few), rel=0.05)
 
 
