@@ -449,11 +449,12 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
         # a tracker placed anywhere: the deflections turned back to base axes by the
         # registration of the nominal model, then by that of this model's fit
         first = identify_static(robot, in_base_axes(robot, ds), model=model, torque=torque, form=form,
-                                max_iter=max_iter, tol=tol, work=work)
+                                max_iter=max_iter, tol=tol, weighting=weighting, work=work)
         refined = refine_registration(robot, ds, first.absolute_base)
         if refined is None:
             return first
-        return identify_static(robot, refined, model=model, torque=torque, form=form, max_iter=max_iter, tol=tol, work=work)
+        return identify_static(robot, refined, model=model, torque=torque, form=form, max_iter=max_iter, tol=tol,
+                               weighting=weighting, work=work)
     _check_torque_source(ds, torque)
     check_loads_changed(ds)          # loads that changed nothing determine nothing (identify/evidence.py)
     names, effects, selections = _model_effects(robot, ds, model, torque=torque, form=form, max_iter=max_iter,

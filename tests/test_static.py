@@ -156,3 +156,19 @@ def test_dataset_averages_repeats_and_pairs_reference():
     rows_r = (table.pose == ds.pose_ids[ds.state_pose[r]]) & (table.load == "0") & (table.marker == m)
     np.testing.assert_allclose(ds.dP[d], table.xyz[rows_l].mean(axis=0) - table.xyz[rows_r].mean(axis=0))
     assert ds.defl_n[d] == 3 and ds.defl_n_ref[d] == 3
+
+
+def test_the_weighting_asked_for_is_the_one_used_when_the_tracker_stands_anywhere():
+    """A tracker placed anywhere turns the deflections to base axes by a first fit and a
+    refined registration: both fits use the weighting asked for (plain least squares with
+    ``ols``: no whitening), and the two weightings estimate the same stiffness."""
+    robot = bundled_robot()
+    table = simulate_static(robot, CellTruth(), seed=12, plan=StaticPlan(n_poses=10))
+    assert build_dataset(table).tracker_rotation is None
+    gls = identify_static(robot, table, weighting="gls")
+    ols = identify_static(robot, table, weighting="ols")
+    assert gls.whitening is not None and ols.whitening is None
+    assert gls.rss_whitened is not None and ols.rss_whitened is None
+    std = np.sqrt(np.diag(gls.beta_cov) + np.diag(ols.beta_cov))
+    assert np.all(np.abs(gls.beta - ols.beta) < 4 * std)      # two unbiased estimates of one truth
+    assert not np.allclose(np.diag(gls.beta_cov), np.diag(ols.beta_cov), rtol=1e-3, atol=0.0)
