@@ -124,3 +124,13 @@ def _flat(obj, prefix=""):
     if isinstance(obj, dict):
         return {k: v for key, sub in obj.items() for k, v in _flat(sub, f"{prefix}{key}.").items()}
     return {prefix: obj}
+
+
+@pytest.mark.parametrize("hidden", ["base_tilt", "static_friction", "gremlins"])
+def test_the_demo_hides_only_what_it_can_find_and_says_which(tmp_path, capsys, hidden):
+    out = tmp_path / "demo"
+    assert main(["demo", "--hidden", hidden, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("elastocal demo: --hidden: choose one of none, link_compliance, thermal_drift, backlash; "
+                   f"got {hidden!r}")
+    assert not out.exists()
