@@ -43,9 +43,10 @@ TRACK_STIFFNESS = 2.0e7
 #: effects the simulator can hide in a dataset (``--hidden``)
 HIDDEN_EFFECTS = ("none", "link_compliance", "thermal_drift", "static_friction", "backlash",
                   "kinematic_errors", "tracker_frame", "base_tilt", "nonlinear_stiffness")
-#: hidden effects the currents already measure (static friction holds part of a load in the gears: the
-#: currents read what the gears carry after it), so no current-based static model can lack them
-CURRENTS_SEE = ("static_friction",)
+#: what the demo can hide and then find: effects its current-based static model lacks that the
+#: static procedure shows (the geometry is always hidden; static friction holds part of a load in the
+#: gears and the currents read what the gears carry after it, so no current-based model lacks it)
+DEMO_HIDDEN = ("none", "link_compliance", "thermal_drift", "backlash")
 
 
 def _rot(axis: int, angle: float) -> np.ndarray:

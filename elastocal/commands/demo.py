@@ -35,11 +35,6 @@ DEMO_REPEATS = 3
 DEMO_DRIVE_RATE_HZ = 200.0
 
 
-#: what the demo can hide and then find: effects its current-based static model lacks that the
-#: static procedure shows (the geometry is always hidden; static friction the currents already see)
-DEMO_HIDDEN = ("none", "link_compliance", "thermal_drift", "backlash")
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_seed(parser, "random seed of the simulated cell")
     parser.add_argument("--out", help="directory for the files the demo writes (default: a temporary one); "
@@ -118,6 +113,8 @@ def _um(x: float | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.errors import InputError
+    from elastocal.sims.cell import DEMO_HIDDEN
+
     if args.hidden not in DEMO_HIDDEN:
         raise InputError(f"choose one of {', '.join(DEMO_HIDDEN)}; got {args.hidden!r}", source="--hidden")
     if args.poses < 4:
