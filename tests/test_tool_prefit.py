@@ -25,6 +25,12 @@ from elastocal.sims.static import StaticPlan, simulate_static
 ROBOT = bundled_robot()
 MODEL = ("joint_stiffness", "kinematic_errors", "tracker_frame")
 PLAN = StaticPlan(n_poses=12, n_loads=2, repeats=2)
+#: how far [std] the fit through the pre-fit may end from the fit knowing the true markers: the two
+#: start from robot.toml's markers 10-30 cm apart, so their models are linearised about other tool
+#: points (their stds differ by ~0.2 %) and they end a few thousandths of a std apart (30 seeds: median
+#: 0.002, max 0.010); a twentieth of a std is invisible to any use of the fit and still fails a pre-fit
+#: that stops short (a marker left a millimetre off moves its correction by hundreds of std, each 2-3 um)
+SAME_FIT_STD = 0.05
 
 
 def _moved_markers(seed: int, low: float = 0.10, high: float = 0.30) -> dict[str, np.ndarray]:
@@ -75,17 +81,15 @@ def _same_as_knowing_the_markers(seed: int) -> float:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_markers_off_by_tens_of_centimetres_are_found_before_the_full_model(seed):
-    assert _same_as_knowing_the_markers(seed) < 0.01
+    assert _same_as_knowing_the_markers(seed) < SAME_FIT_STD
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_found_over_many_seeds():
-    """30 seeds, markers 10-30 cm off: every fit within 0.01 std of the fit knowing the markers."""
+    """30 seeds, markers 10-30 cm off: every fit within SAME_FIT_STD of the fit knowing the markers."""
     worst = [_same_as_knowing_the_markers(seed) for seed in range(3, 33)]
-    assert max(worst) < 0.01, worst
+    assert max(worst) < SAME_FIT_STD, worst
 
 
 def _with_loose_marker(seed: int, marker: str = "R2"):
