@@ -129,16 +129,18 @@ def _dask(tasks: list[FleetTask], fn, *, scheduler: str | None, workers: int) ->
     settings = {"distributed.scheduler.allowed-failures": RETRIES,
                 # one task per single-thread worker at a time: a worker that dies takes only its own task
                 "distributed.scheduler.worker-saturation": 1.0}
-    with dask.config.set(settings), contextlib.ExitStack() as stack:
+    with contextlib.ExitStack() as stack:
+        # the run's own scratch space, gone with it: Dask's default, $TMPDIR/dask-scratch-space
+        # (its workers' files and the lock files its nannies take even beside a local_directory),
+        # stays behind
+        scratch = stack.enter_context(tempfile.TemporaryDirectory(prefix="elastocal-dask-"))
+        stack.enter_context(dask.config.set({**settings, "temporary-directory": scratch}))
         if scheduler:
             try:
                 client = stack.enter_context(Client(scheduler, timeout="20s"))
             except (OSError, TimeoutError, ValueError) as exc:
                 raise DeviceError(f"cannot reach the Dask scheduler {scheduler}: {error_text(exc)}") from None
         else:
-            # the workers' scratch space is the run's own and goes with it (Dask's default,
-            # $TMPDIR/dask-scratch-space, stays behind)
-            scratch = stack.enter_context(tempfile.TemporaryDirectory(prefix="elastocal-dask-"))
             cluster = stack.enter_context(LocalCluster(
                 n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                 dashboard_address=LOOPBACK_ANY_PORT, worker_dashboard_address=LOOPBACK_ANY_PORT,

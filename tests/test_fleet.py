@@ -100,11 +100,14 @@ def scheduler(tmp_path_factory):
     work); module-scoped, so its worker processes end with the module instead of idling to the run's end."""
     import logging
 
+    import dask
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL,
-                      local_directory=str(tmp_path_factory.mktemp("dask"))) as cluster:
+    scratch = str(tmp_path_factory.mktemp("dask"))       # not Dask's default $TMPDIR/dask-scratch-space
+    with dask.config.set({"temporary-directory": scratch}), \
+            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                         dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL,
+                         local_directory=scratch) as cluster:
         yield cluster.scheduler_address
 
 
