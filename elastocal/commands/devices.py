@@ -108,8 +108,8 @@ def _watch(streams, duration: float, every: float | None):
                 for name, stream in streams:
                     print(_line(name, last[name], stream.stats()))
                 sys.stdout.flush()
-    except KeyboardInterrupt:
-        pass
+    except KeyboardInterrupt:     # Ctrl-C ends the watch: the last readings are still reported
+        return last, error
     return last, error
 
 
