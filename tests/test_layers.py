@@ -203,11 +203,6 @@ def test_long_modules_say_why():
 
 #: a function longer than this says why, in a ``# long:`` comment on its def line or just above
 LONG_FUNCTION_LINES = 80
-#: long functions not yet split (owners named in the report); the test fails when one of them
-#: is split or given a reason, so that this list only shrinks
-NOT_YET_SPLIT = {
-    "elastocal/commands/fleet.py:run",
-}
 
 
 def long_functions(root: pathlib.Path) -> list[str]:
@@ -232,12 +227,9 @@ def long_functions(root: pathlib.Path) -> list[str]:
 
 
 def test_long_functions_say_why():
-    found = set(long_functions(ROOT))
-    new = sorted(found - NOT_YET_SPLIT)
-    assert not new, ("split these or write why they are one function (a '# long:' comment on the def line "
-                     "or just above): " + "; ".join(new))
-    done = sorted(NOT_YET_SPLIT - found)
-    assert not done, "split or explained now, take them off NOT_YET_SPLIT: " + "; ".join(done)
+    found = long_functions(ROOT)
+    assert not found, ("split these or write why they are one function (a '# long:' comment on the def line "
+                       "or just above): " + "; ".join(found))
 
 
 def test_a_long_function_without_a_reason_is_named(tree):

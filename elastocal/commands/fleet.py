@@ -143,9 +143,38 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.commands._outputs import Outputs, note
     from elastocal.fleet.discover import find_inputs
     from elastocal.fleet.plant import record_results
-    from elastocal.fleet.pool import INSTALL_HINT, resolve_pool, run_tasks
-    from elastocal.fleet.table import table_format, write_table
+    from elastocal.fleet.pool import INSTALL_HINT, resolve_pool
+    from elastocal.fleet.table import write_table
     from elastocal.model.effects import parse_model
+
+    kind = _refuse_flags(args)
+    model = parse_model(args.model)
+    pool = resolve_pool(args.pool, args.scheduler)
+    if pool == "processes" and args.pool == "auto":
+        note(args, f"note: dask.distributed is not installed, so the tasks ran on a local process pool; "
+                   f"for Dask (and --scheduler): {INSTALL_HINT}")
+    inputs = find_inputs(args.paths, cell_config=args.cell)
+    outputs = Outputs(force=args.force, inputs=[(str(i.path), "a fleet input") for i in inputs if not i.tables])
+    outputs.add(args.out, "--out")
+    tasks, early = _tasks(args, inputs, model)
+    start = time.perf_counter()
+    ordered = _results(args, tasks, early, len(inputs), pool)
+    with outputs:
+        write_table(outputs.temp(args.out), ordered, kind)
+    seconds = time.perf_counter() - start
+    recorded = record_results(ordered, now_ns=time.time_ns()) if args.record else None
+    n_workers = None if args.scheduler else (args.workers or _cores())
+    if args.json:
+        print(json.dumps(_summary_json(args, ordered, pool, n_workers, seconds, recorded)))
+    else:
+        print("\n".join(_summary_lines(args, ordered, pool, n_workers, seconds, recorded)))
+    return 0
+
+
+def _refuse_flags(args: argparse.Namespace) -> str:
+    """The results table's format, after refusing the flags that do not go together with the action
+    or with each other, before any work."""
+    from elastocal.fleet.table import table_format
 
     if not args.out:
         raise InputError(f"fleet {args.action} needs --out results.csv or results.parquet", source="--out")
@@ -162,16 +191,13 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"must be at least 1, got {args.workers}", source="--workers")
     if args.scheduler and args.workers is not None:
         raise InputError("the scheduler's workers do the work; --workers sizes a local cluster", source="--workers")
-    model = parse_model(args.model)
-    pool = resolve_pool(args.pool, args.scheduler)
-    if pool == "processes" and args.pool == "auto":
-        note(args, f"note: dask.distributed is not installed, so the tasks ran on a local process pool; "
-                   f"for Dask (and --scheduler): {INSTALL_HINT}")
-    inputs = find_inputs(args.paths, cell_config=args.cell)
-    outputs = Outputs(force=args.force, inputs=[(str(i.path), "a fleet input") for i in inputs if not i.tables])
-    outputs.add(args.out, "--out")
-    tasks, early = _tasks(args, inputs, model)
-    start = time.perf_counter()
+    return kind
+
+
+def _results(args: argparse.Namespace, tasks: list, early: dict, n_inputs: int, pool: str) -> list:
+    """Every input's result in the inputs' order: the tasks run on the pool, with one progress line
+    counting the results decided before any task (checks without a calibration) as done and failed."""
+    from elastocal.fleet.pool import run_tasks
     from elastocal.progress import Progress
 
     done_early = len(early)
@@ -189,27 +215,31 @@ def run(args: argparse.Namespace) -> int:
                     progress=shown)
     results = dict(early)
     results.update({k: r for (k, _), r in zip(tasks, ran)})
-    ordered = [results[k] for k in range(len(inputs))]
-    with outputs:
-        write_table(outputs.temp(args.out), ordered, kind)
-    seconds = time.perf_counter() - start
-    recorded = record_results(ordered, now_ns=time.time_ns()) if args.record else None
+    return [results[k] for k in range(n_inputs)]
+
+
+def _summary_json(args: argparse.Namespace, ordered: list, pool: str, n_workers: int | None, seconds: float,
+                  recorded) -> dict:
+    """The ``--json`` object of a fleet run (docs/cli.md)."""
+    failures = [r for r in ordered if not r.ok]
+    obj = {"action": args.action, "out": args.out, "pool": pool, "scheduler": args.scheduler,
+           "workers": n_workers, "inputs": len(ordered), "ok": len(ordered) - len(failures),
+           "failed": len(failures), "seconds": seconds,
+           "failures": [{"path": r.path, "error": r.error} for r in failures],
+           "recorded": None if recorded is None else {
+               "calibrations": recorded.calibrations, "checks": recorded.checks, "already": recorded.already,
+               "histories": list(recorded.histories),
+               "not_recorded": [{"path": p, "why": w} for p, w in recorded.not_recorded]}}
+    if args.action == "check":
+        obj["recalibrate"] = [r.path for r in ordered if r.decision == "recalibrate"]
+    return obj
+
+
+def _summary_lines(args: argparse.Namespace, ordered: list, pool: str, n_workers: int | None, seconds: float,
+                   recorded) -> list[str]:
+    """The text summary of a fleet run: counts, failures, the checks that say recalibrate, the history."""
     failures = [r for r in ordered if not r.ok]
     where = args.scheduler or ("a Dask LocalCluster" if pool == "dask" else "a local process pool")
-    n_workers = None if args.scheduler else (args.workers or _cores())
-    if args.json:
-        obj = {"action": args.action, "out": args.out, "pool": pool, "scheduler": args.scheduler,
-               "workers": n_workers, "inputs": len(ordered), "ok": len(ordered) - len(failures),
-               "failed": len(failures), "seconds": seconds,
-               "failures": [{"path": r.path, "error": r.error} for r in failures],
-               "recorded": None if recorded is None else {
-                   "calibrations": recorded.calibrations, "checks": recorded.checks, "already": recorded.already,
-                   "histories": list(recorded.histories),
-                   "not_recorded": [{"path": p, "why": w} for p, w in recorded.not_recorded]}}
-        if args.action == "check":
-            obj["recalibrate"] = [r.path for r in ordered if r.decision == "recalibrate"]
-        print(json.dumps(obj))
-        return 0
     workers_s = "" if n_workers is None else f" ({n_workers} worker{'s' if n_workers != 1 else ''})"
     lines = [f"fleet {args.action}: {len(ordered)} input(s), {len(ordered) - len(failures)} ok, "
              f"{len(failures)} failed, in {seconds:.1f} s on {where}{workers_s}"]
@@ -226,8 +256,7 @@ def run(args: argparse.Namespace) -> int:
                      f"{recorded.already} already recorded")
         for path, why in recorded.not_recorded:
             lines.append(f"  not recorded: {path}: {why}")
-    print("\n".join(lines))
-    return 0
+    return lines
 
 
 def _cores() -> int:
