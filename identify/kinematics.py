@@ -3,7 +3,9 @@
 The real robot differs from its drawing by small errors of the DH table
 (docs/physics.md, "Absolute positions"): per joint ``i`` the joint zero ``dq<i>``
 [rad], the link length ``da<i>`` (of ``a_{i-1}``) [m], the offset along the axis
-``dd<i>`` [m] and the twist ``dalpha<i>`` (of ``alpha_{i-1}``) [rad]; where the
+``dd<i>`` [m] and the twist ``dalpha<i>`` (of ``alpha_{i-1}``) [rad] (on a prismatic joint
+``dq<i>`` is the zero of its travel [m], a slide along its axis, and ``dd<i>`` moves
+nothing: ``d_i`` is the travel); where the
 axes of joints ``i-1`` and ``i`` are parallel (``alpha_{i-1}`` = 0 or pi, joints
 2-3 of an industrial arm) a small tilt about y cannot be written with the four
 DH parameters, and Hayati's ``dbeta<i>`` [rad] joins them:
@@ -173,6 +175,16 @@ def columns(names: Sequence[str], markers: Sequence[str]) -> Columns:
                    np.array(axis, dtype=int))
 
 
+def _prismatic_columns(robot: Robot, cols: Columns) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) bool twice: the ``dq`` columns of prismatic joints, whose zero is a length along the
+    joint's axis (``d_i = q_i + offset``: a translation, not a turn about it), and their ``dd``
+    columns, which move nothing (``d_i`` is the joint's travel, the table's ``d`` unused)."""
+    prismatic = np.array([False] + [jt.kind is JointKind.PRISMATIC for jt in robot.joints])
+    on_prismatic = prismatic[cols.joint] & (cols.kind >= 0)
+    return (on_prismatic & (cols.kind == DH_KINDS.index("dq")),
+            on_prismatic & (cols.kind == DH_KINDS.index("dd")))
+
+
 def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
                       names: Sequence[str], cols: Columns | None = None,
                       link_angles: np.ndarray | None = None,
@@ -212,15 +224,17 @@ def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
     n = len(cols.names)
     jac = np.zeros((len(markers), 3, n))
     k, j = cols.kind, cols.joint
-    # translations: along z_i (dd), along x_{i-1} (da)
-    sel = k == DH_KINDS.index("dd")
+    slide, fixed_d = _prismatic_columns(robot, cols)
+    # translations: along z_i (dd; a prismatic joint's zero dq), along x_{i-1} (da)
+    sel = (k == DH_KINDS.index("dd")) | slide
     jac[:, :, sel] = z_dd[j[sel]].T[None]
+    jac[:, :, fixed_d] = 0.0
     sel = k == DH_KINDS.index("da")
     jac[:, :, sel] = rot[j[sel] - 1, :, 0].T[None]
     # rotations: about z_i through o_i (dq), x_{i-1} through o_{i-1} (dalpha), Hayati's y (dbeta)
     axes = np.zeros((n, 3))
     origins = np.zeros((n, 3))
-    sel = k == DH_KINDS.index("dq")
+    sel = (k == DH_KINDS.index("dq")) & ~slide
     axes[sel], origins[sel] = rot[j[sel], :, 2], trans[j[sel]]
     sel_a = k == DH_KINDS.index("dalpha")
     axes[sel_a], origins[sel_a] = rot[j[sel_a] - 1, :, 0], trans[j[sel_a] - 1]
@@ -275,14 +289,16 @@ def position_jacobian_batch(robot: Robot, theta: np.ndarray, markers: Sequence[s
     n = len(cols.names)
     jac = np.zeros((ns, nm, 3, n))
     k, j = cols.kind, cols.joint
-    sel = k == DH_KINDS.index("dd")
+    slide, fixed_d = _prismatic_columns(robot, cols)
+    sel = (k == DH_KINDS.index("dd")) | slide
     jac[:, :, :, sel] = z_dd[:, j[sel]].transpose(0, 2, 1)[:, None]
+    jac[:, :, :, fixed_d] = 0.0
     sel = k == DH_KINDS.index("da")
     rot_x, rot_z = rot[..., 0], rot[..., 2]                 # (S, N + 1, 3): the frames' x and z axes
     jac[:, :, :, sel] = rot_x[:, j[sel] - 1].transpose(0, 2, 1)[:, None]
     axes = np.zeros((ns, n, 3))
     origins = np.zeros((ns, n, 3))
-    sel = k == DH_KINDS.index("dq")
+    sel = (k == DH_KINDS.index("dq")) & ~slide
     axes[:, sel], origins[:, sel] = rot_z[:, j[sel]], trans[:, j[sel]]
     sel_a = k == DH_KINDS.index("dalpha")
     axes[:, sel_a], origins[:, sel_a] = rot_x[:, j[sel_a] - 1], trans[:, j[sel_a] - 1]

@@ -227,3 +227,35 @@ def test_the_urdf_agrees_with_pinocchios_own_reading(tmp_path):
     expected = o_m_base.actInv(o_m_hand.act(np.array([0.1, 0.0, 0.0])))
     got = robot.positions(robot.theta(np.array(list(values.values()))), ["P"])[0]
     np.testing.assert_allclose(got, expected, atol=1e-12)
+
+
+@pytest.mark.parametrize("bent", [False, True])
+def test_the_geometry_jacobian_of_a_prismatic_joint_is_a_slide_along_its_axis(bent):
+    """The derivative of the marker positions in each DH error, against central differences of
+    the corrected robot: a prismatic joint's zero dq1 is a length along its axis (the chain
+    slides), its dd1 moves nothing (d1 is the travel); on the rigid chain and the chain with
+    its links bent (the absolute fit with link_compliance)."""
+    from elastocal.identify import kinematics as kin
+
+    robot = bundled_robot("hh150_track")
+    markers = list(robot.marker_names)
+    names = kin.parameter_names(robot, markers)
+    theta = robot.theta(np.array([1.2, 0.3, -0.4, 0.5, 0.2, -0.9, 0.4]))
+    links = np.random.default_rng(1).normal(0.0, 1e-4, len(robot.springs_in_link_model)) if bent else None
+    _, jac = kin.position_jacobian(robot, theta, markers, names, link_angles=links)
+    h = 1e-6
+    for c, name in enumerate(names):
+        moved = []
+        for step in (h, -h):
+            r = kin.corrected_robot(robot, [name], [step])
+            moved.append(kin.position_jacobian(r, theta + r.offsets - robot.offsets, markers, [name],
+                                               link_angles=links)[0])
+        # central differences of a smooth map at h = 1e-6: exact to ~1e-10 of a unit column
+        np.testing.assert_allclose(jac[..., c], (moved[0] - moved[1]) / (2 * h), atol=1e-7, err_msg=name)
+    i = names.index("dq1")
+    axis = jac[0, :, i]
+    assert np.allclose(jac[:, :, i], axis) and math.isclose(np.linalg.norm(axis), 1.0, rel_tol=1e-9)
+    assert not np.any(jac[..., names.index("dd1")])
+    if not bent:
+        batch = kin.position_jacobian_batch(robot, theta[None], markers, names)[1][0]
+        np.testing.assert_allclose(batch, jac, atol=1e-12)

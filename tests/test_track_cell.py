@@ -214,9 +214,63 @@ def test_stiffness_and_registration_intervals_cover_the_truth_over_seeds():
     assert np.all(each >= 0.95 - 3 * np.sqrt(0.95 * 0.05 / N_SEEDS)), dict(zip(names, each))
 
 
+#: the demo's loads on every pose (elastocal/commands/demo.py): two hung weights and one cable pull
+DEMO_WRENCHES = np.array([[0.0, 0.0, -60.0 * 9.80665, 0, 0, 0], [0.0, 0.0, -110.0 * 9.80665, 0, 0, 0],
+                          [650.0, -300.0, -400.0, 0, 0, 0]])
+FULL_MODEL = ("joint_stiffness", "link_compliance", "kinematic_errors", "tracker_frame")
+
+
+def _demo_like_fit(seed: int):
+    """The seven-joint demo's absolute fit on the simulator's table of the demo's experiment (12 random
+    poses, its three loads, link compliance and the as-built geometry hidden), without the CAN bus."""
+    from elastocal.sims.static import random_poses
+
+    truth = CellTruth.for_robot(ROBOT).with_hidden("link_compliance,kinematic_errors")
+    poses = random_poses(ROBOT, 12, np.random.default_rng(seed))
+    table = simulate_static(ROBOT, truth, seed=seed, poses=poses, wrenches=[DEMO_WRENCHES] * len(poses))
+    return truth, identify_absolute(ROBOT, build_dataset(table), model=FULL_MODEL)
+
+
+def _converged(seeds) -> list[str]:
+    """The seeds whose joint fit of geometry, registration and link compliance did not reach the floor."""
+    bad = []
+    for seed in seeds:
+        _, fit = _demo_like_fit(seed)
+        # at the floor: the noise alone leaves fit.noise_floor; 1.3x is the demo's own criterion
+        if not fit.rms <= 1.3 * fit.noise_floor:
+            bad.append(f"seed {seed}: {fit.rms * 1e6:.1f} um rms, floor {fit.noise_floor * 1e6:.1f} um")
+    return bad
+
+
+def test_the_absolute_fit_with_link_compliance_reaches_the_floor_on_the_demos_experiment():
+    """Seeds 3-5 ended at 0.3-0.8 mm (the floor 6 um) while the joint zero of the carriage, a length,
+    was differentiated as a turn about its axis (the Gauss-Newton steps then went astray)."""
+    assert _converged(range(3, 6)) == []
+
+
 @pytest.mark.heavy
+def test_the_absolute_fit_with_link_compliance_reaches_the_floor_over_20_seeds():
+    assert _converged(range(20)) == []
 
 
+@pytest.mark.heavy
+@pytest.mark.xfail(strict=True, reason="open: with the demo's loads the deflection fit's selection often misses "
+                   "cl4y, which the wrist joint's k6 then absorbs in the absolute fit (up to -14 std); the "
+                   "controls are chosen at the deflection fit's precision, not the absolute fit's")
+def test_the_absolute_fit_gives_no_wrong_confident_stiffness_over_20_seeds():
+    worst = []
+    for seed in range(20):
+        truth, fit = _demo_like_fit(seed)
+        tp = truth.parameters(ROBOT)
+        for p in fit.parameters:
+            if p.name in K_NAMES or p.name.startswith("cl"):
+                z = (p.value - tp[p.name]["value"]) / p.std
+                if abs(z) > 4.5:            # 4.5 std: beyond chance over 20 seeds x 11 parameters
+                    worst.append(f"seed {seed} {p.name} {z:+.1f} std")
+    assert worst == []
+
+
+@pytest.mark.heavy
 @pytest.mark.acceptance
 @pytest.mark.slow
 def test_the_demo_chain_runs_on_the_track_cell(tmp_path):
@@ -236,17 +290,11 @@ def test_the_demo_chain_runs_on_the_track_cell(tmp_path):
     comp = summary["compensation"]
     assert comp["exact"]["max"] < 0.2 * comp["uncompensated"]["max"]
     absolute = summary["absolute"]
-    if absolute["rms_after"] <= 1.3 * absolute["noise_floor"]:
-        # with the geometry found, compensation removes the process-load error as on the six-axis cell
-        assert comp["exact"]["max"] < 0.05 * comp["uncompensated"]["max"]
-    else:
-        # seen in 4 of 8 runs (seed 2, 8 or 12 poses): the joint fit of geometry, registration and the
-        # selected link-compliance components ends above the nominal geometry's error (0.8 mm where the
-        # floor is 3.5 um), while identify on the same log without link_compliance reaches 16 um
-        # (the compensation, made with that geometry, then leaves up to 8 % of the path error)
-        pytest.xfail(f"known: the seven-joint demo's absolute fit with link_compliance did not converge "
-                     f"({absolute['rms_after'] * 1e6:.0f} um rms, floor {absolute['noise_floor'] * 1e6:.1f} um; "
-                     f"compensated path {comp['exact']['max'] * 1e6:.0f} um)")
+    # the joint fit of geometry, registration and link compliance reaches the floor (it ended at 0.8 mm in
+    # half the runs while the carriage's zero was differentiated as a turn), and with the geometry found
+    # compensation removes the process-load error as on the six-axis cell
+    assert absolute["rms_after"] <= 1.3 * absolute["noise_floor"], absolute
+    assert comp["exact"]["max"] < 0.05 * comp["uncompensated"]["max"]
 
 
 def test_plan_for_the_track_robot_gives_seven_joint_poses_and_every_stiffness(tmp_path):
