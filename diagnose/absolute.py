@@ -46,6 +46,7 @@ import scipy.linalg
 import scipy.stats
 
 from elastocal.errors import EffectRefused, InputError
+from elastocal.formats.calibration import is_stiffness_name
 from elastocal.identify.absolute import ABSOLUTE_EFFECTS, AbsoluteFit, identify_absolute
 from elastocal.model.effects import get_effect, having
 from elastocal.model.robot import Robot
@@ -275,7 +276,7 @@ def explanation_holds(aug: AbsoluteFit, names: Sequence[str], ds: StaticDataset)
 
 def _implausible(effect, aug: AbsoluteFit, added: Sequence[str]) -> str | None:
     """Why the candidate's fitted values are implausible (diagnose/plausibility.py's rules), or None."""
-    neg = [p.name for p in aug.parameters if p.name in {f"k{j}" for j in range(1, 7)} and not p.value > 0]
+    neg = [p.name for p in aug.parameters if is_stiffness_name(p.name) and not p.value > 0]
     if neg:
         return f"the fit makes the joint stiffness {', '.join(neg)} negative"
     check = getattr(effect, "plausibility", None)
@@ -336,7 +337,7 @@ def diagnose_absolute(robot: Robot, ds: StaticDataset, model: Sequence[str], *,
                 refused.setdefault(name, exc.reason if isinstance(exc, EffectRefused) else str(exc))
                 continue
             stat, p, dbic, dof = _test(fit, aug)
-            eff = get_effect(name)
+            eff = get_effect(name, robot)       # its parameters sized for this robot's joints (b1..bN)
             implausible = _implausible(eff, aug, eff.parameters)
             holds = None
             if p < VERDICT_P and dbic < VERDICT_DELTA_BIC and implausible is None:

@@ -188,7 +188,7 @@ def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: TorqueSou
         stiffness = None
         if static_diag is not None:
             stiffness = [p.value for p in static_diag.fit.parameters if p.name.startswith("k")]
-            stiffness = stiffness if len(stiffness) == 6 else None
+            stiffness = stiffness if len(stiffness) == robot.n_joints else None
         runs_diag = diagnose_runs(robot, runs, model=model, stiffness=stiffness)
     if static_diag is None and runs_diag is None:
         if log is not None:

@@ -213,7 +213,7 @@ def unexplained_structure(where: Where) -> tuple[str, ...]:
     n_pose = len(where.pose_ids)
     pose_ratio = np.array([ratio[where.pose == p].mean() for p in range(n_pose)])
     if n_pose >= 5:
-        for j in range(6):
+        for j in range(where.q.shape[1]):         # every joint of the chain
             qj = np.array([where.q[where.pose == p][0, j] for p in range(n_pose)])
             if np.ptp(qj) == 0.0:
                 continue

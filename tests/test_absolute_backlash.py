@@ -124,3 +124,58 @@ def test_the_play_is_found_with_95_percent_intervals_over_40_seeds():
             p = fit.parameter(f"b{j}")
             inside += abs(p.value - TRUTH.backlash[j - 1]) < 1.96 * p.std
     assert inside >= 69, inside
+
+
+def _turning_over_on(robot, forearm: int, seed: int, n: int = 40):
+    """``turning_over`` on any chain: the forearm joint (0-based ``forearm``) over its vertical;
+    the as-built geometry hidden where the simulator builds it (a modified-DH robot)."""
+    base = CellTruth.for_robot(robot)
+    truth = base.with_hidden("kinematic_errors") if robot.urdf is None else base
+    truth = dataclasses.replace(truth, backlash=base.with_hidden("backlash").backlash)
+    rng = np.random.default_rng(seed)
+    q = random_poses(robot, n, rng)
+    q[:, forearm] = rng.uniform(-2.6, 0.3, n)
+    plan = StaticPlan(n_poses=n, n_loads=1, repeats=2)
+    return truth, unloaded(simulate_static(robot, truth, seed=seed, poses=q, plan=plan))
+
+
+@pytest.mark.parametrize("name, forearm", [("hh150_track", 3), ("hh150_urdf", 2)])
+def test_the_play_is_found_and_diagnosed_on_the_track_cell_and_a_urdf_robot(name, forearm):
+    """Seven joints (a prismatic carriage first) and a URDF chain: the play of the two joints whose weight
+    torque the poses turn over (the arm's joints 2 and 3) within 4 std, the diagnosis names backlash."""
+    from elastocal.diagnose.absolute_only import diagnose_absolute_only
+    from elastocal.identify.static import build_dataset
+
+    robot = bundled_robot(name)
+    truth, table = _turning_over_on(robot, forearm, seed=3)
+    fit = identify_absolute(robot, table, model=("joint_stiffness", "backlash", *GEOMETRY))
+    assert len(truth.backlash) == robot.n_joints
+    for j in (forearm, forearm + 1):             # 1-based: the shoulder and the forearm of the arm
+        p = fit.parameter(f"b{j}")
+        assert abs(p.value - truth.backlash[j - 1]) < 4 * p.std and p.std < 0.2 * p.value, p
+    # the first joint (the carriage, or the turret about the vertical) carries no weight torque that turns
+    assert {"b1", f"b{robot.n_joints}"} <= set(fit.unidentifiable)
+    assert fit.rms < 1.3 * fit.noise_floor, (fit.rms, fit.noise_floor)
+    diag = diagnose_absolute_only(robot, build_dataset(table), GEOMETRY)
+    assert [s.effect for s in diag.absolute.steps][:1] == ["backlash"], diag.text()
+    assert diag.verdict == "backlash"
+
+
+def test_the_plausibility_of_a_candidate_covers_every_joint_of_the_chain():
+    """On seven joints a negative k7 or a play of 2 deg on joint 7 makes the candidate implausible (the
+    rules looked at k1..k6 and b1..b6 only)."""
+    from types import SimpleNamespace
+
+    from elastocal.diagnose.absolute import _implausible
+    from elastocal.identify.static import Parameter
+    from elastocal.model.effects import get_effect
+
+    robot = bundled_robot("hh150_track")
+    eff = get_effect("backlash", robot)
+    ks = [Parameter(f"k{j}", 1e6, 1e4, "N*m/rad") for j in range(1, 8)]
+    bs = [Parameter(f"b{j}", 1e-4, 1e-5, "rad") for j in range(1, 8)]
+    assert _implausible(eff, SimpleNamespace(parameters=[*ks, *bs]), eff.parameters) is None
+    soft = [*ks[:6], Parameter("k7", -1e5, 1e4, "N*m/rad")]
+    assert "k7" in _implausible(eff, SimpleNamespace(parameters=[*soft, *bs]), eff.parameters)
+    wide = [*bs[:6], Parameter("b7", np.radians(2.0), 1e-5, "rad")]
+    assert "joint 7" in _implausible(eff, SimpleNamespace(parameters=[*ks, *wide]), eff.parameters)
