@@ -215,7 +215,7 @@ def run_procedures(io: CellIO, plan: Plan, out_path: str | pathlib.Path, *, ui: 
                    time.monotonic() - started, skipped=skipped)
 
 
-def _robot_text(robot, robot_path) -> str:
+def log_robot_text(robot, robot_path) -> str:
     """The robot description the log keeps: the file as written (comments kept),
     or, for a robot whose URDF is a separate file, the description with the
     URDF inline, so that the log stands alone."""
@@ -264,5 +264,5 @@ def run_calibration(cell_config, plan: Plan, out_path: str | pathlib.Path, *, ye
         return run_procedures(io, plan, out_path, ui=ui, procedures=procedures, resume_from=resume_from,
                               cell_text=cell_config.to_toml(), cell_name=cell_config.name,
                               cell_path=str(cell_config.source),
-                              robot_text=_robot_text(robot, robot_path), overwrite=overwrite,
+                              robot_text=log_robot_text(robot, robot_path), overwrite=overwrite,
                               unattended=unattended)

@@ -3,7 +3,8 @@
 :class:`SimWorld` holds what the physical cell would: the commanded joint
 coordinates ``q`` (moving toward a requested pose at a finite speed, on a
 straight joint-space line), the external wrench on the load point (the load the
-operator hangs), and time (``time.monotonic_ns``, t = 0 at creation). Its
+operator hangs), and time (``time.monotonic_ns``, or a :class:`SimClock` in lockstep; t = 0 at
+creation). Its
 physics is :class:`elastocal.sims.cell.SimCell`.
 
 Its noise is a function of the seed and of what happened, not of the wall
@@ -116,6 +117,26 @@ def _interp_rows(grid: np.ndarray, values: np.ndarray, s: float) -> np.ndarray:
     return values[i] * (1.0 - w) + values[i + 1] * w
 
 
+class SimClock:
+    """Simulated time in lockstep [ns]: it stands still until whoever drives the simulation (the
+    procedure, acquisition/lockstep.py) advances it, so what happens at an instant does not hang on
+    how busy this computer is. ``now_ns`` is the clock a :class:`SimWorld` takes."""
+
+    #: where simulated time starts (any constant does; not 0, so no time reads as "unset")
+    ORIGIN_NS = 1_000_000_000
+
+    def __init__(self, start_ns: int = ORIGIN_NS) -> None:
+        self._now_ns = int(start_ns)
+
+    def now_ns(self) -> int:
+        return self._now_ns
+
+    def advance_to(self, t_ns: int) -> None:
+        if t_ns < self._now_ns:
+            raise ValueError(f"simulated time runs forward only: {t_ns} < {self._now_ns}")
+        self._now_ns = int(t_ns)
+
+
 class SimWorld:
     """Shared, thread-safe state of the simulated cell (see the module docstring)."""
 
@@ -151,8 +172,10 @@ class SimWorld:
         self._set_rest(q, self._reference)
 
     @classmethod
-    def from_config(cls, robot, sim, markers: Sequence[str] | None = None) -> "SimWorld":
-        """A world for :class:`elastocal.sims.config.SimConfig` ``sim``."""
+    def from_config(cls, robot, sim, markers: Sequence[str] | None = None, *,
+                    clock_ns=time.monotonic_ns) -> "SimWorld":
+        """A world for :class:`elastocal.sims.config.SimConfig` ``sim``; ``clock_ns`` its time
+        (this computer's monotonic clock, or a :class:`SimClock`'s ``now_ns`` in lockstep)."""
         for key in ("start_q", "coulomb_nm", "viscous_nm_s_rad", "load_friction", "gear_ratios"):
             if len(getattr(sim, key)) != robot.n_joints:
                 raise InputError(f"{len(getattr(sim, key))} values; the robot {robot.name!r} has {robot.n_joints} "
@@ -165,7 +188,7 @@ class SimWorld:
         except ValueError as exc:
             raise InputError(str(exc), column="sim.hidden") from None
         return cls(SimCell(robot, truth), start_q=sim.start_q, markers=markers, seed=sim.seed,
-                   move_speed_rad_s=sim.move_speed_rad_s, run_speed_rad_s=sim.run_speed_rad_s)
+                   move_speed_rad_s=sim.move_speed_rad_s, run_speed_rad_s=sim.run_speed_rad_s, clock_ns=clock_ns)
 
     # ------------------------------------------------------------- time
     def now_ns(self) -> int:

@@ -228,10 +228,10 @@ def test_the_cli_identifies_with_a_urdf_robot(tmp_path, capsys):
 
 
 def test_a_calibration_log_keeps_the_urdf_inline():
-    from elastocal.acquisition.procedures import _robot_text
+    from elastocal.acquisition.procedures import log_robot_text
 
-    text = _robot_text(URDF, bundled_robot_path("hh150_urdf"))
+    text = log_robot_text(URDF, bundled_robot_path("hh150_urdf"))
     again = parse_robot(text, source="log")               # read back with no file beside it
     assert again.urdf.xml == URDF.urdf.xml and not again.urdf.path
     # a DH robot's file goes into the log as written, comments and all
-    assert _robot_text(DH, bundled_robot_path()) == bundled_robot_path().read_text(encoding="utf-8")
+    assert log_robot_text(DH, bundled_robot_path()) == bundled_robot_path().read_text(encoding="utf-8")

@@ -65,3 +65,15 @@ def procedure_cell(config, *, sim: bool) -> Iterator[tuple[object, object | None
             yield config, stack.enter_context(open_load_rig(load_url, source=str(config.source)))
             return
         yield config, None
+
+
+def lockstep_world(config):
+    """``(world, clock)``: the simulated world of ``config``'s ``[sim]`` section on a simulated clock
+    of its own, for a procedure in lockstep with it (acquisition/lockstep.py)."""
+    from elastocal.sims.config import sim_config
+    from elastocal.sims.world import SimClock, SimWorld
+
+    clock = SimClock()
+    markers = config.tracker.markers if config.tracker is not None else None
+    world = SimWorld.from_config(config.load_robot(), sim_config(config), markers, clock_ns=clock.now_ns)
+    return world, clock

@@ -1,10 +1,13 @@
 """`elastocal demo`: the whole chain on the embedded simulated cell.
 
-1. serves the simulated HH-150 cell in-process (CiA 402 drives on a virtual
-   CAN bus, the laser tracker over TCP, the Modbus cell controller), with an
-   effect the default model lacks hidden in its physics;
-2. runs the guided static procedure through the real drivers, prompts
-   answered automatically, recording every sample to an MCAP log;
+1. builds the simulated HH-150 cell, with an effect the default model lacks
+   hidden in its physics;
+2. runs the guided static procedure on it, prompts answered automatically,
+   recording every sample to an MCAP log: by default in lockstep on the cell's
+   simulated clock (acquisition/lockstep.py: same seed, same numbers); with
+   ``--realtime`` the cell is served in-process (CiA 402 drives on a virtual CAN
+   bus, the laser tracker over TCP, the Modbus cell controller) and the
+   procedure runs through the real drivers on the wall clock;
 3. identifies the joint stiffness from the log, from currents and from forces;
 4. diagnoses the model, names the missing effect, adds it, and shows the error
    falling to the noise floor; writes the HTML report;
@@ -44,6 +47,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "thermal_drift, backlash (default link_compliance)")
     parser.add_argument("--poses", type=int, default=DEMO_POSES, help=f"poses of the static procedure "
                                                                       f"(default {DEMO_POSES})")
+    parser.add_argument("--realtime", action="store_true",
+                        help="serve the simulated devices over CAN, TCP and Modbus and run the procedure through "
+                             "the real drivers on this computer's clock, as on a real cell (slower; the numbers "
+                             "then vary a little between runs); by default the procedure and the simulated "
+                             "devices share the cell's simulated clock and the same seed prints the same numbers")
     parser.add_argument("--robot", default="hh150", choices=DEMO_ROBOTS,
                         help="the simulated cell: hh150 (the six-axis arm, default) or hh150_track (the arm on "
                              "a floor track, seven joints)")
@@ -136,8 +144,9 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     """Steps 1-6 (the module's docstring); their tables go to stdout (kept by the caller)."""
     from elastocal.acquisition.export import load_log
     from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
+    from elastocal.acquisition.lockstep import run_lockstep_calibration
     from elastocal.acquisition.procedures import run_calibration
-    from elastocal.commands._cell import procedure_cell
+    from elastocal.commands._cell import lockstep_world, procedure_cell
     from elastocal.commands._outputs import atomic, write_text_atomic
     from elastocal.compensation.files import write_compensated_csv, write_krl, write_rapid
     from elastocal.compensation.ik import yang_path
@@ -167,9 +176,13 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     robot = config.load_robot()
     truth = CellTruth.for_robot(robot).with_hidden(cell_hidden)
     write_text_atomic(out / "cell.toml", config.to_toml())
+    served = ("served over CANopen (TPDO on SYNC), TCP and Modbus and read through the real drivers on this "
+              "computer's clock" if args.realtime else
+              "sampled in lockstep with the procedure on the cell's simulated clock (--realtime serves them over "
+              "CANopen, TCP and Modbus instead)")
     say(f"Simulated cell '{config.name}': a {robot.name} robot whose {robot.n_joints} servo drives report their motor "
-        f"currents {DEMO_DRIVE_RATE_HZ:.0f} times a second (CANopen, TPDO on SYNC), a laser tracker that measures "
-        f"3 markers on the tool, and the cell controller (Modbus). Hidden in its physics, for elastocal to find: "
+        f"currents {DEMO_DRIVE_RATE_HZ:.0f} times a second, a laser tracker that measures 3 markers on the tool, "
+        f"and the cell controller; the devices {served}. Hidden in its physics, for elastocal to find: "
         f"{args.hidden}; and the robot as built differs from its drawing by 0.02-0.05 deg and 0.1-0.5 mm, "
         "with the tracker standing 3.7 m away, turned.")
 
@@ -185,8 +198,12 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
     say(f"Guided static procedure (answered automatically, --yes): {args.poses} poses, unloaded + 3 loads "
         f"(60 kg, 110 kg, a 850 N cable pull), 3 markers, {DEMO_REPEATS} readings each; every drive and tracker "
         f"sample goes to {log.name} ...")
-    with procedure_cell(config, sim=True) as (cell, world):
-        outcome = run_calibration(cell, plan, log, yes=True, world=world, overwrite=True)
+    if args.realtime:
+        with procedure_cell(config, sim=True) as (cell, world):
+            outcome = run_calibration(cell, plan, log, yes=True, world=world, overwrite=True)
+    else:
+        world, clock = lockstep_world(config)
+        outcome = run_lockstep_calibration(config, plan, log, world=world, clock=clock, overwrite=True)
     print(f"    {outcome.status}: {outcome.steps_done} steps in {outcome.duration_s:.0f} s; log {log} "
           f"({log.stat().st_size / 1e6:.1f} MB)")
 
