@@ -47,9 +47,8 @@ import numpy as np
 
 from elastocal.compensation.model import CompensationModel, StaticKernel
 from elastocal.errors import InputError
-from elastocal.model.kinds import KinematicForm
+from elastocal.model.kinds import KinematicForm, expect
 
-FORMS = tuple(f.value for f in KinematicForm)
 REFERENCES = ("unloaded", "rigid", "nominal")
 
 
@@ -67,6 +66,9 @@ class CompensatedPath:
     #: which joints are prismatic (their coordinates in metres); () for six revolute joints
     prismatic: tuple[bool, ...] = ()
 
+    def __post_init__(self) -> None:
+        expect(KinematicForm, self.form, "form")
+
     @property
     def dtheta(self) -> np.ndarray:
         """Correction ``q_planned - q_command`` (n, N) [rad; m]."""
@@ -78,8 +80,7 @@ class CompensatedPath:
 
 def _check_inputs(model: CompensationModel, q: np.ndarray, wrench: np.ndarray, form: KinematicForm,
                   reference: str) -> tuple[np.ndarray, np.ndarray]:
-    if form not in FORMS:
-        raise InputError(f"form must be one of {', '.join(FORMS)}, got {form!r}", argument="form")
+    expect(KinematicForm, form, "form")
     if reference not in REFERENCES:
         raise InputError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}",
                          argument="reference")

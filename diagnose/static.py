@@ -81,7 +81,7 @@ from elastocal.diagnose.stepwise import (
 from elastocal.formats.tables import StaticTable
 from elastocal.diagnose.verdict import VERDICT_DELTA_BIC, VERDICT_P, NotTestable
 from elastocal.diagnose.where import Where, _noise, excess_p_value, unexplained_structure, where_it_fails
-from elastocal.model.kinds import KinematicForm, TorqueSource
+from elastocal.model.kinds import KinematicForm, TorqueSource, expect
 
 
 # =================================================================== results
@@ -166,6 +166,10 @@ class Diagnosis:
     #: every side (deflections, absolute positions) that stays above its floor, in that order
     #: (diagnose/unexplained.py): the one ``unexplained`` object of the JSON and the text
     unexplained_sides: tuple = ()
+
+    def __post_init__(self) -> None:
+        expect(TorqueSource, self.torque, "torque")
+        expect(KinematicForm, self.form, "form")
 
     @property
     def noise_floor(self) -> float | None:

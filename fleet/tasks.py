@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from elastocal.errors import ElastocalError, InputError
-from elastocal.model.kinds import KinematicForm, TorqueSource
+from elastocal.model.kinds import KinematicForm, TorqueSource, expect
 
 #: the analyses a fleet runs, one per single-log command
 COMMANDS = ("identify", "diagnose", "check")
@@ -46,6 +46,8 @@ class FleetTask:
     friction_tolerance: float = 0.2
 
     def __post_init__(self) -> None:
+        expect(TorqueSource, self.torque, "torque")
+        expect(KinematicForm, self.form, "form")
         if self.command not in COMMANDS:
             raise ValueError(f"command must be one of {', '.join(COMMANDS)}, got {self.command!r}")
 

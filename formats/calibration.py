@@ -22,7 +22,7 @@ from typing import Any, Mapping, Sequence
 
 from elastocal.errors import InputError
 from elastocal.formats.textfiles import read_text_file
-from elastocal.model.kinds import TorqueSource
+from elastocal.model.kinds import TorqueSource, expect
 
 FORMAT = "elastocal.calibration/1"
 #: ``friction_sign`` of a calibration holding friction (elastocal extension of docs/formats.md §4):
@@ -171,6 +171,7 @@ class Calibration:
     unidentifiable: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        expect(TorqueSource, self.torque, "torque")
         names = [p.name for p in self.parameters]
         if len(set(names)) != len(names):
             raise InputError("a parameter is named twice", source=self.source or None, column="parameters")

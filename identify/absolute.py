@@ -53,7 +53,7 @@ from elastocal.identify.blas import one_blas_thread
 from elastocal.model.effects import BASE_EFFECT, absolute_effects, get_effect, having
 from elastocal.identify.registration import Registration, kabsch, register
 from elastocal.identify.toolpoints import ToolPoints, find_tool_points, fit_tool_points, needs_prefit, usable
-from elastocal.model.kinds import NoiseSource
+from elastocal.model.kinds import KinematicForm, NoiseSource, TorqueSource, expect
 from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.dataset import StaticDataset, build_dataset
 from elastocal.identify.static import Parameter, StaticFit, identify_static
@@ -299,7 +299,7 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
     return out, jac
 
 
-def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray, rot: np.ndarray,
+def _noise(robot: Robot, ds: StaticDataset, torque: TorqueSource, compliance: np.ndarray, rot: np.ndarray,
            frames: Sequence[str]) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], bool]:
     """Per-state Cholesky factors of the covariance of the mean readings (tracker
     frame), and whether the noise level is known: from the repeats, else the readings' own
@@ -310,7 +310,7 @@ def _noise(robot: Robot, ds: StaticDataset, torque: str, compliance: np.ndarray,
     nm = len(ds.markers)
     # each reading's own covariance (the columns', or the law's at its range and beam)
     own = ds.reading_cov if known else None
-    sig_i = ds.sigma_current if (known and torque == "current" and ds.sigma_current is not None) else None
+    sig_i = ds.sigma_current if (known and torque is TorqueSource.CURRENT and ds.sigma_current is not None) else None
     covs = np.zeros((ds.n_states, 3 * nm, 3 * nm))
     jac_pose: dict[int, np.ndarray] = {}
     data = robot.create_data()
@@ -389,8 +389,8 @@ class _AbsoluteUncertainty:
 
 @one_blas_thread
 def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
-                      model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
-                      form: str = "exact", max_iter: int = 30,
+                      model: Sequence[str] = ("joint_stiffness",), torque: TorqueSource = TorqueSource.CURRENT,
+                      form: KinematicForm = KinematicForm.EXACT, max_iter: int = 30,
                       tracker_prior: Sequence[float] | None = None,
                       excess_var: float | None = None, sag_theta: np.ndarray | None = None) -> AbsoluteFit:
     """Compare the model with the absolute positions (and fit the absolute
@@ -412,6 +412,8 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     On a table without loads the twist under the robot's own weight is exact: the weight's
     torques are taken at the sagged configuration (``sag_theta``, (S, N) link-side angles),
     found by refitting once from the first fit's sag."""
+    expect(TorqueSource, torque, "torque")
+    expect(KinematicForm, form, "form")
     ds0 = data if isinstance(data, StaticDataset) else build_dataset(data)
     stated = ds0.noise_source is NoiseSource.UNCERTAINTY_COLUMNS and is_absolute_only(ds0)
     if stated and excess_var is None:      # a first fit with even weights, then s^2 from its residual
@@ -440,7 +442,7 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
 
 
 def _start(robot: Robot, ds0: StaticDataset, static_model: tuple[str, ...], absolute: tuple[str, ...], *,
-           torque: str, form: str, sag_theta: np.ndarray | None, only: bool) -> _Start:
+           torque: TorqueSource, form: KinematicForm, sag_theta: np.ndarray | None, only: bool) -> _Start:
     """The registration (after the tool-point pre-fit when robot.toml's markers leave the
     readings unexplained), the deflection fit and the model's absolute bases at its solution."""
     reg = register(robot, ds0) if ds0.abs_xyz is not None else None

@@ -24,6 +24,7 @@ import numpy as np
 
 from elastocal.errors import EffectRefused
 from elastocal.model.effects import get_effect
+from elastocal.model.kinds import KinematicForm, TorqueSource
 from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.dataset import StaticDataset
 from elastocal.identify.static import StaticFit
@@ -34,7 +35,7 @@ from elastocal.identify.staticmodel import Problem, state_torques, static_contex
 #: pose: a constant twist is a joint offset; a joint whose gravity torque keeps its sign shows no play)
 MIN_TORQUE_SPAN = 1e-3
 #: the torque source of an absolute-only table: the model's gravity, no external wrench
-SELF_WEIGHT_TORQUE = "force"
+SELF_WEIGHT_TORQUE = TorqueSource.FORCE
 
 
 def is_absolute_only(ds: StaticDataset) -> bool:
@@ -65,7 +66,7 @@ def absolute_only_start(robot: Robot, ds: StaticDataset, static_model: Sequence[
     ds = self_weight_dataset(ds)
     effects = tuple(get_effect(n, robot) for n in static_model)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
-    pr = Problem(robot, ds, effects, SELF_WEIGHT_TORQUE, "exact", frames)
+    pr = Problem(robot, ds, effects, SELF_WEIGHT_TORQUE, KinematicForm.EXACT, frames)
     names = tuple(p for eff in effects for p in eff.parameters)
     unident: list[str] = []
     if static_model:
@@ -76,7 +77,7 @@ def absolute_only_start(robot: Robot, ds: StaticDataset, static_model: Sequence[
         ctx = None
     n = len(names)
     empty = np.zeros((0, 3))
-    return StaticFit(model=tuple(static_model), torque=SELF_WEIGHT_TORQUE, form="exact", parameters=(),
+    return StaticFit(model=tuple(static_model), torque=SELF_WEIGHT_TORQUE, form=KinematicForm.EXACT, parameters=(),
                      unidentifiable=tuple(unident), beta_names=names, beta=np.zeros(n), beta_cov=np.zeros((n, n)),
                      predicted=empty, residuals=empty, rms=0.0, max=0.0, n=0, rss=0.0, n_params=0,
                      noise_floor=None, expected_rss=None, condition_number=1.0, iterations=0, dataset=ds,

@@ -36,7 +36,7 @@ from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.dataset import StaticDataset, build_dataset
 from elastocal.identify.staticmodel import Problem, absolute_bases, absolute_positions, state_torques, static_context
 from elastocal.formats.tables import StaticTable
-from elastocal.model.kinds import TorqueSource
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
 
@@ -181,11 +181,11 @@ def _predicted(robot: Robot, calibration: Calibration, ds: StaticDataset) -> tup
         return absolute_positions(rob, ds, frames, np.zeros(0), _no_bases(rob, ds)), rigid
     torque = calibration.torque
     if is_absolute_only(ds) and not ds.has_wrench:   # no loads: the robot's own weight only
-        ds, torque = self_weight_dataset(ds), "force"
-    if torque == TorqueSource.CURRENT and not ds.has_currents:
+        ds, torque = self_weight_dataset(ds), TorqueSource.FORCE
+    if torque is TorqueSource.CURRENT and not ds.has_currents:
         raise InputError("a current-based calibration with joint stiffness needs the currents i1..iN in every "
                          "row", source=ds.source)
-    pr = Problem(rob, ds, effects, torque, "exact", frames)
+    pr = Problem(rob, ds, effects, torque, KinematicForm.EXACT, frames)
     tau = state_torques(pr, None)
     iterative = any(e.iterative for e in effects)
     bases = absolute_bases(pr, static_context(pr, tau, beta if iterative else None))

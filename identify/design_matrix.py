@@ -21,7 +21,7 @@ from elastocal.model.effects import get_effect
 from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.dataset import StaticDataset
 from elastocal.identify.staticmodel import Problem, evaluate, state_torques, static_bases, static_context
-from elastocal.model.kinds import TorqueSource
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
 def planned_dataset(robot: Robot, q: np.ndarray, wrenches: Sequence[np.ndarray], markers: Sequence[str], *,
@@ -54,7 +54,7 @@ def planned_dataset(robot: Robot, q: np.ndarray, wrenches: Sequence[np.ndarray],
         defl_dt=np.full(n_d, np.nan), defl_t=np.full(n_d, np.nan), sigma_tracker=sigma_tracker,
         sigma_current=sigma_current, tracker_rotation=np.eye(3))
     if robot.has_torque_constants:      # the currents the drives will show: gravity and load through xi
-        pr = Problem(robot, ds, (), "force", "first-order", ())
+        pr = Problem(robot, ds, (), TorqueSource.FORCE, KinematicForm.FIRST_ORDER, ())
         tau = state_torques(pr, None)
         from dataclasses import replace
 
@@ -70,7 +70,7 @@ def regressor(robot: Robot, ds: StaticDataset, effects: Sequence[str], *, torque
     names = tuple(dict.fromkeys(["joint_stiffness", *effects]))
     effs = tuple(get_effect(n) for n in names)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
-    pr = Problem(robot, ds, effs, torque, "first-order", frames)
+    pr = Problem(robot, ds, effs, torque, KinematicForm.FIRST_ORDER, frames)
     param_names = tuple(p for e in effs for p in e.parameters)
     beta = np.zeros(len(param_names)) if beta is None else np.asarray(beta, dtype=float)
     ctx = static_context(pr, state_torques(pr, None), beta)
@@ -84,7 +84,7 @@ def refusals(robot: Robot, ds: StaticDataset, effects: Sequence[str], *,
     (``Effect.static_refusal``: static friction is no part of a current-based model; backlash
     needs a load that reverses a torque)."""
     effs = tuple(get_effect(n) for n in dict.fromkeys(["joint_stiffness", *effects]))
-    pr = Problem(robot, ds, effs, torque, "first-order", ())
+    pr = Problem(robot, ds, effs, torque, KinematicForm.FIRST_ORDER, ())
     ctx = static_context(pr, state_torques(pr, None))
     out = {}
     for eff in effs:

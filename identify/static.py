@@ -40,14 +40,13 @@ from elastocal.identify.registration import in_base_axes, refine_registration
 from elastocal.identify.staticmodel import Problem, evaluate, fitted_positions, state_torques, static_bases, static_context
 from elastocal.model.effects import BASE_EFFECT, get_effect
 from elastocal.model.effects.base import Effect, StaticContext
+from elastocal.model.kinds import KinematicForm, TorqueSource, Weighting, expect
 from elastocal.model.robot import MARKER_PREFIX, Robot, RobotData
 from elastocal.formats.tables import StaticTable
 
 #: what other modules take from here (the dataset is made in identify/dataset.py)
 __all__ = ["StaticDataset", "StaticFit", "Parameter", "build_dataset", "identify_static", "Whitening"]
 
-TORQUE_SOURCES = ("current", "force")
-FORMS = ("exact", "first-order")
 #: a pivoted-QR diagonal below this fraction of the largest marks a parameter
 #: the data cannot separate from the others
 RANK_TOL = 1e-7
@@ -69,8 +68,8 @@ class StaticFit:
     """Result of a static identification."""
 
     model: tuple[str, ...]
-    torque: str
-    form: str
+    torque: TorqueSource
+    form: KinematicForm
     parameters: tuple[Parameter, ...]      # reported parameters (k, not c), identifiable ones
     unidentifiable: tuple[str, ...]        # parameters the data cannot separate
     beta_names: tuple[str, ...]            # model parameters (c1.., cl2x.., vx.., b1..)
@@ -107,6 +106,10 @@ class StaticFit:
     #: residual sum of squares in the whitened metric (chi-square with n - p
     #: degrees of freedom under noise alone); None for an unweighted fit
     rss_whitened: float | None = None
+
+    def __post_init__(self) -> None:
+        expect(TorqueSource, self.torque, "torque")
+        expect(KinematicForm, self.form, "form")
 
     @property
     def absolute_base(self) -> np.ndarray | None:
@@ -180,7 +183,7 @@ def _noise_blocks(pr: Problem, beta: np.ndarray, bases,
     robot, ds = pr.robot, pr.ds
     if ds.sigma_tracker is None and ds.defl_u95_var is None:
         return None
-    sig_i = ds.sigma_current if (pr.torque == "current" and ds.sigma_current is not None) else None
+    sig_i = ds.sigma_current if (pr.torque is TorqueSource.CURRENT and ds.sigma_current is not None) else None
     c = None
     if sig_i is not None:
         # d dtheta / d tau for each state: the joint-stiffness part of the basis,
@@ -385,12 +388,12 @@ class _Solve:
 
     @property
     def exact(self) -> bool:
-        return self.pr.form == "exact"
+        return self.pr.form is KinematicForm.EXACT
 
     @property
     def tau_dependent(self) -> bool:
         """Force-based torques taken at the deflected configuration: they change with the estimate."""
-        return self.pr.torque == "force" and (self.exact or self.pr.torque_at_deflection)
+        return self.pr.torque is TorqueSource.FORCE and (self.exact or self.pr.torque_at_deflection)
 
     @property
     def iterative(self) -> bool:
@@ -425,9 +428,9 @@ class _Uncertainty:
 
 @one_blas_thread
 def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
-                    model: Sequence[str] = ("joint_stiffness",), torque: str = "current",
-                    form: str = "exact", max_iter: int = 30, tol: float = 1e-10,
-                    weighting: str = "gls", work: RobotData | None = None) -> StaticFit:
+                    model: Sequence[str] = ("joint_stiffness",), torque: TorqueSource = TorqueSource.CURRENT,
+                    form: KinematicForm = KinematicForm.EXACT, max_iter: int = 30, tol: float = 1e-10,
+                    weighting: Weighting = Weighting.GLS, work: RobotData | None = None) -> StaticFit:
     """Fit the static model ``model`` (effect names, or effects restricted to
     some parameters) to a table or dataset.
 
@@ -440,10 +443,9 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     ``work``: the Pinocchio work buffers of the computation this fit is part of
     (``robot.create_data()``; a diagnosis passes one to all its fits), new ones when None."""
     work = robot.create_data() if work is None else work
-    if torque not in TORQUE_SOURCES:
-        raise InputError(f"must be current or force, got {torque!r}", argument="torque")
-    if form not in FORMS:
-        raise InputError(f"must be exact or first-order, got {form!r}", argument="form")
+    expect(TorqueSource, torque, "torque")
+    expect(KinematicForm, form, "form")
+    expect(Weighting, weighting, "weighting")
     ds = data if isinstance(data, StaticDataset) else build_dataset(data)
     if ds.tracker_rotation is None:
         # a tracker placed anywhere: the deflections turned back to base axes by the
@@ -472,18 +474,18 @@ def identify_static(robot: Robot, data: StaticTable | StaticDataset, *,
     return _result(solve, names, tuple(selections), done)
 
 
-def _check_torque_source(ds: StaticDataset, torque: str) -> None:
+def _check_torque_source(ds: StaticDataset, torque: TorqueSource) -> None:
     """Refuse a torque source the table does not carry."""
-    if torque == "current" and not ds.has_currents:
+    if torque is TorqueSource.CURRENT and not ds.has_currents:
         raise InputError(("current-based identification needs the currents i1..iN in every row; use ",
                           Arg("torque", "force")), source=ds.source)
-    if torque == "force" and not ds.has_wrench:
+    if torque is TorqueSource.FORCE and not ds.has_wrench:
         raise InputError("force-based identification needs the wrench fx..mz of every loaded state",
                          source=ds.source)
 
 
-def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: str, form: str, max_iter: int,
-                   tol: float, work: RobotData) -> tuple[tuple[str, ...], tuple[Effect, ...], list]:
+def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: TorqueSource, form: KinematicForm,
+                   max_iter: int, tol: float, work: RobotData) -> tuple[tuple[str, ...], tuple[Effect, ...], list]:
     """The model's names (joint_stiffness first), its effects sized for the robot, and the
     selections of its selectable effects: each restricted to the components the data
     support (identify/selection.py), from the fit with all of them."""
@@ -497,9 +499,9 @@ def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: 
 
             # (first-order: one linear solve; the kept components are then fitted in ``form``)
             full = identify_static(robot, ds, model=[*effects[:k], eff.restricted(eff.parameters), *effects[k + 1:]],
-                                   torque=torque, form="first-order", max_iter=max_iter, tol=tol, work=work)
+                                   torque=torque, form=KinematicForm.FIRST_ORDER, max_iter=max_iter, tol=tol, work=work)
             sel = forward_select(full, eff.name, eff.parameters)
-            if form != "first-order" and sel.kept:
+            if form is not KinematicForm.FIRST_ORDER and sel.kept:
                 confirmed = confirm_selection(sel, lambda keep: identify_static(
                     robot, ds, model=[*effects[:k], eff.restricted(sel.fitted(keep)), *effects[k + 1:]],
                     torque=torque, form=form, max_iter=max_iter, tol=tol, work=work), n=ds.dP.size)
@@ -513,7 +515,7 @@ def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: 
 
 def _check_shown(pr: Problem, ctx: StaticContext) -> None:
     """Refuse loads that change no torque, and an effect these static data cannot show (its reason)."""
-    if pr.torque == "force" and not np.any(ctx.delta_wrench[pr.ds.defl_state]):
+    if pr.torque is TorqueSource.FORCE and not np.any(ctx.delta_wrench[pr.ds.defl_state]):
         raise InputError("every loaded state carries the wrench of its unloaded reference (all zero?): the loads "
                          "change no torque, so they determine nothing; a table without loads is a geometric "
                          "calibration table: give every row load 0", source=pr.ds.source, column="fx")
@@ -603,7 +605,7 @@ def _noise_at(pr: Problem, beta: np.ndarray, lin: _Linearisation):
     return _noise_blocks(pr, beta, lin.bases, sensitivity)
 
 
-def _iterate(solve: _Solve, beta: np.ndarray, lin: _Linearisation, weighting: str) -> _Iterated:
+def _iterate(solve: _Solve, beta: np.ndarray, lin: _Linearisation, weighting: Weighting) -> _Iterated:
     """From the first-order start to the solution: Gauss-Newton when the model is nonlinear,
     then generalised least squares weighted by the noise covariance the fit knows (tracker
     noise, shared references, current noise through the compliance)."""
@@ -613,7 +615,7 @@ def _iterate(solve: _Solve, beta: np.ndarray, lin: _Linearisation, weighting: st
         iterations += it
     blocks = _noise_at(solve.pr, beta, lin)
     whitening = None
-    if blocks is not None and weighting == "gls" and solve.w is None:
+    if blocks is not None and weighting is Weighting.GLS and solve.w is None:
         whitening = _cholesky_blocks(blocks)
         if whitening is not None:
             beta, it, lin = _gauss_newton(solve, beta, lin, whitening)

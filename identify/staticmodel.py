@@ -21,6 +21,7 @@ import pinocchio as pin
 
 from elastocal.identify.dataset import StaticDataset
 from elastocal.model.effects.base import Effect, StaticBasis, StaticContext
+from elastocal.model.kinds import KinematicForm, TorqueSource, expect
 from elastocal.model.robot import LOAD_FRAME, Robot, RobotData
 
 
@@ -29,14 +30,16 @@ class Problem:
     robot: Robot
     ds: StaticDataset
     effects: tuple[Effect, ...]
-    torque: str
-    form: str
+    torque: TorqueSource
+    form: KinematicForm
     frames: tuple[str, ...]
     #: this problem's Pinocchio work buffers (made by the robot, used by every kinematics call
     #: of the solve: creating a Data costs more than the kinematics it serves)
     data: RobotData | None = None
 
     def __post_init__(self) -> None:
+        expect(TorqueSource, self.torque, "torque")
+        expect(KinematicForm, self.form, "form")
         if self.data is None:
             object.__setattr__(self, "data", self.robot.create_data())
         elif not self.data.belongs_to(self.robot):
@@ -107,7 +110,7 @@ def link_configurations(robot: Robot, theta: np.ndarray, link_angles: np.ndarray
 def state_torques(pr: Problem, theta_states: np.ndarray | None) -> np.ndarray:
     """Absolute gear torque (S, N) of each state."""
     robot, ds = pr.robot, pr.ds
-    if pr.torque == "current":
+    if pr.torque is TorqueSource.CURRENT:
         return ds.state_currents * robot.torque_constants
     comp = robot.compensator.nominal_parameters() if robot.compensator is not None else None
     theta = pr.nominal_theta if theta_states is None else np.ascontiguousarray(theta_states, dtype=float)
@@ -141,11 +144,11 @@ def static_context(pr: Problem, tau: np.ndarray, estimate: np.ndarray | None = N
     jac = pr.load_jacobians[ds.state_pose]
     j_act_t = np.swapaxes(jac[:, :, robot.actuated_in_link_model], 1, 2)
     j_spr_t = np.swapaxes(jac[:, :, robot.springs_in_link_model], 1, 2)
-    if pr.torque == "current" and robot.n_joints != 6:
+    if pr.torque is TorqueSource.CURRENT and robot.n_joints != 6:
         # N joint torques of one 6-component wrench: least squares (N > 6), the least wrench (N < 6)
         delta_wrench = np.stack([np.linalg.lstsq(j_act_t[s], delta_tau[s], rcond=None)[0]
                                  for s in range(ds.n_states)])
-    elif pr.torque == "current":
+    elif pr.torque is TorqueSource.CURRENT:
         try:
             delta_wrench = np.linalg.solve(j_act_t, delta_tau[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:       # a singular pose: least squares for that one
@@ -159,9 +162,9 @@ def static_context(pr: Problem, tau: np.ndarray, estimate: np.ndarray | None = N
         delta_wrench = ds.state_wrench - ds.state_wrench[ds.state_ref]
     delta_link = (j_spr_t @ delta_wrench[:, :, None])[:, :, 0]
     # the whole wrench: with currents the change is all they show (the reference carries none)
-    wrench = delta_wrench.copy() if pr.torque == "current" else ds.state_wrench.copy()
+    wrench = delta_wrench.copy() if pr.torque is TorqueSource.CURRENT else ds.state_wrench.copy()
     torque_noise = None
-    if ds.sigma_current is not None and pr.torque == "current":
+    if ds.sigma_current is not None and pr.torque is TorqueSource.CURRENT:
         torque_noise = robot.torque_constants * ds.sigma_current / np.sqrt(ds.state_n_currents)[:, None]
     return StaticContext(tau=tau, delta_tau=delta_tau, delta_link_moment=delta_link,
                          delta_wrench=delta_wrench, wrench=wrench, torque_noise=torque_noise, robot=robot,

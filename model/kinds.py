@@ -10,6 +10,20 @@ Parse a user's text with the Enum itself (``TorqueSource(text)``) at the edge.
 from __future__ import annotations
 
 from enum import Enum
+from typing import TypeVar
+
+K = TypeVar("K", bound=Enum)
+
+
+def expect(kind: type[K], value: object, name: str) -> K:
+    """``value`` if it is a member of ``kind``, else a TypeError naming ``name``.
+
+    A str Enum's member equals its text, so a plain ``"force"`` would pass every comparison
+    below the edge and slip into a typed record unnoticed; the records and the fits' entry
+    points call this so that text is parsed once, where it is read (``kind(text)``)."""
+    if isinstance(value, kind):
+        return value
+    raise TypeError(f"{name} must be a {kind.__name__} (parse text with {kind.__name__}(text)), got {value!r}")
 
 
 class JointKind(str, Enum):
@@ -87,3 +101,6 @@ class NoiseSource(str, Enum):
     UNCERTAINTY_COLUMNS = "uncertainty_columns"
     TRACKER_LAW = "tracker_law"
     NONE = "none"
+
+    def __str__(self) -> str:
+        return self.value

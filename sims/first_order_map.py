@@ -19,7 +19,7 @@ import numpy as np
 from elastocal.errors import InputError
 from elastocal.model.robot import DEFAULT_PRIOR_STIFFNESS, LOAD_FRAME, Robot
 from elastocal.sims.cell import CellTruth, SimCell
-from elastocal.model.kinds import TorqueSource
+from elastocal.model.kinds import TorqueSource, expect
 
 #: relative stiffness error under which the first-order model is good enough (Y §4.2)
 GOOD_ENOUGH = 0.05
@@ -38,6 +38,9 @@ class FirstOrderMap:
     wrench: tuple[float, ...]
     torque: TorqueSource
     threshold: float = GOOD_ENOUGH
+
+    def __post_init__(self) -> None:
+        expect(TorqueSource, self.torque, "torque")
 
     @property
     def max_stiffness_error(self) -> np.ndarray:
@@ -65,8 +68,7 @@ def first_order_map(robot: Robot, *, q_base: Sequence[float], wrench: Sequence[f
     the first-order model ``dP = J_m(q) diag(Gamma) c`` identifies ``c`` from
     them, with ``Gamma`` from the gear torques ("current") or ``J_f(q)^T W``
     ("force")."""
-    if torque not in ("current", "force"):
-        raise InputError(f"must be current or force, got {torque!r}", argument="torque")
+    expect(TorqueSource, torque, "torque")
     if n_grid < 2:
         raise InputError(f"must be >= 2, got {n_grid}", argument="map_grid")
     markers = list(markers or robot.marker_names)

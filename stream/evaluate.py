@@ -17,6 +17,7 @@ import numpy as np
 
 from elastocal.compensation.model import CompensationModel
 from elastocal.compensation.trajectory import compensate_path
+from elastocal.model.kinds import KinematicForm
 from elastocal.sims.guided import ProcessLoad, statics
 from elastocal.stream.loop import CycleRecord
 
@@ -54,4 +55,5 @@ def path_errors(cell, load: ProcessLoad, t: np.ndarray, q_planned: np.ndarray, q
 def offline_commands(model: CompensationModel, q: np.ndarray, wrench: np.ndarray) -> np.ndarray:
     """The offline program compensated for one constant ``wrench`` (exact form, unloaded reference:
     what ``elastocal compensate --wrench`` writes)."""
-    return compensate_path(model, q, np.asarray(wrench, dtype=float), form="exact", reference="unloaded").q_command
+    return compensate_path(model, q, np.asarray(wrench, dtype=float), form=KinematicForm.EXACT,
+                           reference="unloaded").q_command

@@ -20,6 +20,7 @@ from elastocal.identify.absolute import identify_absolute
 from elastocal.identify.accuracy import validate
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 CTU = pathlib.Path(__file__).parent / "data" / "ctu_motoman"
 GEOMETRY = ("kinematic_errors", "tracker_frame")
@@ -50,7 +51,7 @@ def test_ctu_tables_are_the_alternate_split_of_586_right_arm_poses(ctu):
 
 def test_ctu_geometry_fit_on_half_validates_on_the_other_half_within_2_30_mm(ctu, tmp_path):
     robot, train, held = ctu
-    ident = identify_data(robot, train, None, GEOMETRY, "current", "exact")
+    ident = identify_data(robot, train, None, GEOMETRY, TorqueSource.CURRENT, KinematicForm.EXACT)
     obj = ident.to_json()
     assert obj["model"] == list(GEOMETRY) and "k1" not in obj["parameters"]
     # joint 1's zero, the base offsets: absorbed by the registration, named, never guessed

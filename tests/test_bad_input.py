@@ -25,6 +25,7 @@ from elastocal.formats.tables import write_run_table, write_static_table
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.model.kinds import TorqueSource
 
 ROBOT = bundled_robot()
 
@@ -525,7 +526,7 @@ def test_history_shows_friction_drift_and_plots_every_check(tmp_path, capsys):
     params = tuple(P(f"k{j}", 5e5, 5e2, "N*m/rad") for j in range(1, 7)) + (P("fc2", 90.0, 0.5, "N*m"),
                                                                            P("fv2", 600.0, 3.0, "N*m*s/rad"))
     cal = Calibration(robot="HH-150", created="2026-01-05T08:00:00Z",
-                      model=("joint_stiffness", "coulomb_friction", "viscous_friction"), torque="current",
+                      model=("joint_stiffness", "coulomb_friction", "viscous_friction"), torque=TorqueSource.CURRENT,
                       parameters=params, residual=Residual(rms=8e-6, max=3e-5, n=100))
     t0 = 1_767_600_000 * 10**9
     db = tmp_path / "h.sqlite"

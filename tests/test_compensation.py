@@ -22,6 +22,7 @@ from elastocal.formats.calibration import CalibratedParameter, Calibration, Resi
 from elastocal.model.robot import LOAD_FRAME
 from elastocal.formats.robot_toml import bundled_robot_path
 from elastocal.sims.cell import CellTruth, SimCell
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +36,7 @@ def _calibration(robot, stiffness, compensator=(4771.4, 0.9112), name=None) -> C
         params += (CalibratedParameter("C", compensator[0], unit="N*m"),
                    CalibratedParameter("l_c", compensator[1], unit="m"))
     return Calibration(robot=name or robot.name, created="2026-11-22T10:00:00Z", model=("joint_stiffness",),
-                       torque="current", parameters=params, residual=Residual(rms=8e-6, max=3e-5, n=10))
+                       torque=TorqueSource.CURRENT, parameters=params, residual=Residual(rms=8e-6, max=3e-5, n=10))
 
 
 def test_yang_path_follows_the_line(robot, path):
@@ -76,7 +77,7 @@ def test_rigid_reference_removes_the_sag_as_well(robot, path):
 def test_first_order_is_q_minus_c_jt_w(robot, path):
     truth = CellTruth()
     model = CompensationModel(robot, truth.stiffness, truth.compensator)
-    res = compensate_path(model, path.q, YANG_WRENCH, form="first-order")
+    res = compensate_path(model, path.q, YANG_WRENCH, form=KinematicForm.FIRST_ORDER)
     jac = robot.jacobians(robot.theta(path.q[3]), [LOAD_FRAME])[0]
     np.testing.assert_allclose(res.dtheta[3], (jac.T @ np.array(YANG_WRENCH)) / truth.stiffness, rtol=1e-12,
                                atol=1e-15)
@@ -89,7 +90,7 @@ def test_model_without_masses_leaves_gravity_out(robot, path):
     model = CompensationModel(bare, CellTruth().stiffness, (4771.4, 0.9112))
     assert not model.uses_gravity and not model.uses_compensator
     exact = compensate_path(model, path.q, YANG_WRENCH)
-    first = compensate_path(model, path.q, YANG_WRENCH, form="first-order")
+    first = compensate_path(model, path.q, YANG_WRENCH, form=KinematicForm.FIRST_ORDER)
     np.testing.assert_allclose(exact.theta_target, bare.theta(path.q))
     np.testing.assert_allclose(exact.q_command, first.q_command, atol=1e-15)
 

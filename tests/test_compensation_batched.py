@@ -26,6 +26,7 @@ from elastocal.identify import kinematics as kin
 from elastocal.model.robot import LOAD_FRAME
 from elastocal.formats.robot_toml import bundled_robot_path, load_robot
 from elastocal.sims.cell import CellTruth
+from elastocal.model.kinds import KinematicForm
 
 HERE = pathlib.Path(__file__).parent
 REFERENCE = HERE / "data" / "compensation_reference.npz"
@@ -118,7 +119,7 @@ def test_every_case_is_identical_to_the_per_point_implementation():
         np.testing.assert_array_equal(ref[f"{name}/q"], q)
         np.testing.assert_array_equal(ref[f"{name}/wrench"], np.broadcast_to(w, q.shape))
         refs = ("unloaded", "rigid") + (("nominal",) if model.nominal is not None else ())
-        for form in ("exact", "first-order"):
+        for form in KinematicForm:
             for reference in refs:
                 path = compensate_path(model, q, w, form=form, reference=reference)
                 key = f"{name}/{form}/{reference}"

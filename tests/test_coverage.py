@@ -20,6 +20,7 @@ from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import HH150_STIFFNESS, CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.model.kinds import KinematicForm
 
 ROBOT = bundled_robot()
 N_SEEDS = 400
@@ -35,7 +36,7 @@ def _run(shared: bool):
         fit = identify_static(ROBOT, ds)
         k, std = fit.values(K_NAMES), fit.stds(K_NAMES)
         known = replace(ds, sigma_tracker=truth.tracker_noise_m, sigma_current=np.full(6, truth.current_noise_a))
-        bound = identify_static(ROBOT, known, form="first-order")
+        bound = identify_static(ROBOT, known, form=KinematicForm.FIRST_ORDER)
         crb = bound.stds(K_NAMES) / np.sqrt(bound.dispersion)
         z.append((k - HH150_STIFFNESS) / std)
         z_crb.append((k - HH150_STIFFNESS) / crb)

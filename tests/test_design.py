@@ -19,6 +19,7 @@ from elastocal.identify.static import identify_static
 from elastocal.formats.tables import static_table_from_arrays
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 TEST = dz.TestPose(q=(0.3, 0.5, -0.3, 0.2, 1.0, 0.1), wrench=(800.0, -300.0, -600.0, 0.0, 0.0, 0.0))
 TRACKER = (3.5, 0.0, 1.2)
@@ -202,7 +203,7 @@ def test_first_order_map_agrees_with_identify_static(robot):
                 rows["marker"].append(m)
                 rows["xyz"].append(cell.marker_positions(eq, [m])[0])
     table = static_table_from_arrays(**rows)
-    fit = identify_static(robot, table, form="first-order", torque="current")
+    fit = identify_static(robot, table, form=KinematicForm.FIRST_ORDER, torque=TorqueSource.CURRENT)
     k_id = fit.values([f"k{j}" for j in range(1, 7)])
     assert np.allclose(np.abs(k_id - k) / k, fmap.stiffness_error[a, b], rtol=1e-4, atol=1e-7)
     assert fmap.good_fraction > 0.5

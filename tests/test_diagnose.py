@@ -18,12 +18,14 @@ from elastocal.identify.static import build_dataset
 from elastocal.sims.cell import HH150_STIFFNESS, HIDDEN_EFFECTS, CellTruth
 from elastocal.sims.runs import FrictionPlan, default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, load_wrenches, random_poses, simulate_static
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 ROBOT = bundled_robot()
 #: hidden effect -> torque source that can show it (static friction takes its
 #: share before the currents are measured, so only forces show it)
-TORQUE_FOR = {"link_compliance": "current", "thermal_drift": "current", "backlash": "current",
-              "static_friction": "force", "base_tilt": "current", "nonlinear_stiffness": "current"}
+TORQUE_FOR = {"link_compliance": TorqueSource.CURRENT, "thermal_drift": TorqueSource.CURRENT,
+              "backlash": TorqueSource.CURRENT, "static_friction": TorqueSource.FORCE,
+              "base_tilt": TorqueSource.CURRENT, "nonlinear_stiffness": TorqueSource.CURRENT}
 #: the effect that names what the simulator hid (a tilting base is compliance located at the base)
 NAMED = {"base_tilt": "link_compliance"}
 SEEDS = (1, 2, 3, 4, 5)
@@ -77,7 +79,7 @@ def test_complete_data_give_no_verdict_in_at_least_19_of_20_seeds():
 
 def test_complete_force_based_data_give_no_verdict():
     for seed in (7, 8, 9):
-        diag = diagnose_static(ROBOT, simulate_static(ROBOT, CellTruth(), seed=seed), torque="force")
+        diag = diagnose_static(ROBOT, simulate_static(ROBOT, CellTruth(), seed=seed), torque=TorqueSource.FORCE)
         assert diag.verdict is None
         assert "static_friction" in {c.effect for c in diag.candidates}
 
@@ -159,11 +161,11 @@ def test_heavy_loads_show_the_complementary_stiffness_only_in_the_first_order_fo
     poses = random_poses(ROBOT, 12, rng)
     heavy = [2.5 * load_wrenches(3, rng) for _ in range(12)]
     table = simulate_static(ROBOT, CellTruth(), seed=0, poses=poses, wrenches=heavy)
-    first = diagnose_static(ROBOT, table, torque="force", form="first-order")
+    first = diagnose_static(ROBOT, table, torque=TorqueSource.FORCE, form=KinematicForm.FIRST_ORDER)
     assert first.verdict == "complementary_stiffness"
     cand = first.candidates[0]
     assert cand.dof == 1 and cand.parameters == () and cand.rms_after < first.fit.rms
-    exact = diagnose_static(ROBOT, table, torque="force", form="exact")
+    exact = diagnose_static(ROBOT, table, torque=TorqueSource.FORCE, form=KinematicForm.EXACT)
     assert exact.verdict is None and exact.fit.rms < cand.rms_after
     reasons = {n.effect: n.reason for n in exact.not_testable}
     assert "exact form already" in reasons["complementary_stiffness"]
@@ -171,8 +173,8 @@ def test_heavy_loads_show_the_complementary_stiffness_only_in_the_first_order_fo
 
 def test_first_order_and_dataset_inputs_work():
     ds = build_dataset(simulate_static(ROBOT, CellTruth().with_hidden("thermal_drift"), seed=9))
-    diag = diagnose_static(ROBOT, ds, form="first-order")
-    assert diag.form == "first-order" and diag.verdict == "thermal_drift"
+    diag = diagnose_static(ROBOT, ds, form=KinematicForm.FIRST_ORDER)
+    assert diag.form is KinematicForm.FIRST_ORDER and diag.verdict == "thermal_drift"
 
 
 # ------------------------------------------------------------------ run data

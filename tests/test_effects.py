@@ -15,6 +15,7 @@ from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 ROBOT = bundled_robot()
 #: the effect table of docs/cli.md
@@ -78,8 +79,9 @@ def test_complementary_stiffness_only_for_the_force_based_first_order_model(comp
     with pytest.raises(InputError, match="currents measure"):
         identify_static(ROBOT, complete, model=("complementary_stiffness",))
     with pytest.raises(InputError, match="exact form already"):
-        identify_static(ROBOT, complete, model=("complementary_stiffness",), torque="force")
-    fit = identify_static(ROBOT, complete, model=("complementary_stiffness",), torque="force", form="first-order")
+        identify_static(ROBOT, complete, model=("complementary_stiffness",), torque=TorqueSource.FORCE)
+    fit = identify_static(ROBOT, complete, model=("complementary_stiffness",), torque=TorqueSource.FORCE,
+                          form=KinematicForm.FIRST_ORDER)
     assert fit.model == ("joint_stiffness", "complementary_stiffness")
     assert fit.parameter("k1").value == pytest.approx(559e3, rel=0.02)
 
@@ -147,21 +149,21 @@ def test_backlash_basis_is_zero_for_joints_whose_torque_keeps_its_sign():
     tau = np.vstack([tau_ref, tau_ref + [100.0, -200.0, 300.0, 30.0, -90.0, -40.0]])
     ctx = StaticContext(tau=tau, delta_tau=tau - tau_ref, delta_link_moment=np.zeros((2, 4)),
                         state_is_reference=np.array([True, False]), deflection_dt=np.zeros(1),
-                        n_deflections=1, torque_source="current")
+                        n_deflections=1, torque_source=TorqueSource.CURRENT)
     assert backlash.visible_joints(ctx).tolist() == [False, False, False, True, True, False]
     basis = backlash.EFFECT.static_basis(ctx).theta
     assert np.all(basis[:, [0, 1, 2, 5], [0, 1, 2, 5]] == 0.0)
     assert basis[1, 3, 3] == pytest.approx(0.5 * np.tanh(30 / 20))
     one_sign = StaticContext(tau=np.abs(tau) + 500, delta_tau=np.vstack([np.zeros(6), tau[1] - tau[0]]),
                              delta_link_moment=np.zeros((2, 4)), state_is_reference=np.array([True, False]),
-                             deflection_dt=np.zeros(1), n_deflections=1, torque_source="current")
+                             deflection_dt=np.zeros(1), n_deflections=1, torque_source=TorqueSource.CURRENT)
     assert "no load state reverses" in backlash.EFFECT.static_refusal(one_sign)
 
 
 def test_static_friction_is_recovered_from_force_based_data():
     ds = _dataset("static_friction", 14)
-    plain = identify_static(ROBOT, ds, torque="force")
-    fit = identify_static(ROBOT, ds, torque="force", model=("static_friction",))
+    plain = identify_static(ROBOT, ds, torque=TorqueSource.FORCE)
+    fit = identify_static(ROBOT, ds, torque=TorqueSource.FORCE, model=("static_friction",))
     truth = CellTruth().with_hidden("static_friction")
     # without it the force-based stiffness comes out too high (Y Table 6)
     assert plain.parameter("k2").value > 1.15 * truth.stiffness[1]

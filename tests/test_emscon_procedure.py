@@ -18,6 +18,7 @@ from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.serve import example_cell_config
 from elastocal.sims.static import random_poses
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 #: these tests run simulated devices in wall-clock time (tests/conftest.py)
 pytestmark = [pytest.mark.slow, pytest.mark.heavy]   # a whole procedure through emScon in wall-clock time: 30 s
@@ -39,7 +40,7 @@ def _run(tmp_path, name, tracker_url, channel):
         outcome = run_calibration(sim.config, plan, out, yes=True, world=sim.world)
     assert outcome.status == "completed", outcome
     log_robot, static, _ = load_log(out)
-    return out, identify_static(log_robot, static, torque="current", form="exact")
+    return out, identify_static(log_robot, static, torque=TorqueSource.CURRENT, form=KinematicForm.EXACT)
 
 
 def test_static_procedure_through_emscon_identifies_the_line_trackers_stiffness(tmp_path):

@@ -23,6 +23,7 @@ from elastocal.formats.tables import read_run_table, read_static_table
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.runs import default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, random_poses, simulate_static
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 ROBOT = bundled_robot()
 
@@ -59,9 +60,9 @@ def test_identification_from_log_equals_identification_from_exported_tables(reco
     for name in ("q", "dq", "currents", "xyz", "wrench", "t"):
         np.testing.assert_array_equal(getattr(runs, name), getattr(runs2, name))
     assert list(runs2.run) == list(runs.run) and set(runs.direction) == {"UV", "VU"}
-    for torque in ("current", "force"):
-        a = identify_static(robot, static, torque=torque, form="exact")
-        b = identify_static(robot2, static2, torque=torque, form="exact")
+    for torque in TorqueSource:
+        a = identify_static(robot, static, torque=torque, form=KinematicForm.EXACT)
+        b = identify_static(robot2, static2, torque=torque, form=KinematicForm.EXACT)
         np.testing.assert_array_equal(a.values([f"k{j}" for j in range(1, 7)]),
                                       b.values([f"k{j}" for j in range(1, 7)]))
         assert a.rms == b.rms

@@ -24,6 +24,7 @@ from elastocal.formats.calibration import (
 )
 from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.cell import CellTruth, SimCell
+from elastocal.model.kinds import TorqueSource
 
 DAY_NS = 86400 * 10**9
 T0 = 1_767_600_000 * 10**9          # 2026-01-05
@@ -34,7 +35,7 @@ def calibration(k2: float, created: str) -> Calibration:
                    for j, v in enumerate((559e3, k2, 1829e3, 184e3, 171e3, 70e3), start=1))
     params += (CalibratedParameter("fc2", 180.0, 0.5, "N*m"),)
     return Calibration(robot="HH-150", created=created, model=("joint_stiffness", "coulomb_friction"),
-                       torque="current", parameters=params, residual=Residual(rms=8e-6, max=3e-5, n=216),
+                       torque=TorqueSource.CURRENT, parameters=params, residual=Residual(rms=8e-6, max=3e-5, n=216),
                        data=(DataFile("log.mcap", "ab" * 32),))
 
 

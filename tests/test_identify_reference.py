@@ -24,6 +24,7 @@ from elastocal.identify.static import identify_static
 from elastocal.formats.tables import StaticTable
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.model.kinds import KinematicForm, TorqueSource, Weighting
 
 GOLDEN = pathlib.Path(__file__).parent / "data" / "golden" / "identify_arrays.npz"
 WRITE = os.environ.get("ELASTOCAL_WRITE_GOLDEN") == "1"
@@ -71,8 +72,8 @@ def _table(hidden: str, plan: StaticPlan, u95: bool, seed: int) -> StaticTable:
 def _arrays(name: str) -> dict[str, np.ndarray]:
     hidden, plan, model, torque, form, weighting, u95 = CASES[name]
     seed = 11 + sorted(CASES).index(name)
-    fit = identify_static(bundled_robot(), _table(hidden, plan, u95, seed), model=model, torque=torque, form=form,
-                          weighting=weighting)
+    fit = identify_static(bundled_robot(), _table(hidden, plan, u95, seed), model=model, torque=TorqueSource(torque),
+                          form=KinematicForm(form), weighting=Weighting(weighting))
     out = {"beta": fit.beta, "beta_cov": fit.beta_cov, "predicted": fit.predicted, "residuals": fit.residuals,
            "absolute_base": fit.absolute_base, "design": fit.design,
            "scalars": np.array([fit.rms, fit.max, fit.rss, np.nan if fit.noise_floor is None else fit.noise_floor,

@@ -23,6 +23,7 @@ from elastocal.formats.robot_toml import bundled_robot
 from elastocal.formats.tables import STATIC_COLUMNS, read_static_table
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 DATA = pathlib.Path(__file__).parent / "data"
 
@@ -284,7 +285,7 @@ def test_a_procedure_whose_tracker_its_own_software_reads(tmp_path, capsys):
     table = read_static_table(tmp_path / "static.csv", robot)
     assert len(readings) == 4 * 3 * 2 * 3 and set(zip(table.pose, table.load, table.marker)) == {
         (r.pose, r.load, r.marker) for r in readings}
-    fit = identify_static(robot, table, torque="current", form="exact")
+    fit = identify_static(robot, table, torque=TorqueSource.CURRENT, form=KinematicForm.EXACT)
     truth = np.array(CellTruth().stiffness)
     err = np.abs(fit.values([f"k{j}" for j in range(1, 7)]) - truth) / truth
     assert np.all(err[:3] < 0.02) and np.all(err[3:] < 0.05), err

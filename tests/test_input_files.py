@@ -40,6 +40,7 @@ from elastocal.formats.tables import (
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import FrictionPlan, SweepPlan, default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.model.kinds import TorqueSource
 
 ROBOT = bundled_robot()
 URDF_ROBOT = bundled_robot("hh150_urdf")
@@ -54,7 +55,7 @@ RUNS = simulate_runs(ROBOT, default_run_truth(CellTruth()), seed=5,
 
 def _calibration(robot: str | None = "HH-150") -> dict:
     doc = Calibration(robot=robot or "", created="2026-11-22T10:00:00Z", model=("joint_stiffness",),
-                      torque="current",
+                      torque=TorqueSource.CURRENT,
                       parameters=tuple(CalibratedParameter(f"k{j}", 5e5, unit="N*m/rad") for j in range(1, 7)),
                       residual=Residual(rms=8e-6, max=3e-5, n=10)).to_json()
     if robot is None:

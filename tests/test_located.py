@@ -14,6 +14,7 @@ from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.model.kinds import KinematicForm
 
 ROBOT = bundled_robot()
 
@@ -113,7 +114,7 @@ def test_wrist_springs_are_not_second_names_for_the_joint_springs():
     # so those components are unidentifiable next to cl3x, cl3y, never the classic springs
     eff = get_effect("link_compliance")
     ds = simulate_static(ROBOT, CellTruth().with_hidden("link_compliance"), seed=3, plan=StaticPlan(n_poses=6))
-    fit = identify_static(ROBOT, ds, model=(eff.restricted(eff.parameters),), form="first-order")
+    fit = identify_static(ROBOT, ds, model=(eff.restricted(eff.parameters),), form=KinematicForm.FIRST_ORDER)
     assert {"cl4x", "cl4y", "cl5x", "cl5y"} <= set(fit.unidentifiable)
     assert not {"cl2x", "cl2y", "cl3x", "cl3y"} & set(fit.unidentifiable)
 

@@ -29,6 +29,7 @@ from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth, SimCell
 from elastocal.sims.static import random_poses
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 TIMING = VirtualTiming(drive_rate_hz=250.0, tracker_rate_hz=250.0)
 LOADS = (LoadSpec("L1", mass_kg=60.0), LoadSpec("L2", mass_kg=110.0),
@@ -94,7 +95,7 @@ def test_static_procedure_log_identifies_stiffness(robot, poses, tmp_path):
     log_robot, static, runs = load_log(tmp_path / "log.mcap")
     assert runs is None and log_robot.name == robot.name
     assert len(static) == len(poses) * 4 * 2 * 3
-    fit = identify_static(log_robot, static, torque="current", form="exact")
+    fit = identify_static(log_robot, static, torque=TorqueSource.CURRENT, form=KinematicForm.EXACT)
     check_stiffness(fit)
 
 
@@ -109,7 +110,7 @@ def test_the_core_design_identified_from_its_log_meets_the_core_tolerances(robot
     assert out.status == "completed"
     _, static, _ = load_log(tmp_path / "core.mcap")
     assert len(static) == 12 * 4 * 3 * 3
-    fit = identify_static(robot, static, torque="current", form="exact")
+    fit = identify_static(robot, static, torque=TorqueSource.CURRENT, form=KinematicForm.EXACT)
     check_stiffness(fit)
     assert fit.noise_floor is not None and fit.rms <= 1.15 * fit.noise_floor, (fit.rms, fit.noise_floor)
 
@@ -317,7 +318,7 @@ def test_resume_after_a_kill_continues_a_truncated_log(robot, poses, tmp_path):
     assert sorted(set(after.pose)) == ["P1", "P2", "P3"]
     for p in set(before.pose):
         np.testing.assert_array_equal(before.subset(before.pose == p).xyz, after.subset(after.pose == p).xyz)
-    check_stiffness(identify_static(robot, after, torque="current", form="exact"))
+    check_stiffness(identify_static(robot, after, torque=TorqueSource.CURRENT, form=KinematicForm.EXACT))
 
 
 class LosesJoint2InReadings(VirtualCellIO):

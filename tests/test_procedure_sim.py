@@ -19,6 +19,7 @@ from elastocal.identify.static import identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.serve import SimulatedCell, example_cell_config
 from elastocal.sims.static import random_poses
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 #: these tests run simulated devices in wall-clock time (tests/conftest.py)
 pytestmark = pytest.mark.slow
@@ -73,7 +74,7 @@ def test_static_procedure_on_simulated_devices_interrupted_resumed_and_identifie
 
     log_robot, static, runs = load_log(second)
     assert runs is None and sorted(set(static.pose)) == ["P1", "P2", "P3", "P4"]
-    fit = identify_static(log_robot, static, torque="current", form="exact")
+    fit = identify_static(log_robot, static, torque=TorqueSource.CURRENT, form=KinematicForm.EXACT)
     truth = np.array(CellTruth().stiffness)
     err = np.abs(fit.values([f"k{j}" for j in range(1, 7)]) - truth) / truth
     assert np.all(err[:3] < 0.02), err

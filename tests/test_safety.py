@@ -18,6 +18,7 @@ from elastocal.sims.modbus_server import ModbusServerThread, SimCellController
 from elastocal.sims.serve import SimulatedCell, example_cell_config, example_cell_path
 from elastocal.sims.world import SimWorld
 from elastocal.sims.config import sim_config
+from elastocal.model.kinds import TorqueSource
 
 #: Modbus function codes that change a device's data
 WRITE_FUNCTIONS = {5, 6, 15, 16, 22, 23}
@@ -458,7 +459,7 @@ def test_loads_that_changed_nothing_are_refused_and_real_loads_never(tmp_path, c
     ev = load_evidence(build_dataset(no_currents))
     assert ev.quantity == "deflection" and not ev.changed
     with pytest.raises(InputError, match="were they hung"):
-        identify_static(robot, no_currents, torque="force")
+        identify_static(robot, no_currents, torque=TorqueSource.FORCE)
 
     # the command: one line naming the file, exit 2, nothing written
     write_static_table(tmp_path / "static.csv", _not_hung(hung[1], 3))

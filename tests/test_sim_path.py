@@ -11,6 +11,7 @@ from elastocal.cli import main
 from elastocal.compensation.files import read_path
 from elastocal.compensation.ik import yang_path
 from elastocal.formats.robot_toml import bundled_robot, load_robot
+from elastocal.model.kinds import TorqueSource
 
 
 def test_sim_path_writes_yangs_line_under_the_wrench(tmp_path, capsys):
@@ -46,7 +47,7 @@ def test_sim_path_feeds_compensate(tmp_path, capsys):
     params = tuple(CalibratedParameter(f"k{j}", v, v * 1e-3, "N*m/rad")
                    for j, v in enumerate((559e3, 1435e3, 1829e3, 184e3, 171e3, 70e3), start=1))
     write_calibration(tmp_path / "cal.json", Calibration(robot="HH-150", created="2026-01-05T08:00:00Z",
-                                                          model=("joint_stiffness",), torque="current",
+                                                          model=("joint_stiffness",), torque=TorqueSource.CURRENT,
                                                           parameters=params))
     capsys.readouterr()
     assert main(["compensate", "--robot", str(tmp_path / "robot.toml"), "--calibration", str(tmp_path / "cal.json"),

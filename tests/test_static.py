@@ -10,6 +10,7 @@ from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.static import build_dataset, identify_static
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.static import StaticPlan, load_wrenches, random_poses, simulate_static
+from elastocal.model.kinds import KinematicForm, TorqueSource, Weighting
 
 ROBOT = bundled_robot()
 TRUTH = CellTruth()
@@ -66,8 +67,8 @@ def test_noise_floor_matches_tracker_noise():
 def test_static_friction_biases_force_based_high_not_current_based():
     truth = TRUTH.with_hidden("static_friction")
     table = simulate_static(ROBOT, truth, seed=5, plan=PLAN)
-    current = rel_err(identify_static(ROBOT, table, torque="current"), truth)
-    force = rel_err(identify_static(ROBOT, table, torque="force"), truth)
+    current = rel_err(identify_static(ROBOT, table, torque=TorqueSource.CURRENT), truth)
+    force = rel_err(identify_static(ROBOT, table, torque=TorqueSource.FORCE), truth)
     assert np.all(np.abs(current) < 0.05), current
     assert np.all(force > 0.04), force           # every joint looks stiffer than it is
     assert np.mean(force[:3]) > 0.10, force
@@ -80,8 +81,8 @@ def noise_free(truth=TRUTH):
 def test_exact_form_is_exact_and_first_order_is_not():
     truth = noise_free()
     table = simulate_static(ROBOT, truth, seed=6, plan=StaticPlan(n_poses=12, n_loads=3, repeats=1))
-    exact = identify_static(ROBOT, table, form="exact")
-    first = identify_static(ROBOT, table, form="first-order")
+    exact = identify_static(ROBOT, table, form=KinematicForm.EXACT)
+    first = identify_static(ROBOT, table, form=KinematicForm.FIRST_ORDER)
     np.testing.assert_allclose(exact.values(K), truth.stiffness, rtol=1e-6)
     assert exact.rms < 1e-9
     # first order leaves micrometres of model error that grow with the load
@@ -96,7 +97,7 @@ def test_exact_form_is_exact_and_first_order_is_not():
 def test_force_based_exact_is_exact_with_known_gravity_and_compensator():
     truth = noise_free()
     table = simulate_static(ROBOT, truth, seed=7, plan=StaticPlan(n_poses=12, n_loads=3, repeats=1))
-    fit = identify_static(ROBOT, table, torque="force", form="exact")
+    fit = identify_static(ROBOT, table, torque=TorqueSource.FORCE, form=KinematicForm.EXACT)
     np.testing.assert_allclose(fit.values(K), truth.stiffness, rtol=1e-5)
 
 
@@ -107,7 +108,7 @@ def test_unidentifiable_joint_is_reported_not_guessed():
     wrenches = [load_wrenches(2, rng) for _ in poses]
     table = simulate_static(ROBOT, TRUTH, seed=8, poses=poses, wrenches=wrenches,
                             plan=StaticPlan(n_poses=8, n_loads=2, repeats=2))
-    fit = identify_static(ROBOT, table, torque="force")
+    fit = identify_static(ROBOT, table, torque=TorqueSource.FORCE)
     assert fit.unidentifiable == ("k1",)
     assert [p.name for p in fit.parameters] == K[1:]
     assert fit.to_json()["unidentifiable"] == ["k1"]
@@ -142,7 +143,7 @@ def test_force_based_needs_wrench_and_current_based_needs_currents():
         identify_static(ROBOT, no_i)
     no_w = dataclasses.replace(table, wrench=np.full((len(table), 6), np.nan))
     with pytest.raises(InputError, match="needs the wrench"):
-        identify_static(ROBOT, no_w, torque="force")
+        identify_static(ROBOT, no_w, torque=TorqueSource.FORCE)
 
 
 def test_dataset_averages_repeats_and_pairs_reference():
@@ -165,8 +166,8 @@ def test_the_weighting_asked_for_is_the_one_used_when_the_tracker_stands_anywher
     robot = bundled_robot()
     table = simulate_static(robot, CellTruth(), seed=12, plan=StaticPlan(n_poses=10))
     assert build_dataset(table).tracker_rotation is None
-    gls = identify_static(robot, table, weighting="gls")
-    ols = identify_static(robot, table, weighting="ols")
+    gls = identify_static(robot, table, weighting=Weighting.GLS)
+    ols = identify_static(robot, table, weighting=Weighting.OLS)
     assert gls.whitening is not None and ols.whitening is None
     assert gls.rss_whitened is not None and ols.rss_whitened is None
     std = np.sqrt(np.diag(gls.beta_cov) + np.diag(ols.beta_cov))

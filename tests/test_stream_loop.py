@@ -26,6 +26,7 @@ from elastocal.stream.loop import LateCause, NotAtStart, StreamSettings, Watchdo
 from elastocal.stream.plan import build_plan
 from elastocal.stream.recording import ARROW_GAIN, StreamLog
 from elastocal.stream.sources import CurrentsSource, PathSource
+from elastocal.model.kinds import KinematicForm
 
 CYCLE_MS = 4
 WRENCH = np.array([0.0, 0.0, 1500.0, 0.0, 0.0, 0.0])
@@ -127,7 +128,7 @@ def test_the_correction_puts_the_loaded_robot_on_the_unloaded_plan(plan, model, 
         # the correction is interpolated linearly: an error of second order in the 50 mm sample spacing
         tol = 1e-8 if round(r.t_path_s * 1e3) in on_sample else 1e-6
         assert np.linalg.norm(loaded - unloaded) < tol
-    offline = compensate_path(model, plan.q, WRENCH, form="exact", reference="unloaded")
+    offline = compensate_path(model, plan.q, WRENCH, form=KinematicForm.EXACT, reference="unloaded")
     at_samples = {round(r.t_path_s, 9): r for r in sink.records}
     for i, t in enumerate(plan.t):
         r = at_samples.get(round(float(t), 9))

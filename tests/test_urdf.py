@@ -9,7 +9,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from elastocal.model.kinds import JointKind
+from elastocal.model.kinds import JointKind, TorqueSource
 
 from elastocal.errors import InputError
 from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path, load_robot, parse_robot
@@ -77,7 +77,7 @@ def test_identification_with_the_urdf_robot_equals_the_dh_robot():
     truth = CellTruth()
     data = simulate_static(DH, truth, seed=4)
     k = [f"k{j}" for j in range(1, 7)]
-    for torque in ("current", "force"):
+    for torque in TorqueSource:
         a = identify_static(DH, data, torque=torque)
         b = identify_static(URDF, data, torque=torque)
         np.testing.assert_allclose(b.values(k), a.values(k), rtol=1e-9)

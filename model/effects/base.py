@@ -54,6 +54,8 @@ from typing import Callable, Optional, Protocol
 
 import numpy as np
 
+from elastocal.model.kinds import KinematicForm, TorqueSource, expect
+
 
 @dataclass(frozen=True, eq=False)
 class StaticContext:
@@ -65,8 +67,8 @@ class StaticContext:
     state_is_reference: np.ndarray  # (S,) bool
     deflection_dt: np.ndarray   # (D,) time between the loaded and the reference readings [s]; NaN if unknown
     n_deflections: int
-    torque_source: str          # "current" or "force"
-    form: str = "exact"         # "exact" or "first-order"
+    torque_source: TorqueSource
+    form: KinematicForm = KinematicForm.EXACT
     #: current estimate of every model parameter (None in the first solve), for
     #: effects whose basis depends on it (Effect.iterative)
     estimate: np.ndarray | None = None
@@ -86,6 +88,10 @@ class StaticContext:
     #: the computation's Pinocchio work buffers (``robot.create_data()``, model/robot.py), for
     #: effects whose basis needs kinematics; None: the effect makes its own
     data: object = None
+
+    def __post_init__(self) -> None:
+        expect(TorqueSource, self.torque_source, "torque_source")
+        expect(KinematicForm, self.form, "form")
 
     def estimated(self, name: str) -> float | None:
         """Current estimate of parameter ``name`` (None before the first solve)."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from elastocal.model.effects.base import Compensation, Effect, StaticContext, SweepContext, SweepTerm, wrong_sign
+from elastocal.model.kinds import CompensatorKind
 
 #: l_c - max(cylinder length) scanned for the hydro-pneumatic start [m]
 _GAP_SCAN_M = np.geomspace(1e-3, 5.0, 400)
@@ -34,7 +35,7 @@ def _start(spec, q2: np.ndarray):
     with C linear for the hydro-pneumatic compensator (with the other linear columns)."""
 
     def start(y: np.ndarray, other: np.ndarray) -> np.ndarray:
-        if spec.kind == "spring":
+        if spec.kind is CompensatorKind.SPRING:
             a, big_l, alpha = spec.geo("a"), spec.geo("L"), spec.geo("alpha")
             g = a * big_l * np.sin(alpha - q2)
             x = np.column_stack([-g, g / spec.spring_length(q2), -other])
@@ -63,7 +64,7 @@ def _sweep_term(ctx: SweepContext) -> SweepTerm | str:
                 f"(sweep joint {spec.joint})")
     q2 = np.asarray(ctx.q2, dtype=float)
     lower = np.full(2, -np.inf)
-    if spec.kind == "hydropneumatic":       # the cylinder's gas volume: l_c beyond its longest stroke
+    if spec.kind is CompensatorKind.HYDROPNEUMATIC:       # the cylinder's gas volume: l_c beyond its longest stroke
         lower[1] = float(np.max(spec.hydro_length(q2))) + 1e-6
     return SweepTerm(names=spec.parameter_names, units=tuple(spec.parameter_units[n] for n in spec.parameter_names),
                      torque=lambda p: spec.torque(q2, p), jacobian=lambda p: spec.torque_derivatives(q2, p),

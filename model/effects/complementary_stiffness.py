@@ -9,13 +9,14 @@ model can lack it.
 from __future__ import annotations
 
 from elastocal.model.effects.base import Effect, StaticContext
+from elastocal.model.kinds import KinematicForm, TorqueSource
 
 
 def _refusal(ctx: StaticContext) -> str | None:
-    if ctx.torque_source != "force":
+    if ctx.torque_source is not TorqueSource.FORCE:
         return ("currents measure the joint torques of the deflected robot directly; "
                 "the current-based model does not need it")
-    if ctx.form == "exact":
+    if ctx.form is KinematicForm.EXACT:
         return "the exact form already evaluates J_f^T W at the deflected configuration"
     return None
 

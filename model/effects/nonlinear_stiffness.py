@@ -26,6 +26,7 @@ import numpy as np
 
 from elastocal.model.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis, strongest
 from elastocal.model.effects.base import joint_names, joint_units
+from elastocal.model.kinds import TorqueSource
 
 #: a joint shows a torque-dependent stiffness when its torque change and the spread of
 #: the torque it carries over the loads exceed this many torque-noise std
@@ -83,7 +84,7 @@ def _sensitivity(ctx: StaticContext, values: np.ndarray) -> np.ndarray:
 
 
 def _refusal(ctx: StaticContext) -> str | None:
-    if ctx.torque_source == "force":
+    if ctx.torque_source is TorqueSource.FORCE:
         return ("with force-based torques a stiffness law cannot be told from static friction taking part of "
                 "each load (both bend the deflection-load line); test it with the currents")
     if not np.any(visible_joints(ctx)):

@@ -26,6 +26,7 @@ import numpy as np
 
 from elastocal.model.effects.base import Effect, StaticBasis, StaticContext, diagonal_basis, strongest
 from elastocal.model.effects.base import joint_names, joint_units
+from elastocal.model.kinds import TorqueSource
 
 #: a torque change below this is taken as no change [N·m]
 ZERO_TORQUE_NM = 1e-6
@@ -44,7 +45,7 @@ def _basis(ctx: StaticContext) -> StaticBasis:
 
 
 def _refusal(ctx: StaticContext) -> str | None:
-    if ctx.torque_source != "force":
+    if ctx.torque_source is not TorqueSource.FORCE:
         return ("currents measure the torque the gears carry after static friction took its share; "
                 "the current-based model does not need it (only a force-based model can lack it)")
     return None

@@ -21,6 +21,7 @@ from elastocal.compensation.trajectory import compensate_path, predicted_residua
 from elastocal.identify import kinematics as kin
 from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path, load_robot
 from elastocal.sims.cell import CellTruth
+from elastocal.model.kinds import KinematicForm
 
 
 def cases() -> dict:
@@ -61,7 +62,7 @@ def main(out_path: str) -> None:
         out[f"{name}/q"] = q
         out[f"{name}/wrench"] = np.broadcast_to(w, q.shape).copy()
         refs = ("unloaded", "rigid") + (("nominal",) if model.nominal is not None else ())
-        for form in ("exact", "first-order"):
+        for form in KinematicForm:
             for ref in refs:
                 r = compensate_path(model, q, w, form=form, reference=ref)
                 key = f"{name}/{form}/{ref}"
