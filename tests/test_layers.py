@@ -273,7 +273,7 @@ def _named_effects(node: ast.AST, names: frozenset[str], collections: dict[str, 
 def name_branches(text: str, names: frozenset[str]) -> list[tuple[int, str]]:
     """(line, effect) of every comparison or membership test in a module's source that names an
     effect: generic code asks an effect what it can do, it never branches on which one it is."""
-    tree = ast.parse(text)
+    tree = _parsed(text)
     collections: dict[str, set[str]] = {}
     for stmt in tree.body:           # module-level constants that list effects (NO_DRIFT = ("backlash",))
         if isinstance(stmt, (ast.Assign, ast.AnnAssign)) and stmt.value is not None \
@@ -291,9 +291,16 @@ def name_branches(text: str, names: frozenset[str]) -> list[tuple[int, str]]:
     return found
 
 
-#: packages the check does not read: the effects themselves, and the simulator, which may not use them
-#: (test_the_simulator_uses_no_fitting_or_effect_code): it is an independent witness whose hidden
-#: physics (``--hidden``: "base_tilt", "friction", ... beside some effects' names) is its own vocabulary
+#: packages the check does not read, because naming an effect there is no branch of generic code:
+#: - the effects themselves (an effect's module names itself);
+#: - the simulator. It is the world the fits are tested against, not code that serves any model: it
+#:   switches on a physical phenomenon of the cell by the word a user gives ``--hidden`` ("backlash",
+#:   "friction", "base_tilt", "none": the vocabulary of the world, which coincides with some
+#:   effects' names so that a test can say "hide X, find X"). It may not ask the effects (it imports
+#:   none of them: test_the_simulator_uses_no_fitting_or_effect_code), so hooks on the effects would
+#:   make the witness compute with the fit's code; and a new effect that the simulator cannot show
+#:   is one it never names, so it needs no change there. Only sims/ is exempt: the commands, the
+#:   fleet and acquisition, which drive it, are checked like all generic code.
 NOT_GENERIC = (EFFECTS_PACKAGE, "elastocal.sims")
 
 
@@ -325,14 +332,38 @@ def test_the_name_branch_check_catches_a_deliberate_branch(source, expected):
     assert name_branches(source, effect_names(ROOT)) == expected
 
 
-def test_a_name_branch_added_to_generic_code_fails_the_check(tree):
+#: one module of every package the name-branch check reads (every package but NOT_GENERIC's)
+GENERIC_MODULES = ("identify/static.py", "diagnose/static.py", "design/search.py", "compensation/model.py",
+                   "report/html.py", "acquisition/procedures.py", "drivers/config.py", "fleet/tasks.py",
+                   "stream/loop.py", "formats/calibration.py", "model/robot.py", "elastocal/commands/identify.py",
+                   "elastocal/cli.py")
+
+
+def test_every_package_but_the_effects_and_the_simulator_is_checked():
+    packages = {placement(name, modules(ROOT))[1] for name in modules(ROOT)}
+    checked = {placement(module_name(f), modules(ROOT))[1] for f in GENERIC_MODULES}
+    exempt = {p for p in packages if any(p == q or p.startswith(q + ".") for q in NOT_GENERIC)}
+    assert packages - exempt - {"elastocal", "elastocal.errors", "elastocal.progress", "elastocal.__main__"} <= checked
+
+
+def module_name(file: str) -> str:
+    """The module of a file of the package folders (``identify/static.py`` -> ``elastocal.identify.static``)."""
+    return next(name for name, path in modules(ROOT).items() if path == ROOT / file)
+
+
+@pytest.mark.parametrize("file", GENERIC_MODULES)
+def test_a_name_branch_added_to_generic_code_fails_the_check(tree, file):
     before = set(effect_name_branches(tree))
-    path = tree / "identify" / "static.py"
+    path = tree / file
     path.write_text(path.read_text(encoding="utf-8") + '\n\ndef _sneaky(eff):\n    return eff.name == "backlash"\n',
                     encoding="utf-8")
     added = [p for p in effect_name_branches(tree) if p not in before]
-    assert len(added) == 1 and added[0].startswith("identify/static.py:") and "'backlash'" in added[0], added
+    assert len(added) == 1 and added[0].startswith(f"{file}:") and "'backlash'" in added[0], added
     # an effect module may name itself
     effect = tree / "model" / "effects" / "backlash.py"
     effect.write_text(effect.read_text(encoding="utf-8") + '\nassert EFFECT.name == "backlash"\n', encoding="utf-8")
+    assert [p for p in effect_name_branches(tree) if p not in before] == added
+    # the simulator names the world's phenomena, not the fit's effects (NOT_GENERIC)
+    world = tree / "sims" / "cell.py"
+    world.write_text(world.read_text(encoding="utf-8") + '\nassert "backlash" in HIDDEN_EFFECTS\n', encoding="utf-8")
     assert [p for p in effect_name_branches(tree) if p not in before] == added
