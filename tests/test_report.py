@@ -167,3 +167,13 @@ def test_report_command_writes_the_page(tmp_path, capsys):
                "--out", str(out), "--add", "gravity", "--force"])
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and "gravity cancels" in err
+
+
+def test_text_from_the_user_is_escaped():
+    """The page is f-strings, not a template engine that escapes by default (docs/architecture.md):
+    every text from outside goes through html.escape, so a file name with markup stays text."""
+    from dataclasses import replace
+
+    page = render_report(replace(ROBOT, name="<b>HH</b>"), None, inputs=["a&b<script>.csv"])
+    assert "<script" not in page and "<b>HH" not in page
+    assert "&lt;b&gt;HH&lt;/b&gt;" in page and "a&amp;b&lt;script&gt;.csv" in page
