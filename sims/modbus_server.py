@@ -92,7 +92,7 @@ class SimModbusDrive:
         self.config = config
         self.world = world
         self.joint = config.joint
-        self.unit = config.url.int_param("unit", 1, low=0, high=247)
+        self.unit = config.url.settings.unit       # the backend's parameters, parsed with the URL
         self.reply_delay_s = float(reply_delay_s)
         self._faulted = False
         self._exceptions: list[int] = []
@@ -157,7 +157,7 @@ class SimCellController:
     def __init__(self, config: ControllerConfig, world: SimWorld, *, reply_delay_s: float = 0.0) -> None:
         self.config = config
         self.world = world
-        self.unit = config.url.int_param("unit", 1, low=0, high=247)
+        self.unit = config.url.settings.unit
         self.reply_delay_s = float(reply_delay_s)
         self._lock = threading.Lock()
         self._ack = 0

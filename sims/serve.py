@@ -144,18 +144,17 @@ class SimulatedCell:
             if iface not in SIM_CAN_INTERFACES:
                 raise InputError(f"{d.url.text}: simulated drives run on {' or '.join(SIM_CAN_INTERFACES)} "
                                  f"(both stay on this machine), not {iface!r}")
-            node = d.url.int_param("node", 1, low=1, high=127)
-            drive = SimCanopenDrive(node, d.joint, self.world, gear_ratio=sim.gear_ratios[d.joint - 1],
+            params = d.url.settings         # drivers.url_params.CanopenParams, parsed with the URL
+            drive = SimCanopenDrive(params.node, d.joint, self.world, gear_ratio=sim.gear_ratios[d.joint - 1],
                                     serial=1000 + d.joint, tpdo2=self._tpdo2)
             self.canopen_drives[d.joint] = drive
-            bitrate = d.url.int_param("bitrate", 1_000_000, low=10_000, high=1_000_000)
-            groups.setdefault((iface, d.url.can_channel, bitrate), []).append(drive)
+            groups.setdefault((iface, d.url.can_channel, params.bitrate), []).append(drive)
         for (iface, channel, bitrate), drives in groups.items():
             kwargs = {}
             if iface == CAN_LOOPBACK:    # port 0 or none: a free port, written into the resolved URLs
-                kwargs["port"] = next((d.url.int_param("port", 0, high=65535) for d in cfg.drives
+                kwargs["port"] = next((d.url.settings.port for d in cfg.drives
                                        if d.url.scheme == "canopen" and d.url.can_channel == channel
-                                       and d.url.param("port")), 0)
+                                       and d.url.settings.port), 0)
             network = SimCanopenNetwork(iface, channel, drives, bitrate=bitrate,
                                         reply_delay_s=sim.can_reply_delay_s, **kwargs)
             self.can_networks[(iface, channel)] = network
@@ -192,7 +191,7 @@ class SimulatedCell:
             else:
                 pair = PtyPair()
                 self._ptys.append(pair)
-                baud = members[0][3].int_param("baud", 115200, low=300, high=10_000_000)
+                baud = members[0][3].settings.baud      # ModbusRtuParams, parsed with the URL
                 server = ModbusServerThread([m[2] for m in members], serial=pair.device_end, baudrate=baud).start()
                 for kind, joint, _, url in members:
                     new_urls[(kind, joint)] = url.with_path(pair.host_end)
