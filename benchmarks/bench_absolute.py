@@ -6,7 +6,7 @@ A simulated cell with kinematic errors, link compliance and thermal drift, the
 tracker 3.7 m away and turned; the fit is ``joint_stiffness, link_compliance,
 thermal_drift, backlash, kinematic_errors, tracker_frame`` on 60 poses x 4
 states x 3 markers x 3 repeats. Prints the median wall time and its ratio to the
-5 s limit of the issue; and, since a shared machine's load changes the wall
+5 s limit (docs/absolute.md); and, since a shared machine's load changes the wall
 time by several times, the limit measured in the same run: one Pinocchio forward
 kinematics timed in batches between the fits, the fastest batch (the machine
 unloaded) against the median one (as loaded as the fits), so the fit's time at

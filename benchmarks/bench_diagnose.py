@@ -9,7 +9,7 @@ residual summaries) and of one identify_static for comparison, with the
 verdict, so speed and result are read together; then the report page's
 rendering time.
 
-The issue's limit is 10 s on 2 cores for the current-based diagnosis (every
+The limit is 10 s on 2 cores for the current-based diagnosis (every
 candidate, located compliance included). A shared machine's load changes wall
 times by several times, so the limit is also measured in the same run, as in
 bench_absolute.py: one Pinocchio forward kinematics timed in batches between the

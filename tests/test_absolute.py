@@ -1,4 +1,4 @@
-"""Absolute accuracy (issue 12): the kinematic error model, its identifiable set,
+"""Absolute accuracy: the kinematic error model, its identifiable set,
 the registration of a tracker placed anywhere, and the joint absolute fit, on
 the simulated cell with the real DH table off by 0.02-0.05 deg and 0.1-0.5 mm."""
 
@@ -321,7 +321,7 @@ def test_check_compares_absolute_accuracy_when_the_calibration_holds_the_geometr
 
 
 def test_compensated_path_through_the_cell_with_geometric_errors(calibration_file):
-    """Issue 12, part 7: the real robot (calibrated geometry, springs, load) puts the
+    """The real robot (calibrated geometry, springs, load) puts the
     tool where the drawing's path meant it, as the tracker sees it."""
     from elastocal.compensation.model import CompensationModel
     from elastocal.compensation.trajectory import compensate_path

@@ -1,4 +1,4 @@
-"""Issue 12's acceptance, each bullet over many seeds (docs/absolute.md, "Acceptance").
+"""The absolute fit's acceptance, each bullet over many seeds (docs/absolute.md, "Acceptance").
 
 The simulated cell with kinematic errors and the tracker 3.7 m away, turned and
 not level (12 poses, 3 loads, 3 markers, 3 repeats): the absolute rms from

@@ -1,8 +1,7 @@
-"""Bad input gets one line naming the input, exit 2 and nothing written (issue 13,
-items 6-10): CSV fields over the csv module's limit, malformed events in a valid
-log, implausible calibrations (sizes, units, std, noise floor, unknown effects,
-a missing stiffness), logs held to the checks tables get, duplicate columns,
-robot.toml and cell.toml values in the wrong unit."""
+"""Bad input gets one line naming the input, exit 2 and nothing written: CSV fields over the
+csv module's limit, malformed events in a valid log, implausible calibrations (sizes, units,
+std, noise floor, unknown effects, a missing stiffness), logs held to the checks tables get,
+duplicate columns, robot.toml and cell.toml values in the wrong unit."""
 
 from __future__ import annotations
 

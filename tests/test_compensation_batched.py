@@ -1,4 +1,4 @@
-"""Batched compensation (issue 15, part 2): the batched chain against Pinocchio, and every
+"""Batched compensation: the batched chain against Pinocchio, and every
 compensated path identical to the per-point implementation it replaced.
 
 ``tests/data/compensation_reference.npz`` holds the results of the per-point Pinocchio
@@ -108,7 +108,7 @@ def test_angles_near_a_base_are_numpys_cos_and_sin():
 
 
 def test_every_case_is_identical_to_the_per_point_implementation():
-    """Results identical to the implementation before issue 15 to 1e-9 (rad, m). The fixed points
+    """Results identical to the per-point implementation to 1e-9 (rad, m). The fixed points
     agree to about 1e-15; the nominal reference's targets to its Newton tolerance (1e-12 on the
     SE(3) error), reached from other starts (the per-point Newton started from the previous
     sample's solution, the batched one from its neighbours' interpolated)."""
@@ -250,7 +250,7 @@ def _old_deg(v: float) -> str:
 
 
 def _old_krl(name, t, result):
-    """format_krl as it was written per value before issue 15 (the reference for the bytes)."""
+    """format_krl as it was written per value before the batched kernel (the reference for the bytes)."""
     deg = np.degrees(result.q_command)
     lines = ["&ACCESS RVP", f"DEF {name}( )"] + _old_header(result, ";")
     duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0

@@ -3,7 +3,7 @@ stiffness 95 +- 3 % of the time, its variance reaches the Cramér-Rao bound (wit
 times the sampling std of a variance over 400 seeds),
 the errors-in-variables bias from current noise stays below 0.2 std, and the
 residual sits at the noise floor (median rms/floor 1 +- 0.05), with and
-without rows that share one current reading (issue 18 part 6).
+without rows that share one current reading.
 
 400 seeds make +-3 % about 2.7 binomial sigma. The simulated cell is the
 default HH-150 experiment (12 poses x 3 loads x 3 markers x 3 repeats, exact

@@ -25,8 +25,9 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys, clock):
     # the guided procedure completed and the log holds it
     assert summary["procedure"]["status"] == "completed" and summary["procedure"]["steps"] == 6
     assert (out / "calibration.mcap").stat().st_size > 100_000
-    # Foxglove-ready (issue 17's acceptance): the demo's own log opens with mcap's reader, every message is
-    # valid against its channel's schema, and the Foxglove channels carry Foxglove's published schemas
+    # Foxglove-ready (a user opens the demo's log there first): the demo's own log opens with mcap's
+    # reader, every message is valid against its channel's schema, and the Foxglove channels carry
+    # Foxglove's published schemas
     _every_message_valid(out / "calibration.mcap")
     # the hidden effect is named, added, and the error falls to the noise floor
     assert summary["verdict"] == "link_compliance"

@@ -21,7 +21,7 @@ from elastocal.sims.friction_cases import friction_case
 
 ROBOT = bundled_robot()
 FRICTION = ("coulomb_friction", "viscous_friction", "load_dependent_friction")
-#: the issue's acceptance: each coefficient within 2 % of the truth
+#: what the friction fit promises (docs/cli.md): each coefficient within 2 % of the truth
 TOLERANCE = 0.02
 #: and within this many of its reported standard deviations (18 coefficients a seed)
 MAX_Z = 4.5

@@ -1,5 +1,5 @@
-"""The lasting guard of issue 13: every reader of a user file, fuzzed through the
-command line (in process, for speed).
+"""The lasting guard of the bad-input rule (one line naming the input, exit 2, nothing written):
+every reader of a user file, fuzzed through the command line (in process, for speed).
 
 For robot.toml, cell.toml, the static, run and path CSV tables, cal.json,
 plan.toml and MCAP logs (truncated, bit-flipped, and well-formed with bad

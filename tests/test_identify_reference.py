@@ -1,4 +1,4 @@
-"""The static fit's numbers are what they were before its fast paths (issue 15, part 1).
+"""The static fit's numbers are what they were before its fast paths.
 
 ``tests/data/golden/identify_arrays.npz`` holds, for each case below, every array a
 static fit returns (parameters and their covariance, predictions, residuals, the

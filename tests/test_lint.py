@@ -1,6 +1,6 @@
 """House rules read from the source: the packages are pyflakes-clean (no unused imports or
 variables, no undefined names; an unused import is a layer edge nobody needs), and the
-library's messages name its arguments, never the command line's flags (issue 11 part 4)."""
+library's messages name its arguments, never the command line's flags."""
 
 from __future__ import annotations
 
@@ -86,7 +86,7 @@ def flags_in_messages(root: pathlib.Path) -> list[str]:
 
 def test_library_messages_name_arguments_not_flags():
     """Errors, refusals and result texts of the library name its arguments (``Arg``); the CLI says
-    them as its flags (issue 11 part 4)."""
+    them as its flags."""
     assert (ROOT / "identify" / "static.py").exists() and (ROOT / "elastocal" / "errors.py").exists()
     assert flags_in_messages(ROOT) == []
 

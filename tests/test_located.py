@@ -1,6 +1,6 @@
 """Located compliance (Klimchik's virtual joints with 6-D springs) and
 torque-dependent stiffness: the simulator hides a base that tilts and gears that
-harden, diagnose names them, says where, and reaches the floor (issue 18 parts 2, 3)."""
+harden, diagnose names them, says where, and reaches the floor."""
 
 import json
 
@@ -68,7 +68,7 @@ def test_hardening_gears_are_nonlinear_stiffness(seed):
 
 
 def test_hung_weights_only_hardening_is_not_backlash():
-    # the case of the issue: only hung weights, so joint 1 carries no torque change;
+    # the case a user met: only hung weights, so joint 1 carries no torque change;
     # its play and its stiffness law are noise only there: unidentifiable, not fitted
     truth = CellTruth().with_hidden("nonlinear_stiffness")
     for seed in (1, 2, 3):

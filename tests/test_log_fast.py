@@ -1,4 +1,4 @@
-"""The fast log replay (issue 15, part 3) reads what the streaming reader reads.
+"""The fast log replay reads what the streaming reader reads.
 
 A finished log is read through mcap's summary, chunk by chunk, with only the topics
 ``read_log`` needs cut out of each chunk (acquisition/logreader.py). These tests hold it

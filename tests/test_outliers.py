@@ -1,6 +1,6 @@
 """Outliers: readings far off their repeats, found by a robust test, listed by
 input line, left out of the noise floor; --exclude-outliers refits without them
-(issue 18 part 5; docs/cli.md ``outliers``)."""
+(docs/cli.md ``outliers``)."""
 
 import json
 

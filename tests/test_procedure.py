@@ -100,7 +100,7 @@ def test_static_procedure_log_identifies_stiffness(robot, poses, tmp_path):
 
 
 def test_the_core_design_identified_from_its_log_meets_the_core_tolerances(robot, tmp_path):
-    """Issue 2's experiment (12 poses, unloaded + 3 loads, 3 markers, 3 repeats) run as
+    """The first experiment of the project (12 poses, unloaded + 3 loads, 3 markers, 3 repeats) run as
     a procedure and identified from the log: k1-k3 within 2 %, k4-k6 within 5 %,
     residual within 1.15x the noise floor."""
     poses12 = random_poses(robot, 12, np.random.default_rng(21))

@@ -224,7 +224,7 @@ def test_every_shop_floor_readme_workflow_runs_on_the_served_simulated_cell(tmp_
 
 
 def test_the_glossary_explains_every_effect_name():
-    """The README's glossary says in words what each effect a diagnosis can name is (issue 17, part 3)."""
+    """The README's glossary says in words what each effect a diagnosis can name is."""
     from elastocal.model.effects import ALL_EFFECTS
 
     text = README.read_text(encoding="utf-8")

@@ -1,4 +1,4 @@
-"""Run data get a noise floor, the stepwise verdict rule, and stand on their own (issue 18, parts 7 and 8).
+"""Run data get a noise floor, the stepwise verdict rule, and stand on their own.
 
 The simulated runs (sims/runs.py) add white current noise to noise-free currents;
 these tests simulate each cell once without noise and draw the noise per seed with

@@ -1,4 +1,4 @@
-"""Safety on the shop floor (issue 13, items 1-5): what the app writes to the
+"""Safety on the shop floor: what the app writes to the
 cell controller, where the simulated devices listen, prompts in a real
 terminal, refused load data, device faults and the end of the procedure."""
 

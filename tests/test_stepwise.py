@@ -1,5 +1,5 @@
 """Stepwise diagnosis, the verdict rule, what stays unexplained, plausibility,
-and the honest noise floor (issue 18; docs/cli.md ``diagnose --json``)."""
+and the honest noise floor (docs/cli.md ``diagnose --json``)."""
 
 import json
 from dataclasses import dataclass, replace

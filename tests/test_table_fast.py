@@ -1,4 +1,4 @@
-"""The static table read in whole columns is the table the per-row reader makes (issue 15, part 1).
+"""The static table read in whole columns is the table the per-row reader makes.
 
 formats/tables.py reads a static table column by column when every row passes the
 checks, and falls back to the per-row reader (which names the first bad line and column)

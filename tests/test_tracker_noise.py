@@ -137,7 +137,7 @@ def _true_floor(diag, law: TrackerNoise) -> float:
 
 @pytest.mark.acceptance
 def test_acceptance_range_law_and_no_missing_effect_over_40_seeds():
-    """Issue's acceptance: range-dependent tracker noise, nothing missing: verdict null, no
+    """The acceptance of the tracker's noise law: range-dependent tracker noise, nothing missing: verdict null, no
     outliers in >= 95 % of 40 seeds, the floor within 0.8-1.25x what the true law leaves."""
     ratios, with_outliers, verdicts = [], 0, []
     for seed in range(40):

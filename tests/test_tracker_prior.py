@@ -1,4 +1,4 @@
-"""The tracker position prior (issue 12, part 2): cell.toml's ``[tracker]
+"""The tracker position prior: cell.toml's ``[tracker]
 base_p_tracker`` taken from the cell.toml a log carries and from ``--cell``, in
 identify, diagnose and validate; ``--tracker-position`` before both; reported
 with the offset of the registration found (docs/absolute.md)."""

@@ -1,7 +1,7 @@
 """Make tests/data/compensation_reference.npz: compensated paths of the per-point implementation.
 
-The reference file was made with this script at commit 39d2c42, before the batched kernel of
-issue 15 replaced the per-point Pinocchio calls; tests/test_compensation_batched.py checks the
+The reference file was made with this script at commit 39d2c42, before the batched kernel
+replaced the per-point Pinocchio calls; tests/test_compensation_batched.py checks the
 current implementation against it (and imports :func:`cases` for the inputs). Running it again
 would record the current implementation, so do that only for a deliberate change of results.
 
