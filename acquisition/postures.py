@@ -29,8 +29,10 @@ from elastocal.formats.tables import STATIC_OPTIONAL_COLUMNS, StaticTable, check
 from elastocal.formats.textfiles import read_text_file
 from elastocal.model.kinds import JointKind
 from elastocal.model.robot import Robot
+from elastocal.model.units import conversion
 
-ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+#: the angle units a posture file may give its revolute joints in, and their factors to rad (model.units)
+ANGLE_UNITS = {unit: conversion(unit, "rad") for unit in ("rad", "deg")}
 #: a revolute joint value beyond this many radians is taken as degrees
 MAX_RADIANS = 2.0 * math.pi + 1e-6
 #: how far outside a joint's limits a value may be (rounding of the file) [rad or m]
