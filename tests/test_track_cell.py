@@ -254,6 +254,22 @@ def test_the_absolute_fit_with_link_compliance_reaches_the_floor_over_20_seeds()
 
 
 @pytest.mark.heavy
+def test_the_carriage_stiffness_of_the_joint_fit_is_unbiased_over_20_seeds():
+    """k1 from the joint fit of springs and geometry (what the calibration and the demo hold): its z over
+    20 seeds of the demo's experiment averages 0 within 3 / sqrt(20) and none is beyond 4 std. The
+    deflection fit alone, on the drawing's geometry, gives it 2.3 std low on average (the arm's
+    0.02-0.05 deg errors against the carriage's 15 um under the pull), so the demo reports this one."""
+    truth = CellTruth.for_robot(ROBOT).with_hidden("link_compliance,kinematic_errors")
+    k1 = truth.parameters(ROBOT)["k1"]["value"]
+    z = []
+    for seed in range(20):
+        _, fit = _demo_like_fit(seed)
+        p = fit.parameter("k1")
+        z.append((p.value - k1) / p.std)
+    assert abs(np.mean(z)) < 3 / np.sqrt(len(z)) and np.max(np.abs(z)) < 4.0, np.round(z, 1)
+
+
+@pytest.mark.heavy
 @pytest.mark.xfail(strict=True, reason="open: with the demo's loads the deflection fit's selection often misses "
                    "cl4y, which the wrist joint's k6 then absorbs in the absolute fit (up to -14 std); the "
                    "controls are chosen at the deflection fit's precision, not the absolute fit's")
