@@ -53,13 +53,18 @@ def absolute_only_start(robot: Robot, ds: StaticDataset, static_model: Sequence[
     no deflections: the elastic parameters of ``static_model`` at zero, those the poses cannot
     determine listed in ``unidentifiable``. Refuses an effect such a table cannot show, by name."""
     for name in static_model:
-        if not get_effect(name).self_weight:     # shown beside the geometry and the registration
+        eff = get_effect(name)
+        if not (eff.self_weight or eff.shown_by_times):     # shown beside the geometry and the registration
             words = (f"{name} cannot be shown by a table without loads (one absolute reading per pose); "
-                     "it takes kinematic_errors, tracker_frame, and joint_stiffness and backlash under the robot's own "
-                     "weight")
+                     "it takes kinematic_errors, tracker_frame, joint_stiffness and backlash under the robot's own "
+                     "weight, and thermal_drift from the readings' times")
             raise EffectRefused(name, words, message=words, argument="model")
-    if static_model and not robot.has_masses:
-        name = static_model[0]
+        reason = eff.absolute_only_refusal(robot, ds) if eff.shown_by_times else None
+        if reason:                               # the effect's own words on what this table lacks
+            raise EffectRefused(name, reason, argument="model")
+    weighty = [n for n in static_model if get_effect(n).self_weight]
+    if weighty and not robot.has_masses:
+        name = weighty[0]
         words = (f"{name} on a table without loads is seen under the robot's own weight: it needs "
                  "the link masses (mass and com of each [[joint]] in robot.toml)")
         raise EffectRefused(name, words, message=words, argument="model")
@@ -89,6 +94,8 @@ def _undetermined(effects, ctx) -> list[str]:
     reports (a stiffness by its ``k``); refuses an effect the data cannot show at all, by name."""
     out: list[str] = []
     for eff in effects:
+        if eff.shown_by_times:        # no torque in it: its table was checked by absolute_only_refusal
+            continue
         reason = eff.static_refusal(ctx) if eff.static_refusal is not None else None
         if reason:
             raise EffectRefused(eff.name, reason, argument="model")

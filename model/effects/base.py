@@ -207,6 +207,7 @@ class AbsoluteCapability(Protocol):
     registration: bool
     session: bool
     self_weight: bool
+    shown_by_times: bool
     absolute_only_refusal: Optional[Callable[[object, object], Optional[str]]]
     fitted_with: tuple[str, ...]
     absolute_shows_more: bool
@@ -308,6 +309,9 @@ class Effect:
     #: a table without loads shows it, as the twist under the robot's own weight
     #: (identify/absolute_only.py)
     self_weight: bool = False
+    #: a table without loads shows it through the times of its readings alone (a drift over the
+    #: session): the absolute fit takes it beside the geometry and the registration
+    shown_by_times: bool = False
     #: (robot, dataset) -> why an absolute-only table cannot test it (diagnose/absolute_only.py), or
     #: None when it can; None here: such tables never test it
     absolute_only_refusal: Optional[Callable[[object, object], Optional[str]]] = None

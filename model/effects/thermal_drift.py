@@ -59,9 +59,13 @@ def _plausibility(names: tuple[str, ...], values: np.ndarray, stds: np.ndarray) 
 
 
 def _absolute_only_refusal(robot, ds) -> str | None:
-    """A table without loads shows a drift only through the times of its readings."""
-    if ds.abs_t is None or not (ds.abs_t == ds.abs_t).all():
-        return "needs the time t of the readings"
+    """A table without loads shows a drift only through the times of its readings: every reading
+    needs its time, and they must span more than an instant."""
+    t = ds.abs_t
+    if t is None or not (t == t).all():
+        return "needs the time t of every reading (a drift shows as the positions creeping with time)"
+    if float(np.ptp(t)) <= 0.0:
+        return "its readings were all taken at the same time, so a drift with time cannot be seen"
     return None
 
 
@@ -81,6 +85,7 @@ EFFECT = Effect(
     run_model="tracked positions of a run gain v t; joint torques are not affected",
     session=True,
     absolute_shows_more=True,
+    shown_by_times=True,
     absolute_only_refusal=_absolute_only_refusal,
     compensation=Compensation.NO_PATH_DEFLECTION,
 )
