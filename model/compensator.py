@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from elastocal.errors import InputError
-from elastocal.model.kinds import CompensatorKind
+from elastocal.model.kinds import CompensatorKind, expect
 
 HYDRO_PARAMS = ("C", "l_c")
 SPRING_PARAMS = ("K_c", "s0")
@@ -46,10 +46,7 @@ class CompensatorSpec:
     nominal: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
-        try:
-            object.__setattr__(self, "kind", CompensatorKind(self.kind))
-        except ValueError:
-            raise InputError(f"compensator kind must be 'hydropneumatic' or 'spring', got {self.kind!r}") from None
+        expect(CompensatorKind, self.kind, "kind")     # robot.toml's text is parsed by its reader
         if isinstance(self.joint, bool) or not isinstance(self.joint, int) or self.joint < 1:
             raise InputError(f"compensator joint must be a joint number (1, 2, ...), got {self.joint!r}")
 

@@ -71,3 +71,12 @@ def test_the_typed_records_refuse_text(table):
     with pytest.raises(TypeError, match="form must be a KinematicForm"):
         CompensatedPath(form="exact", reference="unloaded", q_planned=np.zeros((1, 6)), wrench=np.zeros((1, 6)),
                         q_command=np.zeros((1, 6)), theta_target=np.zeros((1, 6)), tcp_deflection=np.zeros((1, 3)))
+
+
+def test_the_compensator_takes_its_kind_parsed():
+    from elastocal.model.compensator import CompensatorSpec
+
+    spec = ROBOT.compensator
+    assert spec.kind is CompensatorKind.HYDROPNEUMATIC       # robot.toml's text, parsed by its reader
+    with pytest.raises(TypeError, match="kind must be a CompensatorKind"):
+        CompensatorSpec(kind="hydropneumatic", joint=spec.joint, geometry=spec.geometry)
