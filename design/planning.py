@@ -50,16 +50,27 @@ class PlannedExperiment:
     geometry: object | None = None
 
 
+#: the stages :func:`plan_calibration` reports (sampling, choosing, geometry, baseline, check)
+PLAN_STAGES = 5
+
+
 def plan_calibration(robot: Robot, test: TestPose, workspace: Workspace, noise: NoiseModel, *,
                      markers: Sequence[str], n_poses: int, loads_per_pose: int, n_candidates: int, n_check: int,
                      prior_stiffness: Sequence[float], friction: Sequence[FrictionSpec] = (), name: str | None = None,
                      repeats: int = 3, seed: int = 0, source: str = "<plan.toml>",
-                     geometry: bool = True) -> PlannedExperiment:
+                     geometry: bool = True, progress=None) -> PlannedExperiment:
     """Plan a calibration (K §V.C): ``n_poses`` of ``n_candidates`` sampled poses and the
     load forces, a random baseline, the check subset, and the plan.toml text (parsed back
-    and validated for ``robot``; an error names ``source``)."""
+    and validated for ``robot``; an error names ``source``). ``progress``: told of each stage,
+    ``progress(done, label, total=...)`` (elastocal/progress.py)."""
+    def stage(done: int, label: str) -> None:
+        if progress is not None:
+            progress(done, label, total=PLAN_STAGES)
+
     rng = np.random.default_rng(seed)
+    stage(0, f"sampling {n_candidates} candidate poses")
     candidates = sample_candidates(robot, n_candidates, rng, workspace, markers)
+    stage(1, f"choosing {n_poses} poses and their loads")
     t_plan = time.monotonic()
     design = plan_experiment(robot, candidates, test, n_poses=n_poses, loads_per_pose=loads_per_pose,
                              workspace=workspace, markers=markers, prior_stiffness=prior_stiffness, noise=noise)
@@ -67,14 +78,17 @@ def plan_calibration(robot: Robot, test: TestPose, workspace: Workspace, noise: 
     if geometry and robot.urdf is None:     # poses that observe the kinematic set too (docs/absolute.md)
         from elastocal.design.kinematic import plan_for_geometry
 
+        stage(2, "poses that observe the geometry too")
         geo = plan_for_geometry(robot, candidates, design, test, workspace=workspace, markers=markers,
                                 prior_stiffness=prior_stiffness, noise=noise, rng=np.random.default_rng(seed + 1))
         design = geo.design
     planning_s = time.monotonic() - t_plan
+    stage(3, "a random design to compare with")
     baseline = random_design_k40(robot, candidates, design.forces, test, n_poses=n_poses, markers=markers, rng=rng)
     random_quality = evaluate_design(robot, candidates.q[rng.choice(len(candidates.q), n_poses, replace=False)],
                                      list(design.wrenches), test, markers, prior_stiffness=prior_stiffness,
                                      noise=noise)
+    stage(4, "the check poses")
     check = choose_check(robot, design, test, n_check=min(n_check, n_poses), markers=markers,
                          prior_stiffness=prior_stiffness, noise=noise)
     loads = load_specs(design.forces, np.array(robot.gravity))

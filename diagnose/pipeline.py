@@ -128,14 +128,22 @@ class Identification:
 
 def identify_data(robot, static, runs, model: tuple[str, ...], torque: TorqueSource, form: KinematicForm, *,
                   exclude_outliers: bool = False, tracker_prior=None,
-                  prior_source: str | None = None) -> Identification:
+                  prior_source: str | None = None, progress=None) -> Identification:
     """What ``identify`` finds in the tables (:class:`Identification`). ``outliers`` lists the
     static readings far off their repeats (identify/outliers.py); with ``exclude_outliers`` the
     fit leaves them out. ``tracker_prior``: where the tracker stands in base coordinates [m]
-    (cell.toml's, ``prior_source`` naming where it was read)."""
+    (cell.toml's, ``prior_source`` naming where it was read). ``progress``: told of each fit,
+    ``progress(done, label, total=...)`` (elastocal/progress.py)."""
     from elastocal.identify.outliers import without_outliers
 
+    fits = (static is not None) + (runs is not None)
+
+    def stage(done: int, label: str) -> None:
+        if progress is not None:
+            progress(done, label, total=fits)
+
     if static is None:
+        stage(0, "fitting the runs")
         from elastocal.identify import runs as run_ident  # run data: compensator, friction
 
         result = run_ident.identify_runs(robot, runs, model=model)
@@ -145,11 +153,13 @@ def identify_data(robot, static, runs, model: tuple[str, ...], torque: TorqueSou
     run_model = tuple(m for m in model if m in RUN_EFFECTS)
     static_model = tuple(m for m in model if m not in RUN_EFFECTS or runs is None)
     table, excluded = without_outliers(static) if exclude_outliers else (static, ())
+    stage(0, f"fitting {' + '.join(static_model)} to the static table")
     fit = absolute_or_static(robot, table, static_model, torque, form, tracker_prior=tracker_prior)
     run_fit = None
     if runs is not None and run_model:
         from elastocal.identify import runs as run_ident
 
+        stage(1, "fitting the runs")
         # the sweeps placed with the static fit's stiffness
         k = [p.value for p in fit.parameters if is_stiffness_name(p.name)]
         run_fit = run_ident.identify_runs(robot, runs, model=("joint_stiffness", *run_model),
@@ -159,11 +169,12 @@ def identify_data(robot, static, runs, model: tuple[str, ...], torque: TorqueSou
 
 
 def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: TorqueSource, form: KinematicForm, *,
-                  log: str | None = None, exclude_outliers: bool = False, tracker_prior=None):
+                  log: str | None = None, exclude_outliers: bool = False, tracker_prior=None, progress=None):
     """(static Diagnosis or None, run Diagnosis or None) for the tables; ``log``
     names the log they came from, for the error when there is nothing to diagnose;
     ``tracker_prior``: where the tracker stands in base coordinates [m], a prior on
-    the registration of the absolute comparison."""
+    the registration of the absolute comparison; ``progress``: told of each fit
+    (``progress(done, label, total=...)``, elastocal/progress.py)."""
     from elastocal.diagnose.static import diagnose_static
 
     static_diag = None
@@ -181,8 +192,11 @@ def diagnose_data(robot, static, runs, model: tuple[str, ...], torque: TorqueSou
             static_model = tuple(m for m in model if "static" in get_effect(m).seen_in)
         pool = tuple(e for e in ALL_EFFECTS if e not in model)
         static_diag = diagnose_static(robot, static, model=static_model, torque=torque, form=form, effects=pool,
-                                      exclude_outliers=exclude_outliers, tracker_prior=tracker_prior)
+                                      exclude_outliers=exclude_outliers, tracker_prior=tracker_prior,
+                                      progress=progress)
     if runs is not None:
+        if progress is not None:
+            progress(0, "the runs' friction and compensator", total=1)
         from elastocal.diagnose.runs import diagnose_runs
 
         stiffness = None

@@ -296,16 +296,19 @@ def _evidence(effect, params: Sequence[Parameter], fallback: str) -> str:
 
 # =================================================================== diagnose
 def test_candidates(robot: Robot, ds: StaticDataset, base: StaticFit, pool: Sequence[str], *, torque: TorqueSource,
-                    form: KinematicForm, noise_known: bool, work=None) -> tuple[list[Candidate], list[NotTestable]]:
+                    form: KinematicForm, noise_known: bool, work=None,
+                    progress=None) -> tuple[list[Candidate], list[NotTestable]]:
     """Fit ``base``'s model plus each effect of ``pool`` it lacks and test it
     against ``base``: candidates best first, and the effects these data cannot show. ``work``: the
-    diagnosis' Pinocchio work buffers (``robot.create_data()``), shared by its fits."""
+    diagnosis' Pinocchio work buffers (``robot.create_data()``), shared by its fits. ``progress``:
+    called ``progress(done, label, total=...)`` before each effect's fit (elastocal/progress.py)."""
     model_names = base.model
     candidates: list[Candidate] = []
     skipped: list[NotTestable] = []
-    for name in pool:
-        if name in model_names:
-            continue
+    todo = [name for name in pool if name not in model_names]
+    for i, name in enumerate(todo):
+        if progress is not None:
+            progress(i, f"testing {name} against {' + '.join(model_names)}", total=len(todo))
         eff = get_effect(name)
         given = base.effects or model_names      # restricted effects stay as they were selected
         try:
@@ -392,7 +395,8 @@ def _where_absolute_sits(unexplained: tuple[str, ...], sides) -> tuple[str, ...]
 def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
                     model: Sequence[str] = ("joint_stiffness",), torque: TorqueSource = TorqueSource.CURRENT,
                     form: KinematicForm = KinematicForm.EXACT, effects: Sequence[str] | None = None,
-                    exclude_outliers: bool = False, tracker_prior: Sequence[float] | None = None) -> Diagnosis:
+                    exclude_outliers: bool = False, tracker_prior: Sequence[float] | None = None,
+                    progress=None) -> Diagnosis:
     """Fit ``model``, test each effect it lacks, and diagnose stepwise (docs/cli.md).
 
     ``candidates`` are the effects tested against the model as given, best
@@ -405,7 +409,8 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     in ``outliers`` and left out of the noise floor; ``exclude_outliers`` (a
     table only) refits without them. ``tracker_prior``: where the tracker stands
     in base coordinates [m] (cell.toml), a prior on the absolute comparison's
-    registration (identify/absolute.py).
+    registration (identify/absolute.py). ``progress``: told of each effect's fit, as
+    ``progress(done, label, total=...)`` (elastocal/progress.py).
     """
     excluded: tuple = ()
     if exclude_outliers and isinstance(data, StaticTable):
@@ -436,7 +441,7 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
 
     def test(fit: StaticFit, added: Sequence[str]) -> list[Candidate]:
         cands, skipped = test_candidates(robot, ds, fit, pool, torque=torque, form=form, noise_known=noise_known,
-                                         work=work)
+                                         work=work, progress=progress)
         if not added:
             skipped_first.extend(skipped)
         return cands
@@ -450,6 +455,8 @@ def diagnose_static(robot: Robot, data: StaticTable | StaticDataset, *,
     unexplained, detail = _deflection_unexplained(base, steps, final, floor, excess, where_final, ds)
     abs_diag = None
     if absolute:     # the deflection model's final form against the absolute positions
+        if progress is not None:
+            progress(0, "the absolute positions", total=1)
         abs_diag = diagnose_absolute(robot, ds_abs, (*final.model, *absolute_model), torque=torque, form=form,
                                      pool=absolute_pool, tracker_prior=tracker_prior)
         verdict = combined_verdict(verdict, len(steps), detail is not None, abs_diag)

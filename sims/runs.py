@@ -233,9 +233,15 @@ DEFAULT_FRICTION = FrictionPlan()
 
 
 def simulate_runs(robot: Robot, truth: CellTruth, *, seed: int, sweeps: SweepPlan | None = DEFAULT_SWEEPS,
-                  friction: FrictionPlan | None = DEFAULT_FRICTION, source: str = "<simulated runs>") -> RunTable:
+                  friction: FrictionPlan | None = DEFAULT_FRICTION, source: str = "<simulated runs>",
+                  progress=None) -> RunTable:
     """Run table (docs/formats.md §3) of compensator-joint sweeps then UV/VU runs on the simulated
-    cell; the default plans are placed on ``robot``'s joints."""
+    cell; the default plans are placed on ``robot``'s joints. ``progress``: told of the sweeps and
+    of the runs, ``progress(done, label, total=...)``."""
+    def stage(done: int, label: str) -> None:
+        if progress is not None:
+            progress(done, label, total=2)
+
     if sweeps is DEFAULT_SWEEPS:
         sweeps = SweepPlan.for_robot(robot)
     if friction is DEFAULT_FRICTION:
@@ -244,8 +250,10 @@ def simulate_runs(robot: Robot, truth: CellTruth, *, seed: int, sweeps: SweepPla
     cols = _Columns.empty()
     t = 0.0
     if sweeps is not None:
+        stage(0, "the compensator sweeps")
         cols, t = simulate_sweeps(robot, truth, sweeps, rng, t0=t, cols=cols)
     if friction is not None:
+        stage(1, "the UV/VU runs")
         cols, t = simulate_friction_runs(robot, truth, friction, rng, t0=t, cols=cols)
     if not cols.run:
         raise ValueError("simulate_runs: nothing to simulate (no sweeps and no friction runs)")

@@ -85,14 +85,14 @@ def load_wrenches(n_loads: int, rng: np.random.Generator) -> np.ndarray:
 
 def simulate_static(robot: Robot, truth: CellTruth, *, seed: int, plan: StaticPlan = StaticPlan(),
                     poses: np.ndarray | None = None, wrenches: Sequence[np.ndarray] | None = None,
-                    source: str = "<simulated static>") -> StaticTable:
+                    source: str = "<simulated static>", progress=None) -> StaticTable:
     """Run a static experiment on the simulated cell and return its table.
 
     Per pose: the unloaded reference, then each load state; ``repeats`` readings
     of every marker per state, each reading with its own current sample (or,
     with ``plan.shared_currents``, one current sample per repeat for all markers).
     ``poses`` (n, 6) and ``wrenches`` (one (n_loads, 6) array per pose) override
-    the random ones.
+    the random ones. ``progress``: told of each pose, ``progress(done, label, total=...)``.
     """
     rng = np.random.default_rng(seed)
     cell = SimCell(robot, truth)
@@ -103,6 +103,8 @@ def simulate_static(robot: Robot, truth: CellTruth, *, seed: int, plan: StaticPl
     cols: dict[str, list] = {k: [] for k in ("pose", "load", "t", "q", "wrench", "currents", "marker", "xyz")}
     t = 0.0
     for p, q in enumerate(poses, start=1):
+        if progress is not None:
+            progress(p - 1, f"pose {p}", total=len(poses))
         w_states = load_wrenches(plan.n_loads, rng) if wrenches is None else np.asarray(wrenches[p - 1])
         t += plan.move_s
         reference = cell.equilibrium(q)

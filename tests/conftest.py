@@ -223,3 +223,16 @@ class Terminal:
 def terminal_class():
     """:class:`Terminal`: a child process on a real pseudo-terminal (what it shows, what is typed)."""
     return Terminal
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _quick_commands_say_no_progress():
+    """A command's progress (elastocal.progress.long_work) speaks once its work has taken 3 s; on a
+    busy test machine a small command can take that long, and the tests that read its stderr line
+    by line would read progress lines too. Silent unless a test asks for it
+    (tests/test_progress_commands.py sets the time to 0)."""
+    import elastocal.progress
+
+    with pytest.MonkeyPatch.context() as mp:      # session-wide: module fixtures run commands too
+        mp.setattr(elastocal.progress, "LONG_WORK_S", float("inf"))
+        yield

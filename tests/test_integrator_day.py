@@ -230,6 +230,40 @@ def test_pictures_axes_labels_arrows_and_colours():
     assert 6.9 < (hi - lo).total_seconds() / 86400 < 7.1
 
 
+def test_the_report_says_which_rms_each_number_is(absolute_calibration, tmp_path, capsys, monkeypatch):
+    """The headline's rms is per component (x, y, z), the per-pose plot's each marker's 3-D distance,
+    √3 apart: both say so, and the plot's noise floor is drawn √3 times the headline's."""
+    import re
+
+    root = absolute_calibration
+    page = tmp_path / "r.html"
+    assert main(["report", "--robot", str(root / "a" / "robot.toml"), "--static", str(root / "a" / "static.csv"),
+                 "--out", str(page)]) == 0
+    html = page.read_text(encoding="utf-8")
+    headline = re.search(r"µm rms per component \(x, y, z; the per-pose plot shows each marker's 3-D distance, "
+                         r"√3 times larger\), max \d+ µm, noise floor ([\d.]+) µm", html)
+    assert headline, html[:2000]
+    assert "rms per marker (3-D distance) [µm]" in html and "noise floor (per marker, 3-D)" in html
+
+    class Fit:        # what the plot reads of a fit: the per-pose rms and the floor
+        noise_floor = 5e-6
+
+        def per_pose(self):
+            return [{"pose": "P1", "rms": 20e-6}, {"pose": "P2", "rms": 30e-6}]
+
+    import numpy as np
+
+    import elastocal.report.absolute as absolute_report
+
+    drawn = []
+    monkeypatch.setattr(absolute_report, "figure_svg", lambda fig, ident: drawn.append(fig) or "")
+    absolute_report._pose_plot([("model", Fit(), "C0")], "fig-test")
+    ax = drawn[0].axes[0]
+    floor = [line for line in ax.lines if line.get_label() == "noise floor (per marker, 3-D)"]
+    assert len(floor) == 1 and ax.get_ylabel() == "rms per marker (3-D distance) [µm]"
+    assert np.allclose(floor[0].get_ydata(), 5.0 * np.sqrt(3))
+
+
 def test_view_arrows_visible_with_heads_and_one_pose_first(tmp_path):
     import numpy as np
 

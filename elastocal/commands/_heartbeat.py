@@ -45,6 +45,7 @@ class Heartbeat:
             terminal = False
         # a server (`sim serve`) is silent on purpose until Ctrl-C
         self.active = force or (terminal and command not in OWN_PROGRESS and not serves)
+        self._clear = "\r\x1b[2K" if terminal else ""
         self._stop = threading.Event()
         self._t0 = self._last = time.monotonic()
         self._thread: threading.Thread | None = None
@@ -60,7 +61,8 @@ class Heartbeat:
             if quiet < self.after_s:                 # the command spoke lately: wait for it to fall silent
                 wait = self.after_s - quiet
                 continue
-            print(f"elastocal {self.command}: working, {time.monotonic() - self._t0:.0f} s so far",
+            # over a progress line left open on the terminal (elastocal/progress.py), not after it
+            print(f"{self._clear}elastocal {self.command}: working, {time.monotonic() - self._t0:.0f} s so far",
                   file=self.stream, flush=True)
             self._last = time.monotonic() - self.after_s + self.every_s
             wait = self.every_s

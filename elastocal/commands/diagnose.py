@@ -28,15 +28,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def diagnose_inputs(inputs, model: tuple[str, ...], torque: TorqueSource, form: KinematicForm, *,
-                    exclude_outliers: bool = False, prior=None):
+                    exclude_outliers: bool = False, prior=None, progress=None):
     """(static Diagnosis or None, run Diagnosis or None) for the loaded inputs; ``prior``
     (:class:`~elastocal.commands._inputs.TrackerPrior`) on the registration, by default the
-    one of the cell.toml a log carries."""
+    one of the cell.toml a log carries; ``progress`` told of each fit (elastocal/progress.py)."""
     if prior is None and inputs.tracker_position is not None:
         prior = tracker_prior(argparse.Namespace(), inputs)
     return diagnose_data(inputs.robot, inputs.static, inputs.runs, model, torque, form,
                          log=None if inputs.log is None else str(inputs.log), exclude_outliers=exclude_outliers,
-                         tracker_prior=None if prior is None else prior.base_p_tracker)
+                         tracker_prior=None if prior is None else prior.base_p_tracker, progress=progress)
 
 
 def _um(x: float | None) -> str:
@@ -240,11 +240,20 @@ def format_runs(diag, args: argparse.Namespace, model: tuple[str, ...]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from elastocal.progress import long_work
+
+    with long_work("diagnose", 1, quiet=args.json) as progress:     # each effect's fit, on a large table
+        return _run(args, progress)
+
+
+def _run(args: argparse.Namespace, progress) -> int:
     inputs = load_inputs(args)
     model = table_model(args, inputs, parse_model(args.model))
     prior = tracker_prior(args, inputs)
     static, runs = diagnose_inputs(inputs, model, TorqueSource(args.torque), KinematicForm(args.form),
-                                   exclude_outliers=getattr(args, "exclude_outliers", False), prior=prior)
+                                   exclude_outliers=getattr(args, "exclude_outliers", False), prior=prior,
+                                   progress=progress)
+    progress.done()
     if args.json:
         obj = diagnosis_json(static, runs)
         left = open_effects(static) if static is not None else ()

@@ -33,16 +33,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def identify_inputs(inputs, model: tuple[str, ...], torque: TorqueSource, form: KinematicForm, *,
-                    exclude_outliers: bool = False, prior=None) -> Identification:
+                    exclude_outliers: bool = False, prior=None, progress=None) -> Identification:
     """What identify finds in the inputs (:func:`elastocal.diagnose.pipeline.identify_data`);
-    ``prior``: the cell's tracker position (commands/_inputs.py's tracker_prior)."""
+    ``prior``: the cell's tracker position (commands/_inputs.py's tracker_prior); ``progress``
+    told of each fit (elastocal/progress.py)."""
     return identify_data(inputs.robot, inputs.static, inputs.runs, model, torque, form,
                          exclude_outliers=exclude_outliers,
                          tracker_prior=None if prior is None else prior.base_p_tracker,
-                         prior_source=None if prior is None else prior.source)
+                         prior_source=None if prior is None else prior.source, progress=progress)
 
 
 def run(args: argparse.Namespace) -> int:
+    from elastocal.progress import long_work
+
+    with long_work("identify", 1, quiet=args.json) as progress:     # reading a long log, then each fit
+        progress(0, "reading the inputs")
+        return _run(args, progress)
+
+
+def _run(args: argparse.Namespace, progress) -> int:
     outputs = Outputs(force=args.force, inputs=[*input_paths(args), (args.cell, "--cell")])
     if args.out:
         outputs.add(args.out, "--out")
@@ -53,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     model = table_model(args, inputs, model)
     prior = tracker_prior(args, inputs)
     result = identify_inputs(inputs, model, TorqueSource(args.torque), KinematicForm(args.form),
-                             exclude_outliers=args.exclude_outliers, prior=prior)
+                             exclude_outliers=args.exclude_outliers, prior=prior, progress=progress)
+    progress.done()
     obj = result.to_json()
     if args.out:
         calibration = result.calibration(inputs.robot.name, inputs.files, robot_description=inputs.robot.to_toml())

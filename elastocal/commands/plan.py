@@ -299,6 +299,13 @@ def _print_text(args: argparse.Namespace, obj: dict, planned, markers, out, trac
 
 
 def run(args: argparse.Namespace) -> int:
+    from elastocal.progress import long_work
+
+    with long_work("plan", 1, quiet=args.json) as progress:      # the planning's stages, thousands of poses
+        return _run(args, progress)
+
+
+def _run(args: argparse.Namespace, progress) -> int:
     if args.discriminate is not None:
         from elastocal.commands import plan_discriminate
 
@@ -314,7 +321,7 @@ def run(args: argparse.Namespace) -> int:
                          source="--test-pose")
     args.poses = 12 if args.poses is None else args.poses
     args.candidates = 2000 if args.candidates is None else args.candidates
-    from elastocal.design.planning import plan_calibration
+    from elastocal.design.planning import PLAN_STAGES, plan_calibration
     from elastocal.design import search as dz
     from elastocal.sims import first_order_map as fom
 
@@ -346,7 +353,7 @@ def run(args: argparse.Namespace) -> int:
                                    loads_per_pose=args.loads_per_pose, n_candidates=args.candidates,
                                    n_check=args.check_poses, prior_stiffness=prior, friction=friction,
                                    name=args.name, repeats=args.repeats, seed=args.seed, source=str(out),
-                                   geometry=not args.stiffness_only)
+                                   geometry=not args.stiffness_only, progress=progress)
     except InputError as exc:
         # the plan text is made from the flags: name the flag the bad value came from
         if exc.column and exc.column.startswith("friction"):
@@ -354,10 +361,12 @@ def run(args: argparse.Namespace) -> int:
         raise
     fmap = None
     if args.map:
+        progress(PLAN_STAGES, "the first-order map", total=PLAN_STAGES + 1)
         map_load = (_wrench(args.map_load, "--map-wrench") if args.map_load
                     else tuple(f_max / math.sqrt(3.0) * np.array([1.0, 1.0, -1.0])) + (0.0, 0.0, 0.0))
         fmap = fom.first_order_map(robot, q_base=test.q, wrench=map_load, stiffness=prior, markers=markers,
                                   torque=TorqueSource(args.torque), n_grid=args.map_grid)
+    progress.done()
     with outputs:
         if fmap is not None:
             fom.plot_first_order_map(fmap, outputs.temp(args.map), test_q=test.q, poses=planned.design.q)

@@ -31,6 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from elastocal.progress import long_work
+
+    with long_work("report", 1, quiet=args.json) as progress:     # each effect's fit, on a large table
+        return _run(args, progress)
+
+
+def _run(args: argparse.Namespace, progress) -> int:
     outputs = Outputs(force=args.force, inputs=input_paths(args))
     out = outputs.add(args.out, "--out")
     model = parse_model(args.model)
@@ -44,7 +51,9 @@ def run(args: argparse.Namespace) -> int:
     inputs = load_inputs(args)
     model = table_model(args, inputs, model)
     static, runs = diagnose_inputs(inputs, model, TorqueSource(args.torque), KinematicForm(args.form),
-                                   exclude_outliers=args.exclude_outliers, prior=tracker_prior(args, inputs))
+                                   exclude_outliers=args.exclude_outliers, prior=tracker_prior(args, inputs),
+                                   progress=progress)
+    progress(0, "drawing the figures", total=1)
     from elastocal.diagnose.absolute_only import AbsoluteOnlyDiagnosis
     from elastocal.report.html import render_report
 
@@ -56,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
                              source="--add")
         names = ([args.robot] if args.robot else []) + [str(f) for f in inputs.files]
         page = absolute_only_page(inputs.robot, static, names)
+        progress.done()
         with outputs:
             outputs.temp(out).write_text(page, encoding="utf-8")
         if args.json:
@@ -75,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     left = open_effects(static) if static is not None else ()
     page = render_report(inputs.robot, static, runs, add=add, inputs=names,
                          command=command, next_experiment=(left, plan_command(args, left)) if left else None)
+    progress.done()
     with outputs:
         outputs.temp(out).write_text(page, encoding="utf-8")
     verdict = static.verdict if static is not None else (runs.verdict if runs is not None else None)

@@ -220,7 +220,7 @@ def _check_flags(args: argparse.Namespace, static: bool) -> None:
             raise InputError("outliers need 3 or more repeats to be told from their repeats", source="--outliers")
 
 
-def _simulate(args: argparse.Namespace, robot, static: bool, out: pathlib.Path):
+def _simulate(args: argparse.Namespace, robot, static: bool, out: pathlib.Path, progress=None):
     """(the robot the user's robot.toml describes, the simulated table, the cell's truth, truth.json)."""
     from elastocal.sims.cell import CellTruth
 
@@ -232,7 +232,7 @@ def _simulate(args: argparse.Namespace, robot, static: bool, out: pathlib.Path):
         truth = CellTruth.for_robot(robot).with_hidden(args.hidden)
         plan = StaticPlan(n_poses=args.poses, n_loads=args.loads, repeats=args.repeats,
                           shared_currents=args.shared_currents)
-        table = simulate_static(robot, truth, seed=args.seed, plan=plan)
+        table = simulate_static(robot, truth, seed=args.seed, plan=plan, progress=progress)
         try:
             table, outlier_lines = add_outliers(table, args.outliers, np.random.default_rng([args.seed, 18]))
         except ValueError as exc:
@@ -242,7 +242,7 @@ def _simulate(args: argparse.Namespace, robot, static: bool, out: pathlib.Path):
         from elastocal.sims.runs import described_robot, hide_in_runs, simulate_runs
 
         truth = hide_in_runs(CellTruth.for_robot(robot), args.hidden)
-        table = simulate_runs(robot, truth, seed=args.seed, source=str(out / "runs.csv"))
+        table = simulate_runs(robot, truth, seed=args.seed, source=str(out / "runs.csv"), progress=progress)
         params = truth.parameters(robot)
         robot = described_robot(robot, args.hidden)     # what the user's robot.toml says
     truth_doc = {"hidden": args.hidden, "seed": args.seed, "robot": robot.name, "parameters": params,
@@ -275,6 +275,14 @@ def run(args: argparse.Namespace) -> int:
         from elastocal.commands import sim_plant
 
         return sim_plant.run(args)
+    from elastocal.progress import long_work
+
+    with long_work(f"sim {args.sim_command}", 1, quiet=args.json) as progress:   # a pose or a run at a time
+        return _tables(args, progress)
+
+
+def _tables(args: argparse.Namespace, progress) -> int:
+    """``sim static`` and ``sim runs``: the simulated table, its log, the robot and the truth."""
     from elastocal.commands._outputs import Outputs, check_folder
 
     # everything is checked before anything is written
@@ -298,8 +306,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         from elastocal.formats.tables import read_run_table
         from elastocal.sims.runs import write_runs_csv
-    robot, table, truth, truth_doc = _simulate(args, robot, static, out)
+    robot, table, truth, truth_doc = _simulate(args, robot, static, out, progress)
     sweep_table = _compensator_sweep(args, robot, truth, truth_doc, out) if sweep else None
+    progress(progress.total, "writing the table and its log", total=progress.total + 1)
     outputs.make_folder(out)
     with outputs:
         outputs.temp(out / "robot.toml").write_text(robot.to_toml(), encoding="utf-8")
@@ -325,6 +334,7 @@ def run(args: argparse.Namespace) -> int:
         written["log"] = str(out / "log.mcap")
         outputs.temp(out / "truth.json").write_text(json.dumps(truth_doc, indent=2) + "\n", encoding="utf-8")
         written["truth"] = str(out / "truth.json")
+    progress.done()
     if args.json:
         print(json.dumps(written))
     else:

@@ -33,17 +33,27 @@ def _row(name: str, stats) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from elastocal.progress import long_work
+
+    with long_work("validate", 2, quiet=args.json) as progress:
+        return _run(args, progress)
+
+
+def _run(args: argparse.Namespace, progress) -> int:
     from elastocal.identify.accuracy import validate
     from elastocal.formats.calibration import file_sha256, read_calibration
     from elastocal.formats.tables import read_static_table
 
+    progress(0, "reading the calibration and the table")
     calibration = read_calibration(args.calibration)
     robot = calibration_robot(args, calibration)
     table = read_static_table(args.static, robot)
     if not len(table):
         raise InputError("the table holds no readings", source=args.static)
     prior = tracker_prior(args)
+    progress(1, "the calibrated robot against the readings")
     result = validate(robot, calibration, table, keep_frame=args.keep_frame, calibration_name=args.calibration)
+    progress.done()
     obj = result.to_json()
     # the same bytes as a file the calibration was fitted on: an accuracy of the fit, not a validation
     fit_data = file_sha256(args.static) in {d.sha256 for d in calibration.data if d.sha256}
