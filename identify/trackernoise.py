@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from elastocal.identify.blas import one_blas_thread
 from elastocal.identify.grouping import combine, first_seen, group_count, group_sum
 from elastocal.model.tracker_noise import TrackerNoise
 
@@ -81,6 +82,7 @@ def _fit_law(rng: np.ndarray, ss: np.ndarray, dof: np.ndarray) -> tuple[float, f
     return float(a), float(b)
 
 
+@one_blas_thread          # hundreds of tiny L-BFGS-B steps: BLAS threads only wait on each other
 def estimate_tracker_noise(table, *, exclude: np.ndarray | None = None,
                            min_dof: int = MIN_REPEAT_DOF) -> TrackerNoise | None:
     """The law from the table's repeated readings (rows ``exclude`` left out), or None

@@ -7,6 +7,7 @@ from elastocal.identify.absolute import identify_absolute
 from elastocal.identify.accuracy import validate
 from elastocal.identify.blas import one_blas_thread
 from elastocal.identify.static import identify_static
+from elastocal.identify.trackernoise import estimate_tracker_noise
 
 
 def blas_threads() -> list[int]:
@@ -31,5 +32,5 @@ def test_one_blas_thread_inside_and_the_setting_restored_after():
 
 
 def test_the_fits_are_wrapped():
-    for fn in (identify_static, identify_absolute, validate):
+    for fn in (identify_static, identify_absolute, validate, estimate_tracker_noise):
         assert getattr(fn, "__wrapped__", None) is not None, fn.__name__
