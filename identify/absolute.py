@@ -22,7 +22,7 @@ angles), block by block (one block per state: its markers share its currents).
   parameters are those of the deflection fit and the registration is the
   closed-form rigid fit (Kabsch) of the model's predictions: the "absolute
   comparison" of every identification.
-* With them, everything is refined by Levenberg-Marquardt (scipy) from that
+* With them, everything is refined by Gauss-Newton with halved steps from that
   start: the elastic parameters, the 6 DoF of the registration and the
   identifiable set of kinematic parameters, which a QR of the stacked, whitened
   regressor chooses (elastic parameters first, then the frame, the markers, the
@@ -44,12 +44,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 import pinocchio as pin
-import scipy.linalg
-import scipy.special
 
 from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
+from elastocal.identify.chi2 import chi2_survival
 from elastocal.model.effects import BASE_EFFECT, absolute_effects, get_effect, having
 from elastocal.identify.registration import Registration, kabsch, register
 from elastocal.identify.toolpoints import ToolPoints, find_tool_points, fit_tool_points, needs_prefit, usable
@@ -143,7 +142,7 @@ class AbsoluteFit:
         noise (above UNEXPLAINED_RATIO x the floor, chi-square p below UNEXPLAINED_P), else None."""
         if self.noise_floor is None or not self.noise_floor > 0 or not any(m in ABSOLUTE_EFFECTS for m in self.model):
             return None
-        p = scipy.special.chdtrc(max(self.n - self.n_params, 1), self.rss_whitened)    # chi2's survival
+        p = chi2_survival(max(self.n - self.n_params, 1), self.rss_whitened)
         ratio = self.rms / self.noise_floor
         return ratio if ratio > UNEXPLAINED_RATIO and p < UNEXPLAINED_P else None
 
@@ -584,7 +583,8 @@ def _frame_parameters(st: _Setup, solved: _Solved, unc: _AbsoluteUncertainty, n_
     pos_free = {c: k for k, c in enumerate(solved.idx)}
     cols = [pos_free[n_el + k] for k in range(6)]
     cov6 = unc.cov_free[np.ix_(cols, cols)]
-    jmap = scipy.linalg.block_diag(pin.Jlog3(rot), st.rot0)
+    jmap = np.zeros((6, 6))
+    jmap[:3, :3], jmap[3:, 3:] = pin.Jlog3(rot), st.rot0
     std6 = np.sqrt(np.clip(np.diag(jmap @ cov6 @ jmap.T), 0.0, None))
     return [Parameter(name, float(rvec[k]) if k < 3 else float(t[k - 3]), float(std6[k]), "rad" if k < 3 else "m")
             for k, name in enumerate(FRAME_NAMES)]
@@ -693,9 +693,17 @@ def excess_variance(residual: np.ndarray, variance: np.ndarray, n_params: int) -
 
     if excess(0.0) <= 0.0:
         return 0.0
-    import scipy.optimize  # imported where used: only readings that state their uncertainty need it
-
-    return float(scipy.optimize.brentq(excess, 0.0, float(np.max(r2)) * r2.size + float(np.max(v))))
+    # excess falls monotonically from above 0 at s2 = 0 to below it at hi: bisection to the last bits
+    # (scipy.optimize's import alone costs a command more than this whole fit)
+    lo, hi = 0.0, float(np.max(r2)) * r2.size + float(np.max(v))
+    while True:
+        mid = 0.5 * (lo + hi)
+        if not lo < mid < hi:
+            return hi
+        if excess(mid) > 0.0:
+            lo = mid
+        else:
+            hi = mid
 
 
 def _tracker_position(st: _Setup, x: np.ndarray, n_el: int) -> np.ndarray:
@@ -718,7 +726,7 @@ def _prior_rows(st: _Setup, x: np.ndarray, n_el: int, prior: np.ndarray) -> tupl
 
 
 def _gauss_newton(evaluate, x0: np.ndarray, *, max_iter: int, rel_tol: float = 1e-10) -> tuple[np.ndarray, int]:
-    """Minimise ``|r(x)|^2`` by Gauss-Newton steps (scipy's least-squares solve of the
+    """Minimise ``|r(x)|^2`` by Gauss-Newton steps (LAPACK's least-squares solve of the
     column-scaled Jacobian, so that near-dependent columns cost nothing), a step
     halved until the cost falls (Levenberg-Marquardt's safeguard); ``evaluate(x)``
     returns ``(r, dr/dx)``. Converged when a step lowers the cost by less than
@@ -729,7 +737,7 @@ def _gauss_newton(evaluate, x0: np.ndarray, *, max_iter: int, rel_tol: float = 1
     for iteration in range(1, max_iter + 1):
         scale = np.linalg.norm(jac, axis=0)
         scale = np.where(scale > 0, scale, 1.0)
-        step = scipy.linalg.lstsq(jac / scale, -r, lapack_driver="gelsd")[0] / scale
+        step = np.linalg.lstsq(jac / scale, -r, rcond=np.finfo(float).eps)[0] / scale    # LAPACK's gelsd
         for _ in range(8):
             r_new, jac_new = evaluate(x + step)
             cost_new = float(r_new @ r_new)

@@ -30,10 +30,9 @@ from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
-import scipy.linalg
 
 from elastocal.errors import Arg, EffectRefused, InputError, UnidentifiableError
-from elastocal.identify.blas import one_blas_thread
+from elastocal.identify.blas import one_blas_thread, scipy_linalg
 from elastocal.identify.dataset import StaticDataset, build_dataset
 from elastocal.identify.evidence import check_loads_changed, mark_stiffness
 from elastocal.identify.registration import in_base_axes, refine_registration
@@ -275,7 +274,7 @@ class Whitening:
         out = np.empty_like(v)
         if not self.blocks:
             return out
-        trtrs = scipy.linalg.lapack.dtrtrs
+        trtrs = scipy_linalg().lapack.dtrtrs
         for rows, chol in self.blocks:
             # solve_triangular's call for a C-ordered lower factor: the transposed (upper,
             # Fortran-ordered) system, transposed back
@@ -346,7 +345,7 @@ def _select_columns(a: np.ndarray, names: Sequence[str],
         if idx.size == 0:
             continue
         block = scaled[:, idx] - q @ (q.T @ scaled[:, idx])
-        qb, r, piv = scipy.linalg.qr(block, mode="economic", pivoting=True)
+        qb, r, piv = scipy_linalg().qr(block, mode="economic", pivoting=True)     # numpy's QR has no pivoting
         diag = np.abs(np.diag(r))
         largest = diag[0] if largest is None else largest
         good = diag > RANK_TOL * max(largest, 1e-300) if level == 0 else diag > RANK_TOL * 1.0

@@ -34,3 +34,57 @@ def test_one_blas_thread_inside_and_the_setting_restored_after():
 def test_the_fits_are_wrapped():
     for fn in (identify_static, identify_absolute, validate, estimate_tracker_noise):
         assert getattr(fn, "__wrapped__", None) is not None, fn.__name__
+
+
+PROBE = """
+import sys, json
+from threadpoolctl import threadpool_info
+from elastocal.formats.robot_toml import bundled_robot, load_robot
+from elastocal.formats.tables import read_static_table
+from elastocal.identify.absolute import identify_absolute
+from elastocal.identify.static import identify_static
+ctu = {ctu!r}
+robot = load_robot(ctu + "/robot.toml")
+identify_absolute(robot, read_static_table(ctu + "/train.csv", robot), model=("kinematic_errors", "tracker_frame"))
+after_absolute = "scipy" in sys.modules
+from elastocal.sims.cell import CellTruth
+from elastocal.sims.static import StaticPlan, simulate_static
+hh = bundled_robot()
+table = simulate_static(hh, CellTruth(), seed=1, plan=StaticPlan(n_poses=6))
+before_static = "scipy.linalg" in sys.modules
+identify_static(hh, table)
+blas = [(i["filepath"], i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"]
+print(json.dumps([after_absolute or before_static, "scipy.linalg" in sys.modules, blas]))
+"""
+
+
+def test_a_table_without_loads_fits_without_scipy_and_a_fit_that_loads_it_limits_its_blas():
+    """The geometric calibration of a table without loads imports no scipy (its import cost a command
+    more than the fit); the deflection fit imports scipy.linalg where it first needs it and leaves its
+    BLAS library on one thread (the fit's limit held the libraries loaded when it began)."""
+    import json
+    import pathlib
+    import subprocess
+    import sys
+
+    data = pathlib.Path(__file__).parent / "data"
+    code = PROBE.format(ctu=str(data / "ctu_motoman"))
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    after_absolute, scipy_loaded, blas = json.loads(done.stdout.strip().splitlines()[-1])
+    assert after_absolute is False and scipy_loaded is True
+    scipy_blas = [n for path, n in blas if "scipy_openblas64" not in path]
+    assert len(blas) >= 1 and all(n == 1 for n in scipy_blas), blas
+
+
+def test_the_chi_square_survival_is_scipys():
+    import numpy as np
+    import scipy.special
+
+    from elastocal.identify.chi2 import chi2_survival
+
+    for dof in (1, 2, 3, 7, 30, 120, 850, 5000):
+        for x in np.concatenate([np.linspace(0.01, 3 * dof + 50, 40), [10.0 * dof]]):
+            want = scipy.special.chdtrc(dof, x)
+            # a p-value compared with a threshold: a few units in the 12th digit of its own size
+            assert chi2_survival(dof, x) == __import__("pytest").approx(want, rel=1e-10, abs=1e-300), (dof, x)
+    assert chi2_survival(5, 0.0) == 1.0 and chi2_survival(5, float("inf")) == 0.0
