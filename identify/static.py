@@ -504,8 +504,12 @@ def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: 
                 confirmed = confirm_selection(sel, lambda keep: identify_static(
                     robot, ds, model=[*effects[:k], eff.restricted(sel.fitted(keep)), *effects[k + 1:]],
                     torque=torque, form=form, max_iter=max_iter, tol=tol, work=work), n=ds.dP.size)
-                if confirmed.kept != sel.kept:     # the controls of what stays
-                    sel = replace(confirmed, controls=confounders(full, confirmed.kept, eff.parameters))
+                if confirmed.kept != sel.kept:     # the controls of what stays, and those found before
+                    # (a control the first pass needed still matters: of two components the data cannot
+                    # tell apart, the recount beside the other may pass it over)
+                    again = set(confounders(full, confirmed.kept, eff.parameters)) | set(sel.controls)
+                    sel = replace(confirmed, controls=tuple(n for n in eff.parameters
+                                                            if n in again and n not in confirmed.kept))
             selections.append(sel)
             # the kept components and the controls (fitted, not named: identify/selection.py)
             effects = (*effects[:k], eff.restricted(sel.fitted()), *effects[k + 1:])

@@ -270,17 +270,19 @@ def test_the_carriage_stiffness_of_the_joint_fit_is_unbiased_over_20_seeds():
 
 
 @pytest.mark.heavy
-@pytest.mark.xfail(strict=True, reason="open: with the demo's loads the deflection fit's selection often misses "
-                   "cl4y, which the wrist joint's k6 then absorbs in the absolute fit (up to -14 std); the "
-                   "controls are chosen at the deflection fit's precision, not the absolute fit's")
 def test_the_absolute_fit_gives_no_wrong_confident_stiffness_over_20_seeds():
+    """Every joint stiffness and link compliance the joint fit reports (the selected components and the
+    controls, whose truth is 0 where the cell hides none) within 4.5 std of the truth. With the demo's
+    loads the data cannot tell the forearm's cl4y from the hand's cl5x or cl6x: the selection kept one
+    of them and the wrist's k6 followed the choice, up to 14 std off, until such twins were fitted as
+    controls beside it (identify/selection.py)."""
     worst = []
     for seed in range(20):
         truth, fit = _demo_like_fit(seed)
         tp = truth.parameters(ROBOT)
         for p in fit.parameters:
             if p.name in K_NAMES or p.name.startswith("cl"):
-                z = (p.value - tp[p.name]["value"]) / p.std
+                z = (p.value - tp.get(p.name, {"value": 0.0})["value"]) / p.std
                 if abs(z) > 4.5:            # 4.5 std: beyond chance over 20 seeds x 11 parameters
                     worst.append(f"seed {seed} {p.name} {z:+.1f} std")
     assert worst == []
