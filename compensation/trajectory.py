@@ -112,8 +112,8 @@ def compensate_path(model: CompensationModel, q: np.ndarray, wrench: np.ndarray,
                     form: KinematicForm = KinematicForm.EXACT, reference: str | None = None) -> CompensatedPath:
     """Compensated commands for the planned path ``q`` (n, 6) under ``wrench``
     ((6,) constant or (n, 6) per sample). The predicted deflection is the exact
-    one (loaded equilibrium) for ``form="exact"`` and ``J dtheta`` for
-    ``form="first-order"``."""
+    one (loaded equilibrium) for ``KinematicForm.EXACT`` and ``J dtheta`` for
+    ``KinematicForm.FIRST_ORDER``."""
     reference = default_reference(model) if reference is None else reference
     q, w = _check_inputs(model, q, wrench, form, reference)
     k = StaticKernel(model)

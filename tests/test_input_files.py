@@ -40,7 +40,7 @@ from elastocal.formats.tables import (
 from elastocal.sims.cell import CellTruth
 from elastocal.sims.runs import FrictionPlan, SweepPlan, default_run_truth, simulate_runs
 from elastocal.sims.static import StaticPlan, simulate_static
-from elastocal.model.kinds import TorqueSource
+from elastocal.model.kinds import CompensatorKind, TorqueSource
 
 ROBOT = bundled_robot()
 URDF_ROBOT = bundled_robot("hh150_urdf")
@@ -187,7 +187,7 @@ def test_a_spring_compensator_refuses_hydropneumatic_keys():
     assert str(err.value) == ("robot.toml, column compensator.h: unknown key h for a spring compensator; "
                               "known keys: kind, joint, a, L, alpha, K_c, s0")
     spring = parse_robot(text.replace("h = 0.1\n", "K_c = 1.0e5\ns0 = 0.5\n"), source="robot.toml")
-    assert spring.compensator.kind == "spring" and spring.compensator.nominal == (("K_c", 1.0e5), ("s0", 0.5))
+    assert spring.compensator.kind is CompensatorKind.SPRING and spring.compensator.nominal == (("K_c", 1.0e5), ("s0", 0.5))
 
 
 def _without_compensator() -> str:
