@@ -26,6 +26,8 @@ EVERY_UNIT_UP_TO = 20
 
 #: work shorter than this says nothing (:func:`long_work`): a quick run's stderr stays its notes [s]
 LONG_WORK_S = 3.0
+#: on a terminal, a long work's line is redrawn this often while one unit runs [s]
+REDRAW_S = 1.0
 
 
 def format_duration(seconds: float) -> str:
@@ -56,7 +58,8 @@ class Progress:
     ``total`` may grow (``progress(done, label, total=...)``); ``failed`` adds ``, N failed``.
     ``after_s``: nothing is said before the work has taken that long; used as a context manager
     (``with long_work(...) as progress:``) it then says where the work stands even when the
-    work's current unit is a long one (a timer), and ends its line however the work ends."""
+    work's current unit is a long one (a watcher thread; on a terminal it keeps the elapsed time
+    going), and ends its line however the work ends."""
 
     def __init__(self, command: str, total: int, *, stream=None, quiet: bool = False,
                  clock=time.monotonic, after_s: float = 0.0) -> None:
@@ -71,7 +74,8 @@ class Progress:
         self._said = False            # a line was written
         self._last: tuple[int, str, int | None] = (0, "", None)     # where the work stands: done, label, failed
         self._lock = threading.Lock()
-        self._timer: threading.Timer | None = None
+        self._stop: threading.Event | None = None      # the watcher's (``with``, after_s > 0)
+        self._watcher: threading.Thread | None = None
 
     def __call__(self, done: int, label: str = "", *, total: int | None = None, failed: int | None = None) -> None:
         if total is not None:
@@ -103,30 +107,40 @@ class Progress:
             self._shown = tenth
         print(text, file=self.stream, flush=True)
 
-    def _first_word(self) -> None:
-        """The work has taken ``after_s`` and said nothing yet: where it stands."""
+    def _watch(self, stop: threading.Event) -> None:
+        """The work has taken ``after_s`` and said nothing yet: where it stands; then, on a
+        terminal, the line redrawn every :data:`REDRAW_S` so its elapsed time keeps going while
+        one long unit runs (a file gets a line per unit only)."""
+        if stop.wait(self.after_s):
+            return
         with self._lock:
-            if not self._said and self._timer is not None:
+            if not self._said:
                 self._say(*self._last, self._clock() - self._t0)
+        while self.terminal and not stop.wait(REDRAW_S):
+            with self._lock:
+                if self._open:
+                    self._say(*self._last, self._clock() - self._t0)
 
     def done(self, label: str = "done", *, failed: int | None = None) -> None:
         self(self.total, label, failed=failed)
 
     def close(self) -> None:
         """End a terminal line left open (the work stopped before its end)."""
+        if self._watcher is not None:
+            self._stop.set()
+            self._watcher.join()
+            self._watcher = None
         with self._lock:
-            if self._timer is not None:
-                self._timer.cancel()
-                self._timer = None
             if self._open and not self.quiet:
                 print(file=self.stream, flush=True)
                 self._open = False
 
     def __enter__(self) -> "Progress":
         if 0 < self.after_s < float("inf") and not self.quiet:
-            self._timer = threading.Timer(self.after_s, self._first_word)
-            self._timer.daemon = True
-            self._timer.start()
+            self._stop = threading.Event()
+            self._watcher = threading.Thread(target=self._watch, args=(self._stop,), name="elastocal-progress",
+                                             daemon=True)
+            self._watcher.start()
         return self
 
     def __exit__(self, *exc) -> None:

@@ -87,3 +87,28 @@ def test_a_long_first_unit_is_told_when_it_has_taken_long_enough():
         p(0, "fitting")
         p.done()
     assert quiet.getvalue() == ""               # quicker than after_s: nothing at all
+
+
+def test_on_a_terminal_the_line_keeps_its_elapsed_time_going(monkeypatch):
+    monkeypatch.setattr(progress_module, "REDRAW_S", 0.01)
+    drawn = threading.Semaphore(0)
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+        def write(self, text):
+            n = super().write(text)
+            if text.startswith("\r"):
+                drawn.release()
+            return n
+
+    tty = Terminal()
+    with Progress("diagnose", 11, stream=tty, after_s=0.01) as p:
+        p(3, "testing link_compliance against joint_stiffness")
+        for _ in range(3):                      # the first word, then redraws of the same unit
+            assert drawn.acquire(timeout=30.0)
+    text = tty.getvalue()
+    assert text.count("\r\x1b[2Kdiagnose: [") >= 3 and "3/11  testing link_compliance" in text
+    assert text.endswith("\n")                  # the open line ended when the work stopped
+

@@ -1,9 +1,9 @@
 """A word on the terminal while a command works in silence.
 
 Every command that can take more than ~3 s says what it is doing; those without progress
-of their own (identify, diagnose, report, plan, validate, sim static, ...) get this one:
+of their own (compensate, geometry, import, history, ...) get this one:
 when stderr is a terminal and the command has printed nothing for ``after_s``, one line
-``elastocal identify: working, 3 s so far`` on stderr, then one every ``every_s``. Nothing
+``elastocal compensate: working, 3 s so far`` on stderr, then one every ``every_s``. Nothing
 when stderr is a file or a pipe (a script, a timer, a test reads the command's own lines).
 """
 
@@ -14,7 +14,9 @@ import threading
 import time
 
 #: commands that report their own progress (a bar, a line per step or per log)
-OWN_PROGRESS = frozenset({"calibrate", "check", "demo", "devices", "fleet", "stream", "view", "schedule"})
+OWN_PROGRESS = frozenset({"calibrate", "check", "demo", "devices", "fleet", "stream", "view", "schedule",
+                          # elastocal.progress.long_work: their line after 3 s, kept going on a terminal
+                          "identify", "diagnose", "report", "plan", "validate", "sim"})
 
 
 class _Watched:
