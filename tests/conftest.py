@@ -12,12 +12,14 @@ Markers (registered in pyproject.toml): ``slow`` marks tests that run simulated 
 procedures in wall-clock time; ``python -m pytest -m "not slow"`` leaves them out for a
 quick run. ``heavy`` marks statistics over hundreds of seeds and long end-to-end runs:
 the default run leaves them out (``-m 'not heavy'`` in pyproject's addopts), ``python -m
-pytest -m heavy`` runs them, and ``.ci/run`` runs both. A heavy test is slow too.
+pytest -m heavy`` runs them (the ``acceptance`` ones among them), and ``.ci/run`` runs
+both. A heavy test is slow too.
 
 The run is spread over the cores by pytest-xdist (``-n auto --dist loadgroup``): the tests
-of a module that share one of its module-scoped fixtures go to one worker, so the fixture
-is computed once; every other test goes wherever a worker is free. Session fixtures are
-made once per worker. A test therefore never assumes it runs alone: ports are 0 (the
+of a module that share one of its module-scoped fixtures (or a session-scoped one the
+module defines) go to one worker, so the fixture is computed once; every other test goes
+wherever a worker is free. Session fixtures are made once per worker. Each worker, and
+each process a test starts, runs BLAS on one thread (the workers already fill the cores). A test therefore never assumes it runs alone: ports are 0 (the
 system picks), files go to ``tmp_path``, and global state is restored by a fixture.
 
 A run leaves nothing behind: files go to ``tmp_path`` (pytest removes a green run's
@@ -38,7 +40,16 @@ import tempfile
 
 import pytest
 
-from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path
+# One BLAS thread per test process, set before numpy or scipy loads (so also in the xdist
+# workers and the subprocesses, which inherit it): xdist already runs one worker per core,
+# and BLAS threads beside them only oversubscribe the cores. Idle OpenBLAS threads spin, and
+# the many small solves of the simulations and of scipy's L-BFGS-B then cost up to 17 times
+# the CPU time (the tracker-noise law of build_dataset after a fit: 0.34 s against 0.02 s
+# per HH-150 table). A value already in the environment is kept.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+from elastocal.formats.robot_toml import bundled_robot, bundled_robot_path  # noqa: E402
 
 
 #: where a run must leave nothing: the temporary folder and the user's configuration
@@ -51,7 +62,9 @@ def _entries() -> dict[pathlib.Path, set[str]]:
 
 
 def pytest_configure(config):
-    if not hasattr(config, "workerinput"):          # the controller (or a run without workers)
+    if hasattr(config, "workerinput"):              # an xdist worker: it sends the tests' ids to the scheduler
+        config.pluginmanager.register(_GroupSuffix(), "elastocal-xdist-group-suffix")
+    else:          # the controller (or a run without workers)
         config.stash[_LEFTOVER_KEY] = _entries()
         # matplotlib makes ~/.config/matplotlib on first import: this session's one instead
         # (inherited by the xdist workers and by subprocesses), removed at the end
@@ -120,12 +133,40 @@ def pytest_collection_modifyitems(config, items):
 
 
 def _uses_module_fixture(item) -> bool:
-    """Whether the test needs a fixture computed once per module (or class)."""
+    """Whether the test needs a fixture computed once per module (or class): a module-,
+    class- or package-scoped one, or a session-scoped one its own module defines (only
+    that module's tests use it, so on two workers it would be computed twice)."""
     info = getattr(item, "_fixtureinfo", None)
     if info is None:
         return False
-    return any(defs and defs[-1].scope in ("module", "class", "package")
+    module = item.module.__name__
+    return any(defs and (defs[-1].scope in ("module", "class", "package")
+                         or defs[-1].scope == "session" and getattr(defs[-1].func, "__module__", None) == module)
                for defs in info.name2fixturedefs.values())
+
+
+class _GroupSuffix:
+    """pytest-xdist's loadgroup tells its scheduler a test's group by appending ``@group`` to
+    the test's id in the worker, through ``item._nodeid``; pytest 9 keeps the id in
+    ``item._id``, so the suffix never arrives and every test is scheduled alone (a module's
+    fixture then computed on each worker: the heavy fleet fixtures twice, ~50 s of CPU each).
+    https://github.com/pytest-dev/pytest-xdist/issues/1386. This appends it where xdist
+    could not, and does nothing where xdist did (an older pytest, a fixed xdist)."""
+
+    @pytest.hookimpl(trylast=True)          # after xdist's hook of the same name
+    def pytest_collection_modifyitems(self, config, items):
+        try:
+            from _pytest.nodeid import NodeId       # pytest >= 9
+        except ImportError:
+            return
+        if not config.getvalue("loadgroup"):
+            return
+
+        for item in items:
+            names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                            for m in item.iter_markers("xdist_group")})
+            if names and "@" not in item.nodeid.rpartition("]")[2] and isinstance(getattr(item, "_id", None), NodeId):
+                item._id = NodeId.parse(f"{item.nodeid}@{'_'.join(names)}")
 
 
 @pytest.fixture(scope="session")
