@@ -207,48 +207,7 @@ def confounders(full_fit, kept: tuple[str, ...], components: tuple[str, ...], *,
             break
         chosen.append(best)
         pool.remove(best)
-    chosen += _twins(lin, kept, [nm for nm in pool if nm not in chosen], chosen)
     return tuple(nm for nm in components if nm in chosen)
-
-
-def _twins(lin: _Linear, kept: tuple[str, ...], pool: list[str], chosen: list[str]) -> list[str]:
-    """Components not fitted that the data cannot tell from a fitted one: put in its place, the twin
-    passes the selection's test with the physical sign, and the model's parameters move by more than
-    CONTROL_SHIFT of their std. Which of the two is there is not in the data, so a spring that
-    follows the choice (a wrist's k6 between the forearm's cl4y and the hand's cl6x) is fitted with
-    both, its std then honest; without, it was reported 10 std off with the wrong one of the pair.
-    (Beside the kept one, a twin's value is often below zero: the rule above passes it over.)"""
-    nb = len(lin.base)
-    limit = threshold(lin.n)
-    now = lin.solve([*kept, *chosen])
-    if now is None:
-        return []
-    std_now = np.sqrt(np.clip(np.diag(now[1])[:nb], 1e-300, None))
-    twins: list[str] = []
-    alone = lin.solve(list(kept))
-    if alone is not None:            # each would have been a control beside the kept ones alone
-        std_alone = np.sqrt(np.clip(np.diag(alone[1])[:nb], 1e-300, None))
-        for c in pool:
-            got = lin.solve([*kept, c])
-            if got is not None and got[0][-1] > 0.0 and \
-                    float(np.max(np.abs(got[0][:nb] - alone[0][:nb]) / std_alone)) > CONTROL_SHIFT:
-                twins.append(c)
-    fitted = [*kept, *chosen]
-    for k in fitted:                   # a kept component or a control: either may have a twin
-        others = [x for x in fitted if x != k]
-        for c in pool:
-            if c in twins:
-                continue
-            got = lin.solve([*others, c])
-            if got is None:
-                continue
-            b, cov = got
-            var = float(cov[-1, -1])
-            if not (var > 0 and b[-1] > 0 and b[-1] ** 2 / var > limit):
-                continue
-            if float(np.max(np.abs(b[:nb] - now[0][:nb]) / std_now)) > CONTROL_SHIFT:
-                twins.append(c)
-    return twins
 
 
 def threshold(n: int) -> float:
