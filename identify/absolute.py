@@ -48,7 +48,6 @@ import pinocchio as pin
 from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
-from elastocal.identify.chi2 import chi2_survival
 from elastocal.model.effects import BASE_EFFECT, absolute_effects, get_effect, having
 from elastocal.identify.registration import Registration, kabsch, register
 from elastocal.identify.toolpoints import ToolPoints, find_tool_points, fit_tool_points, needs_prefit, usable
@@ -142,7 +141,10 @@ class AbsoluteFit:
         noise (above UNEXPLAINED_RATIO x the floor, chi-square p below UNEXPLAINED_P), else None."""
         if self.noise_floor is None or not self.noise_floor > 0 or not any(m in ABSOLUTE_EFFECTS for m in self.model):
             return None
-        p = chi2_survival(max(self.n - self.n_params, 1), self.rss_whitened)
+        # scipy.special alone (not scipy.stats): a command that never asks this imports no scipy
+        from scipy.special import chdtrc
+
+        p = float(chdtrc(max(self.n - self.n_params, 1), self.rss_whitened))
         ratio = self.rms / self.noise_floor
         return ratio if ratio > UNEXPLAINED_RATIO and p < UNEXPLAINED_P else None
 
