@@ -26,7 +26,6 @@ Every function is pure given its arguments; noise comes from a
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import Sequence
 
@@ -34,6 +33,7 @@ import numpy as np
 
 from elastocal.model.robot import LOAD_FRAME, Robot
 from elastocal.sims import physics
+from elastocal.sims.as_built import HH150_PARALLEL, as_built, default_kinematic_errors, error_unit, parallel_axes
 
 #: HH-150 joint stiffness, Yang Table 6 (current-based) [N·m/rad]
 HH150_STIFFNESS = (0.559e6, 1.435e6, 1.829e6, 0.184e6, 0.171e6, 0.070e6)
@@ -72,21 +72,6 @@ DEFAULT_TRACKER = tracker_placement((3.2, -1.8, 0.6), 2.4, 0.004, -0.003)
 #: above the robot, facing it from the other side
 MOVED_TRACKER = tracker_placement((-2.6, 2.9, 1.9), -0.9, -0.006, 0.008)
 
-#: ``--hidden kinematic_errors``: the real DH table differs from the drawing by
-#: 0.02-0.05 deg in joint zeros and twists, 0.1-0.5 mm in lengths and offsets,
-#: 0.03 deg of Hayati tilt on the parallel axes 2-3, markers 0.1-0.3 mm off
-#: (typical of a heavy robot after assembly; RoboDK and FIGAROH report errors
-#: of this size before calibration)
-KINEMATIC_ERRORS = tuple(
-    [(f"dq{i}", math.radians(v)) for i, v in enumerate((0.03, -0.04, 0.05, -0.02, 0.035, -0.045), start=1)]
-    + [(f"da{i}", v * 1e-3) for i, v in enumerate((0.2, -0.3, 0.45, -0.15, 0.25, 0.1), start=1)]
-    + [(f"dd{i}", v * 1e-3) for i, v in enumerate((0.3, -0.2, 0.25, -0.4, 0.12, 0.3), start=1)]
-    + [(f"dalpha{i}", math.radians(v)) for i, v in enumerate((0.02, -0.03, 0.04, -0.025, 0.03, -0.035), start=1)]
-    + [("dbeta3", math.radians(0.03))]
-    + [("dx_R1", 0.2e-3), ("dy_R1", -0.1e-3), ("dz_R1", 0.3e-3), ("dx_R2", -0.15e-3), ("dy_R2", 0.25e-3),
-       ("dz_R2", 0.1e-3), ("dx_R3", 0.1e-3), ("dy_R3", -0.2e-3), ("dz_R3", -0.15e-3)])
-
-
 def _arr(value, n: int, name: str) -> np.ndarray:
     out = np.asarray(value, dtype=float).reshape(-1)
     if out.shape != (n,):
@@ -94,37 +79,6 @@ def _arr(value, n: int, name: str) -> np.ndarray:
     if not np.all(np.isfinite(out)):
         raise ValueError(f"{name}: values must be finite")
     return out
-
-
-def _unit_of(name: str) -> str:
-    """Unit of a kinematic error: joint zeros and twists in rad, lengths and markers in m."""
-    return "rad" if name.rstrip("0123456789") in ("dq", "dalpha", "dbeta") else "m"
-
-
-def as_built(robot: Robot, errors: Sequence[tuple[str, float]]) -> Robot:
-    """The robot as built: the drawing's DH table and markers with the truth's errors
-    (``dq<i>``, ``da<i>``, ``dd<i>``, ``dalpha<i>``, ``dbeta<i>`` on joint i, ``dx_<m>``..
-    on marker m); errors naming a joint or marker the robot does not have are ignored."""
-    if not errors:
-        return robot
-    if robot.urdf is not None:
-        raise ValueError("kinematic errors are simulated on a modified-DH robot")
-    field_of = {"dq": "offset", "da": "a", "dd": "d", "dalpha": "alpha", "dbeta": "beta"}
-    joints = list(robot.joints)
-    markers = {m: np.array(p, dtype=float) for m, p in robot.tool.flange_p_markers}
-    for name, value in errors:
-        if name.startswith(("dx_", "dy_", "dz_")):
-            if name[3:] in markers:
-                markers[name[3:]]["xyz".index(name[1])] += value
-            continue
-        kind = name.rstrip("0123456789")
-        i = int(name[len(kind):]) - 1
-        if kind in field_of and 0 <= i < len(joints):
-            key = field_of[kind]
-            joints[i] = replace(joints[i], **{key: getattr(joints[i], key) + value})
-    tool = replace(robot.tool, flange_p_markers=tuple((m, tuple(float(x) for x in markers[m]))
-                                                      for m, _ in robot.tool.flange_p_markers))
-    return replace(robot, joints=tuple(joints), tool=tool)
 
 
 def joint_values(prismatic: Sequence[bool], revolute: Sequence[float], prismatic_value: float) -> np.ndarray:
@@ -177,14 +131,19 @@ class CellTruth:
     tracker_translation: np.ndarray = field(default_factory=lambda: DEFAULT_TRACKER[1].copy())
     #: which joints are prismatic (their values in N/m, N, m); () for the six revolute joints
     prismatic: tuple[bool, ...] = ()
+    #: which joints' axes are parallel to the previous joint's (``--hidden kinematic_errors`` tilts
+    #: them); () for the HH-150's (:data:`HH150_PARALLEL`) on six joints, none on another number
+    parallel: tuple[bool, ...] = ()
 
     @classmethod
     def for_robot(cls, robot: Robot, **changes) -> "CellTruth":
         """The simulated cell of ``robot``: the HH-150's stiffness (Yang Table 6) on its revolute
-        joints in order, :data:`TRACK_STIFFNESS` on a prismatic one; ``changes`` as the fields."""
+        joints in order, :data:`TRACK_STIFFNESS` on a prismatic one, the robot's parallel axes
+        (:func:`parallel_axes`); ``changes`` as the fields."""
         prismatic = tuple(bool(p) for p in robot.prismatic)
         if "stiffness" not in changes:
             changes["stiffness"] = joint_values(prismatic, HH150_STIFFNESS, TRACK_STIFFNESS)
+        changes.setdefault("parallel", parallel_axes(robot))
         return cls(prismatic=prismatic, **changes)
 
     @property
@@ -201,6 +160,10 @@ class CellTruth:
         if len(prismatic) != n_joints:
             raise ValueError(f"prismatic: expected {n_joints} flags, got {len(prismatic)}")
         object.__setattr__(self, "prismatic", prismatic)
+        parallel = tuple(bool(p) for p in self.parallel) or (HH150_PARALLEL if n_joints == 6 else (False,) * n_joints)
+        if len(parallel) != n_joints:
+            raise ValueError(f"parallel: expected {n_joints} flags, got {len(parallel)}")
+        object.__setattr__(self, "parallel", parallel)
         for name in ("static_friction", "backlash", "coulomb", "viscous", "load_friction", "hardening_torque"):
             if np.asarray(getattr(self, name)).size == 0:
                 fill = np.inf if name == "hardening_torque" else 0.0
@@ -240,7 +203,7 @@ class CellTruth:
         if effect == "backlash":
             return replace(self, backlash=self.per_joint([6e-5, 5e-5, 5e-5, 1.2e-4, 1.2e-4, 1.5e-4], 2e-5))
         if effect == "kinematic_errors":
-            return replace(self, kinematic_errors=KINEMATIC_ERRORS)
+            return replace(self, kinematic_errors=default_kinematic_errors(self.prismatic, self.parallel))
         if effect == "tracker_frame":
             return replace(self, tracker_rotation=MOVED_TRACKER[0].copy(),
                            tracker_translation=MOVED_TRACKER[1].copy())
@@ -285,7 +248,7 @@ class CellTruth:
                 for j, (v, p) in enumerate(zip(arr, self.prismatic), start=1):
                     out[f"{prefix}{j}"] = {"value": float(v), "unit": units[p]}
         for name, v in self.kinematic_errors:
-            out[name] = {"value": float(v), "unit": _unit_of(name)}
+            out[name] = {"value": float(v), "unit": error_unit(name, self.prismatic)}
         rvec = _rotation_vector(self.tracker_rotation)
         for name, v, unit in zip(("rx", "ry", "rz", "tx", "ty", "tz"), (*rvec, *self.tracker_translation),
                                  ("rad",) * 3 + ("m",) * 3):

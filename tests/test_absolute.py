@@ -13,7 +13,8 @@ from elastocal.identify.absolute import identify_absolute
 from elastocal.identify.registration import kabsch
 from elastocal.formats.robot_toml import bundled_robot, parse_robot
 from elastocal.identify.static import identify_static
-from elastocal.sims.cell import DEFAULT_TRACKER, KINEMATIC_ERRORS, CellTruth
+from elastocal.sims.as_built import KINEMATIC_ERRORS
+from elastocal.sims.cell import DEFAULT_TRACKER, CellTruth
 from elastocal.sims.static import StaticPlan, simulate_static
 
 ROBOT = bundled_robot()
