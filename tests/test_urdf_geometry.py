@@ -20,6 +20,9 @@ ROBOTS = pathlib.Path(elastocal.__file__).parent / "robots"
 ROBOT = load_robot(ROBOTS / "hh150_urdf.toml")
 MODEL = ("kinematic_errors", "tracker_frame")
 NOISE_M = 1e-5
+#: where the tracker of the readings stands: p_tracker = TRACKER_R p_base + TRACKER_T (3 m away, turned, tilted)
+TRACKER_R, TRACKER_T = pin.exp3(np.array([0.01, -0.02, 2.0])), np.array([3.0, -1.0, 0.5])
+FRAME_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 
 
 def true_robot(rng):
@@ -77,7 +80,7 @@ def readings(robot, rng, n_poses=50, repeats=2, k=None):
     """An absolute-only table of ``robot``'s marker seen by a tracker 3 m away, turned and tilted."""
     lo, hi = np.maximum(ROBOT.lower, -2.0), np.minimum(ROBOT.upper, 2.0)
     q = rng.uniform(lo, hi, (n_poses, ROBOT.n_joints))
-    rot, trans = pin.exp3(np.array([0.01, -0.02, 2.0])), np.array([3.0, -1.0, 0.5])
+    rot, trans = TRACKER_R, TRACKER_T
     pose, qs, marker, xyz = [], [], [], []
     for i, qi in enumerate(q):
         theta = robot.theta(qi) if k is None else sagged(robot, robot.theta(qi), k)
@@ -111,10 +114,11 @@ def test_urdf_parameters_and_their_jacobian():
             np.testing.assert_allclose(jac[:, :, k], fd, atol=tol, err_msg=name)
 
 
-def fit_and_z(seed, stiffness=False):
+def fit_and_z(seed, stiffness=False, registration=False):
     """The fit of one seed's truth and each identified parameter's error in standard deviations:
     the kinematic ones against what they estimate (their own value plus what they absorb), the
-    joint stiffness (the robot's own weight on its springs, ``stiffness``) against the truth."""
+    joint stiffness (the robot's own weight on its springs, ``stiffness``) against the truth, and
+    with ``registration`` rx..tz against the tracker's placement (:func:`registration_z`)."""
     rng = np.random.default_rng(seed)
     truth_robot, truth = true_robot(rng)
     k = K_TRUE if stiffness else None
@@ -127,16 +131,29 @@ def fit_and_z(seed, stiffness=False):
     for p in fit.parameters:
         if p.name.startswith("k") and p.name[1:].isdigit():
             z[p.name] = (p.value - K_TRUE[int(p.name[1:]) - 1]) / p.std
+    if registration:
+        z.update(registration_z(fit, truth))
     return fit, z
 
 
+def registration_z(fit, truth):
+    """The registration's error (rx..tz) in standard deviations against what it estimates: the tracker's
+    placement moved by the base errors it absorbs (joint 1's origin and zero, what of joint 2's turns or
+    slides along axis 1), to first order, as the fit perturbs it: p_tracker = R (exp(dr) p + dt) + t."""
+    base = fit.identifiable.base_value({**truth, **dict.fromkeys(FRAME_NAMES, 0.0)})
+    dr, dt = (np.array([base[n] for n in names]) for names in (FRAME_NAMES[:3], FRAME_NAMES[3:]))
+    expected = (*pin.log3(TRACKER_R @ pin.exp3(dr)), *(TRACKER_R @ dt + TRACKER_T))
+    got = {p.name: p for p in fit.parameters}
+    return {n: (got[n].value - e) / got[n].std for n, e in zip(FRAME_NAMES, expected)}
+
+
 def test_urdf_geometry_fit_reaches_the_noise_and_names_what_absorbs_the_rest():
-    fit, z = fit_and_z(11)
+    fit, z = fit_and_z(11, registration=True)
     assert fit.noise_floor is not None and fit.rms < 1.25 * fit.noise_floor, (fit.rms, fit.noise_floor)
     # the base's origin and joint 1's zero: the registration's; joint 6's zero: the marker's
     assert {"dq1", "dpx1", "dpy1", "dpz1", "drx1", "dry1", "drz1", "dq6"} <= set(fit.unidentifiable)
     assert fit.absorbed_by["dq1"][0][0] == "rz" and fit.absorbed_by["dpx1"][0][0] == "tx"
-    assert fit.identifiable.keep.sum() - 6 == len(z) and len(z) >= 20
+    assert fit.identifiable.keep.sum() == len(z) and len(z) >= 26
     assert max(abs(v) for v in z.values()) < 4.5, z
 
 
@@ -154,13 +171,33 @@ def test_urdf_self_weight_stiffness_with_the_geometry():
 @pytest.mark.parametrize("stiffness", [False, True])
 def test_urdf_geometry_intervals_cover_over_100_seeds(stiffness):
     """Measured: the geometry's intervals cover 95.9 % of 2700 alone, 93.3 % of 2700 beside the
-    self-weight springs."""
-    inside = []
+    self-weight springs; the registration's (rx..tz against the tracker's placement with the base errors
+    it absorbs) 95.2 % of 600 beside the geometry alone, each of the six 90-98 %. Beside the springs the
+    registration is not checked here (test_urdf_registration_beside_the_springs_covers_over_100_seeds)."""
+    inside, frame = [], []
     for seed in range(100):
-        _, z = fit_and_z(1000 + seed, stiffness=stiffness)
-        inside += [abs(v) < 1.959964 for n, v in z.items() if not n.startswith("k")]
+        _, z = fit_and_z(1000 + seed, stiffness=stiffness, registration=not stiffness)
+        inside += [abs(v) < 1.959964 for n, v in z.items() if not n.startswith("k") and n not in FRAME_NAMES]
+        frame += [[abs(z[n]) < 1.959964 for n in FRAME_NAMES]] if not stiffness else []
     share = float(np.mean(inside))
     assert 0.91 <= share <= 0.99, share
+    if not stiffness:
+        each = np.mean(frame, axis=0)
+        assert 0.91 <= np.mean(frame) <= 0.99 and np.all(each >= 0.95 - 3 * np.sqrt(0.95 * 0.05 / 100)), each
+
+
+@pytest.mark.heavy
+@pytest.mark.acceptance
+@pytest.mark.xfail(strict=True, reason="open: beside the self-weight springs the registration covers 80.7 % of "
+                   "600 (ty 54 %): on noise-free readings it already lies up to 3.4 std (a few um, its std "
+                   "about 1 um) from the tracker's placement with the absorbed base errors, where alone it "
+                   "lies within 0.4 std; the same seeds' k2..k5 cover 92 %")
+def test_urdf_registration_beside_the_springs_covers_over_100_seeds():
+    frame = []
+    for seed in range(100):
+        _, z = fit_and_z(1000 + seed, stiffness=True, registration=True)
+        frame += [abs(z[n]) < 1.959964 for n in FRAME_NAMES]
+    assert 0.91 <= float(np.mean(frame)) <= 0.99, float(np.mean(frame))
 
 
 @pytest.mark.heavy
