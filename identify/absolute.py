@@ -148,6 +148,11 @@ class AbsoluteFit:
         ratio = self.rms / self.noise_floor
         return ratio if ratio > UNEXPLAINED_RATIO and p < UNEXPLAINED_P else None
 
+    @property
+    def undetermined(self) -> dict[str, str]:
+        """Joint stiffnesses these data do not determine, name -> why (StaticFit.undetermined)."""
+        return self.static.undetermined
+
     def sensitivities(self) -> tuple:
         """The parameters this fit moves by more than 2 std from the deflection-only fit while it
         leaves an unexplained residual (identify/evidence.py ``sensitive_parameters``)."""
@@ -199,11 +204,12 @@ class AbsoluteFit:
         """The ``identify --json`` object (docs/cli.md), deflection residual included."""
         out = self.static.to_json()
         out["model"] = list(self.model)
-        from elastocal.identify.evidence import mark_sensitive, mark_stiffness
+        from elastocal.identify.evidence import mark_sensitive, mark_stiffness, mark_twins
 
         marks = self.sensitivities()
-        out["parameters"] = mark_sensitive(mark_stiffness({p.name: {"value": p.value, "std": p.std, "unit": p.unit}
-                                                           for p in self.parameters}), marks)
+        out["parameters"] = mark_sensitive(mark_twins(mark_stiffness(
+            {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in self.parameters}),
+            self.static.undetermined), marks)
         if marks:
             out["sensitive"] = [m.to_json() for m in marks]
         if is_absolute_only(self.static.dataset):    # no deflections: the absolute positions are the data

@@ -130,6 +130,19 @@ def mark_stiffness(parameters: dict) -> dict:
     return out
 
 
+def mark_twins(parameters: dict, notes: dict[str, str]) -> dict:
+    """``identify --json`` parameters with each stiffness of ``notes`` (name -> why: the data cannot
+    tell two link-compliance components apart and it follows the choice, identify/selection.py)
+    marked ``"determined": false``, its note beside any it had."""
+    out = {}
+    for name, p in parameters.items():
+        if name in notes:
+            note = notes[name] if not p.get("note") else f"{p['note']}; {notes[name]}"
+            p = {**p, "determined": False, "note": note}
+        out[name] = p
+    return out
+
+
 #: a parameter that moves by more than this many std between the deflection-only and the absolute
 #: fit, while the absolute fit leaves an unexplained residual, is marked sensitive
 SENSITIVE_SIGMAS = 2.0

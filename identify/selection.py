@@ -35,6 +35,26 @@ WRONG_SIGN_STD = 3.0
 CONTROL_SHIFT = 0.5
 #: a control must have the physical sign (a compliance is positive)
 CONTROL_SIGN = True
+#: a fitted component swapped for a twin the data cannot tell from it (it fits as well, within the
+#: test's threshold) that moves a joint spring by more than this many of its std leaves that spring
+#: not determined by these data
+TWIN_SHIFT = 2.0
+
+
+@dataclass(frozen=True)
+class Twin:
+    """A joint spring the data do not determine: it follows which of two components the data
+    cannot tell apart is fitted (``fitted`` is, ``twin`` in its place fits as well)."""
+
+    spring: str             # the spring's reported name (k6)
+    fitted: str
+    twin: str
+    shift_std: float        # how far the swap moves the spring, in its std
+
+    @property
+    def note(self) -> str:
+        return (f"not determined by these data: they cannot tell {self.fitted} from {self.twin}, and "
+                f"{self.spring} moves by {self.shift_std:.1f} std between the two")
 
 
 @dataclass(frozen=True)
@@ -50,6 +70,8 @@ class Selection:
     #: parameter of the model (a joint spring) by more than CONTROL_SHIFT of its std
     #: (post-double selection, see confounders); fitted, never named as a finding
     controls: tuple[str, ...] = ()
+    #: joint springs that follow the choice between a fitted component and its twin (:func:`twins`)
+    twins: tuple[Twin, ...] = ()
 
     def fitted(self, kept: tuple[str, ...] | None = None) -> tuple[str, ...]:
         """The components a fit holds: ``kept`` (default the kept ones) and the controls."""
@@ -104,6 +126,7 @@ class _Linear:
             return None
         b = g_inv @ self.dy[cols]
         rss = max(self.yy - 2.0 * float(b @ self.dy[cols]) + float(b @ g @ b), 0.0)
+        self.last_rss = rss
         n = self.n
         if self.white:
             cov = g_inv * max(1.0, rss / max(n - len(cols), 1))
@@ -208,6 +231,54 @@ def confounders(full_fit, kept: tuple[str, ...], components: tuple[str, ...], *,
         chosen.append(best)
         pool.remove(best)
     return tuple(nm for nm in components if nm in chosen)
+
+
+def twins(full_fit, sel: Selection, components: tuple[str, ...], springs: dict[str, str]) -> tuple[Twin, ...]:
+    """The joint springs the data do not determine because a fitted component has a twin.
+
+    Two components the data cannot tell apart (a forearm's torsion and the hand's bending under
+    loads that twist both alike) fit equally well; the selection keeps one, and a spring that
+    aliases with one but not the other follows the choice. A component not fitted is a twin of a
+    fitted one when, put in its place, the residual grows by less than the test's threshold (the
+    data do not prefer the fitted one as the test would need) and its value there is not of the
+    wrong sign beyond noise. The spring follows the choice when that swap, for a kept component,
+    moves it (``springs``: beta name -> reported name) by more than TWIN_SHIFT of its std. The fit
+    keeps its values; the spring is reported not determined. The largest shift per spring.
+
+    (A twin of a control is not looked for: a control is no finding, and swapping one insignificant
+    control for another moved k1, k2 by 2-3.5 std on six-joint fits whose springs are right.)"""
+    lin = _Linear(full_fit, components)
+    fitted = [nm for nm in sel.fitted() if nm in lin.names]
+    now = lin.solve(fitted)
+    if now is None or not fitted:
+        return ()
+    rss_now, nb = lin.last_rss, len(lin.base)
+    dof = max(lin.n - nb - len(fitted), 1)
+    s2 = max(rss_now / dof, 1.0) if lin.white else rss_now / dof
+    if not s2 > 0:
+        return ()
+    std_now = np.sqrt(np.clip(np.diag(now[1])[:nb], 1e-300, None))
+    rows = [(i, springs[lin.names[c]]) for i, c in enumerate(lin.base) if lin.names[c] in springs]
+    limit = threshold(lin.n)
+    pool = [nm for nm in components if nm in lin.names and nm not in fitted]
+    best: dict[str, Twin] = {}
+
+    def note(fitted_one: str, c: str, b: np.ndarray) -> None:
+        for i, spring in rows:
+            shift = float(abs(b[i] - now[0][i]) / std_now[i])
+            if shift > TWIN_SHIFT and (spring not in best or shift > best[spring].shift_std):
+                best[spring] = Twin(spring, fitted_one, c, shift)
+
+    def z_last(got) -> float:
+        var = float(got[1][-1, -1])
+        return got[0][-1] / math.sqrt(var) if var > 0 else -math.inf
+
+    for c in pool:
+        for k in (nm for nm in sel.kept if nm in fitted):
+            got = lin.solve([*(x for x in fitted if x != k), c])
+            if got is not None and (lin.last_rss - rss_now) / s2 < limit and z_last(got) >= -WRONG_SIGN_STD:
+                note(k, c, got[0])          # in place of the kept one it fits as well: which is there?
+    return tuple(best[s] for _, s in rows if s in best)
 
 
 def threshold(n: int) -> float:

@@ -34,7 +34,7 @@ import numpy as np
 from elastocal.errors import Arg, EffectRefused, InputError, UnidentifiableError
 from elastocal.identify.blas import one_blas_thread, scipy_linalg
 from elastocal.identify.dataset import StaticDataset, build_dataset
-from elastocal.identify.evidence import check_loads_changed, mark_stiffness
+from elastocal.identify.evidence import check_loads_changed, mark_stiffness, mark_twins
 from elastocal.identify.registration import in_base_axes, refine_registration
 from elastocal.identify.staticmodel import Problem, evaluate, fitted_positions, state_torques, static_bases, static_context
 from elastocal.model.effects import BASE_EFFECT, get_effect
@@ -147,14 +147,20 @@ class StaticFit:
     def stds(self, names: Sequence[str]) -> np.ndarray:
         return np.array([self.parameter(n).std for n in names])
 
+    @property
+    def undetermined(self) -> dict[str, str]:
+        """Joint stiffnesses these data do not determine (name -> why): each follows which of two
+        link-compliance components the data cannot tell apart was fitted (identify/selection.py)."""
+        return {t.spring: t.note for sel in self.selections for t in sel.twins}
+
     def to_json(self) -> dict:
         """The ``identify --json`` object of docs/cli.md."""
         out = {
             "model": list(self.model),
             "torque": self.torque,
             "form": self.form,
-            "parameters": mark_stiffness({p.name: {"value": p.value, "std": p.std, "unit": p.unit}
-                                          for p in self.parameters}),
+            "parameters": mark_twins(mark_stiffness({p.name: {"value": p.value, "std": p.std, "unit": p.unit}
+                                                     for p in self.parameters}), self.undetermined),
             "residual": {"rms": self.rms, "max": self.max, "n": self.n, "unit": "m"},
             "noise_floor": self.noise_floor,
         }
@@ -494,7 +500,7 @@ def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: 
     selections = []
     for k, eff in enumerate(effects):
         if eff.selectable and eff.selected_from is None:
-            from elastocal.identify.selection import confirm_selection, confounders, forward_select
+            from elastocal.identify.selection import confirm_selection, confounders, forward_select, twins
 
             # (first-order: one linear solve; the kept components are then fitted in ``form``)
             full = identify_static(robot, ds, model=[*effects[:k], eff.restricted(eff.parameters), *effects[k + 1:]],
@@ -510,6 +516,10 @@ def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: 
                     again = set(confounders(full, confirmed.kept, eff.parameters)) | set(sel.controls)
                     sel = replace(confirmed, controls=tuple(n for n in eff.parameters
                                                             if n in again and n not in confirmed.kept))
+            base = effects[0]        # the joint springs (BASE_EFFECT first)
+            springs = dict(zip(base.parameters, base.parameters if base.report_with_model is not None
+                               else base.reported_names))
+            sel = replace(sel, twins=twins(full, sel, eff.parameters, springs))
             selections.append(sel)
             # the kept components and the controls (fitted, not named: identify/selection.py)
             effects = (*effects[:k], eff.restricted(sel.fitted()), *effects[k + 1:])

@@ -344,24 +344,53 @@ def test_the_carriage_stiffness_of_the_joint_fit_is_unbiased_over_20_seeds():
     assert abs(np.mean(z)) < 3 / np.sqrt(len(z)) and np.max(np.abs(z)) < 4.0, np.round(z, 1)
 
 
-@pytest.mark.heavy
-@pytest.mark.xfail(strict=True, reason="open: with the demo's loads the data cannot tell the forearm's cl4y from "
-                   "the hand's cl5x or cl6x; the selection fits one and the wrist's k6 follows the choice (9-14 std "
-                   "off in 4 of 12 seeds). Fitting such twins together as controls fixes it here but also adds "
-                   "cl0x, cl1x beside cl1y on the six-joint reference fit (tests/test_identify_reference.py)")
-def test_the_absolute_fit_gives_no_wrong_confident_stiffness_over_20_seeds():
-    """Every joint stiffness and link compliance the joint fit reports (the selected components and the
-    controls, whose truth is 0 where the cell hides none) within 4.5 std of the truth."""
-    worst = []
-    for seed in range(20):
-        truth, fit = _demo_like_fit(seed)
-        tp = truth.parameters(ROBOT)
+def _wrong_confident_stiffnesses(robot, seeds, fit_of) -> tuple[list[str], list[str]]:
+    """(stiffnesses beyond 3.5 std of the truth and not marked, the marks) over ``seeds``."""
+    wrong, marks = [], []
+    for seed in seeds:
+        truth, fit = fit_of(seed)
+        tp = truth.parameters(robot)
+        undetermined = fit.undetermined
+        marked = fit.to_json()["parameters"]
+        for name, why in undetermined.items():
+            assert marked[name]["determined"] is False and why in marked[name]["note"]
+            marks.append(f"seed {seed} {name}: {why}")
         for p in fit.parameters:
-            if p.name in K_NAMES or p.name.startswith("cl"):
-                z = (p.value - tp.get(p.name, {"value": 0.0})["value"]) / p.std
-                if abs(z) > 4.5:            # 4.5 std: beyond chance over 20 seeds x 11 parameters
-                    worst.append(f"seed {seed} {p.name} {z:+.1f} std")
-    assert worst == []
+            if p.name.startswith("k") and p.name not in undetermined:
+                z = (p.value - tp[p.name]["value"]) / p.std
+                if abs(z) > 3.5:            # 3.5 std: beyond chance over 20 seeds x 7 stiffnesses
+                    wrong.append(f"seed {seed} {p.name} {z:+.1f} std")
+    return wrong, marks
+
+
+@pytest.mark.heavy
+def test_the_absolute_fit_gives_no_wrong_confident_stiffness_over_20_seeds():
+    """With the demo's loads the data cannot tell the forearm's cl4y from the hand's cl5x or cl6x: the
+    selection keeps one and the wrist's k6 follows the choice (9-14 std off in 4 of 12 seeds). Such a
+    stiffness is marked not determined, naming the two components; every other one lies within 3.5 std
+    of the truth over 20 seeds."""
+    wrong, marks = _wrong_confident_stiffnesses(ROBOT, range(20), _demo_like_fit)
+    assert wrong == [], (wrong, marks)
+    # the mark is there, and names the twins (k6 between the forearm and the hand in some seeds)
+    assert any(" k6: " in m and "cl4" in m and ("cl5x" in m or "cl6x" in m) for m in marks), marks
+
+
+def _six_joint_demo_like_fit(seed: int):
+    """The six-joint demo's absolute fit on the simulator's table of the demo's experiment."""
+    from elastocal.sims.static import random_poses
+
+    robot = bundled_robot()
+    truth = CellTruth.for_robot(robot).with_hidden("link_compliance,kinematic_errors")
+    poses = random_poses(robot, 12, np.random.default_rng(seed))
+    table = simulate_static(robot, truth, seed=seed, poses=poses, wrenches=[DEMO_WRENCHES] * len(poses))
+    return truth, identify_absolute(robot, build_dataset(table), model=FULL_MODEL)
+
+
+def test_no_twin_mark_where_the_data_determine_the_stiffnesses():
+    """On the six-joint cell with the demo's loads every stiffness is within 3.5 std and none is marked:
+    the mark is for a spring that follows an undecidable choice, not for every fit with link compliance."""
+    wrong, marks = _wrong_confident_stiffnesses(bundled_robot(), range(4), _six_joint_demo_like_fit)
+    assert wrong == [] and marks == [], (wrong, marks)
 
 
 @pytest.mark.heavy
