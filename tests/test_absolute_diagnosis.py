@@ -95,8 +95,6 @@ def test_a_knocked_reflector_is_named_with_the_time_of_the_knock():
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_acceptance_outside_vocabulary_and_knocked_reflector_over_seeds():
     """10 seeds each: the gear error always ends unexplained with no named absolute step above
@@ -113,8 +111,6 @@ def test_acceptance_outside_vocabulary_and_knocked_reflector_over_seeds():
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_a_real_drift_still_holds_across_the_data():
     """Kinematic errors and a real tracker drift: both are steps, named (the split test passes)."""

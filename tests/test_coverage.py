@@ -45,8 +45,6 @@ def _run(shared: bool):
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 @pytest.mark.parametrize("shared", (False, True), ids=("own-readings", "shared-readings"))
 def test_intervals_cover_truth_and_the_variance_reaches_the_bound(shared):

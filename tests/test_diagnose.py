@@ -64,8 +64,6 @@ def test_hidden_effect_is_named_and_adding_it_reaches_the_noise_floor(hidden, se
 
 
 @pytest.mark.heavy   # statistics over 20 seeds
-
-
 @pytest.mark.acceptance
 def test_complete_data_give_no_verdict_in_at_least_19_of_20_seeds():
     verdicts = []

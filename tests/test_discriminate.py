@@ -16,7 +16,7 @@ from elastocal.formats.robot_toml import load_robot
 from elastocal.formats.tables import concat_static_tables, read_static_table
 from elastocal.identify.design_matrix import planned_dataset, regressor
 from elastocal.sims.cell import CellTruth
-from elastocal.sims.static import StaticPlan, simulate_static
+from elastocal.sims.static import simulate_static
 
 
 @pytest.fixture(scope="module")

@@ -26,8 +26,6 @@ def _bench():
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 @pytest.mark.parametrize("hidden", ["link_compliance", "backlash", "nonlinear_stiffness"])
 def test_one_planned_round_names_the_hidden_effect(hidden):
@@ -44,8 +42,6 @@ def test_one_planned_round_names_the_hidden_effect(hidden):
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_complete_cells_stay_null_after_the_planned_round():
     bench = _bench()

@@ -63,8 +63,6 @@ def test_the_generator_draws_a_new_cell_per_seed_and_repeats_one_seed():
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_twenty_held_out_seeds():
     rel, z = [], []

@@ -23,8 +23,6 @@ N_SEEDS = 100
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_stiffness_intervals_cover_truth_after_the_selection():
     truth = CellTruth().with_hidden("link_compliance")

@@ -35,8 +35,6 @@ def test_current_based_exact_recovers_stiffness(seed):
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_reported_std_matches_spread_over_20_seeds():
     ks, stds, ratios = [], [], []

@@ -47,8 +47,6 @@ def wobbling_reflector(table, seed: int, size_m: float = 25e-6):
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_an_effect_outside_every_named_one_ends_unexplained_in_9_of_10_seeds():
     outcomes = []
@@ -66,8 +64,6 @@ def test_an_effect_outside_every_named_one_ends_unexplained_in_9_of_10_seeds():
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_a_named_step_that_leaves_the_residual_above_the_floor_is_no_verdict():
     # link compliance on top of the wobbling reflector: the step is real but the
@@ -132,8 +128,6 @@ def test_shared_current_readings_count_once():
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 @pytest.mark.parametrize("shared", (False, True))
 def test_complete_fits_sit_at_the_floor_with_and_without_shared_readings(shared):
@@ -145,8 +139,6 @@ def test_complete_fits_sit_at_the_floor_with_and_without_shared_readings(shared)
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_complete_data_with_shared_readings_give_no_verdict():
     verdicts = [diagnose_static(ROBOT, simulate_static(ROBOT, CellTruth(), seed=seed,
@@ -156,8 +148,6 @@ def test_complete_data_with_shared_readings_give_no_verdict():
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_diagnose_json_has_steps_final_and_unexplained(tmp_path, capsys):
     out = tmp_path / "two"

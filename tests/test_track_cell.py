@@ -233,8 +233,6 @@ N_SEEDS = 100
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_stiffness_and_registration_intervals_cover_the_truth_over_seeds():
     """100 seeds of the default experiment on the track cell: the 95 % intervals of k1..k7 and of

@@ -17,7 +17,6 @@ from elastocal.drivers.config import parse_cell_config
 from elastocal.errors import InputError
 from elastocal.formats.robot_toml import bundled_robot
 from elastocal.identify.outliers import find_outliers, tracker_noise_of
-from elastocal.identify.static import build_dataset
 from elastocal.identify.trackernoise import estimate_tracker_noise
 from elastocal.model.tracker_noise import TrackerNoise, parse_tracker_noise
 from elastocal.sims.cell import CellTruth
@@ -133,8 +132,6 @@ def _true_floor(diag, law: TrackerNoise) -> float:
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_acceptance_range_law_and_no_missing_effect_over_40_seeds():
     """The acceptance of the tracker's noise law: range-dependent tracker noise, nothing missing: verdict null, no

@@ -165,8 +165,6 @@ def test_urdf_self_weight_stiffness_with_the_geometry():
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 @pytest.mark.parametrize("stiffness", [False, True])
 def test_urdf_geometry_intervals_cover_over_100_seeds(stiffness):
@@ -201,8 +199,6 @@ def test_urdf_registration_beside_the_springs_covers_over_100_seeds():
 
 
 @pytest.mark.heavy
-
-
 @pytest.mark.acceptance
 def test_urdf_self_weight_stiffness_intervals_cover_over_100_seeds():
     """Measured: k2..k5 within their 95 % intervals 92.0 % of 400 (85 % before the weight's torques
