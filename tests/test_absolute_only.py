@@ -140,12 +140,17 @@ def unloaded(table):
     return dataclasses.replace(t, wrench=np.full_like(t.wrench, np.nan), currents=np.full_like(t.currents, np.nan))
 
 
-@pytest.fixture(scope="module")
-def sim_unloaded():
-    truth = CellTruth().with_hidden("kinematic_errors")
+def unloaded_cell(hidden):
+    """The simulated cell's truth hiding ``hidden`` and its table of 40 unloaded poses, two readings each."""
+    truth = CellTruth().with_hidden(hidden)
     table = unloaded(simulate_static(bundled_robot(), truth, seed=3, plan=StaticPlan(n_poses=40, n_loads=1,
                                                                                      repeats=2)))
     return truth, table
+
+
+@pytest.fixture(scope="module")
+def sim_unloaded():
+    return unloaded_cell("kinematic_errors")
 
 
 def test_diagnose_finds_the_sag_under_self_weight_and_says_when_no_floor_is_known(sim_unloaded, tmp_path, capsys):
@@ -236,10 +241,7 @@ def test_stated_uncertainties_weight_the_fit_and_give_the_floor(sim_unloaded, tm
 def sim_drifting():
     """40 unloaded poses over an hour (two readings each) on the simulated cell hiding its geometry
     errors and a tracker drift of (6, -4, 8) 1e-8 m/s, 0.2 mm/h and more."""
-    truth = CellTruth().with_hidden("kinematic_errors,thermal_drift")
-    table = unloaded(simulate_static(bundled_robot(), truth, seed=3, plan=StaticPlan(n_poses=40, n_loads=1,
-                                                                                     repeats=2)))
-    return truth, table
+    return unloaded_cell("kinematic_errors,thermal_drift")
 
 
 def test_a_drift_is_found_on_a_table_without_loads_from_the_readings_times(sim_drifting, tmp_path, capsys):

@@ -9,11 +9,11 @@ import pytest
 from elastocal.acquisition.export import load_log
 from elastocal.acquisition.lockstep import AIM_TICK_NS, LockstepCellIO, run_lockstep_calibration
 from elastocal.commands._cell import lockstep_world
-from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
+from two_pose_plan import two_pose_plan
+from elastocal.formats.plan import LoadSpec, parse_plan, plan_toml
 from elastocal.formats.robot_toml import bundled_robot
 from elastocal.sims.config import sim_config
 from elastocal.sims.serve import example_cell_config
-from elastocal.sims.static import random_poses
 from elastocal.sims.world import SimClock, SimWorld
 
 
@@ -71,10 +71,7 @@ def test_two_procedures_with_one_seed_write_one_table_times_included(tmp_path):
     """With the devices on the wall clock (calibrate --sim) the readings' times, and whatever is
     fitted against them, differed between runs; in lockstep every reading has the same window."""
     robot = bundled_robot()
-    poses = random_poses(robot, 2, np.random.default_rng(4))
-    plan = parse_plan(plan_toml(poses=poses, loads=(LoadSpec("L1", mass_kg=80.0),), markers=("R1", "R2"),
-                                repeats=2, reading_s=0.03,
-                                settle=SettleSpec(spread_m=20e-6, window_s=0.15, timeout_s=10.0)))
+    plan = two_pose_plan(robot)
     tables = []
     for k in range(2):
         log = tmp_path / f"run{k}.mcap"

@@ -10,6 +10,7 @@ import pytest
 
 from elastocal.acquisition.export import load_log
 from elastocal.acquisition.logreader import read_log
+from two_pose_plan import two_pose_plan
 from elastocal.formats.plan import LoadSpec, SettleSpec, parse_plan, plan_toml
 from elastocal.acquisition.procedures import run_calibration
 from elastocal.acquisition.ui import Aborted, AutoUI
@@ -166,10 +167,7 @@ def test_static_procedure_reads_the_same_numbers_twice_with_one_seed(tmp_path):
     from dataclasses import replace
 
     robot = bundled_robot()
-    poses = random_poses(robot, 2, np.random.default_rng(4))
-    plan = parse_plan(plan_toml(poses=poses, loads=(LoadSpec("L1", mass_kg=80.0),), markers=("R1", "R2"),
-                                repeats=2, reading_s=0.03,
-                                settle=SettleSpec(spread_m=20e-6, window_s=0.15, timeout_s=10.0)))
+    plan = two_pose_plan(robot)
     tables = []
     for k in range(2):
         config = example_cell_config(can_channel=f"repeat-{k}", move_speed_rad_s=2.0, seed=7)
