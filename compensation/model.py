@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pinocchio as pin
 
 from elastocal.compensation.chain import Angles, BatchedChain, ChainState, log6_local
 from elastocal.errors import Arg, InputError
@@ -44,6 +45,9 @@ class CompensationModel:
     nominal: Robot | None = None
     #: the frame the path positions: the load point, or a marker (a tool the tracker sees)
     tool: str = LOAD_FRAME
+    #: the base's tilt from level about its x and y axes [rad] (a calibration's tilt_x, tilt_y):
+    #: the weight pulls along gravity turned into base axes (identify/level.py)
+    tilt_rad: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         k = np.asarray(self.stiffness, dtype=float).reshape(-1)
@@ -102,11 +106,14 @@ class CompensationModel:
             if any(cal.has(n) for n in other):
                 raise InputError(f"compensator parameters {', '.join(other)} do not fit the robot's "
                                  f"{spec.kind} compensator", source=source, column="parameters")
+        from elastocal.identify.level import TILT_NAMES
+
+        tilt = tuple(float(cal.value(n)) if cal.has(n) else 0.0 for n in TILT_NAMES)
         if having("geometry", cal.model):        # the calibration's geometry: the real robot's
             from elastocal.identify.accuracy import calibrated_robot
 
-            return cls(robot=calibrated_robot(robot, cal), stiffness=k, compensator=comp, nominal=robot)
-        return cls(robot=robot, stiffness=k, compensator=comp)
+            return cls(robot=calibrated_robot(robot, cal), stiffness=k, compensator=comp, nominal=robot, tilt_rad=tilt)
+        return cls(robot=robot, stiffness=k, compensator=comp, tilt_rad=tilt)
 
     def with_tool(self, tool: str) -> "CompensationModel":
         """The same model positioning ``tool`` (the load point or a marker name)."""
@@ -177,7 +184,13 @@ class StaticKernel:
 
     def __init__(self, model: CompensationModel) -> None:
         self.m = model
-        self.chain = BatchedChain(model.robot.model)
+        pin_model = model.robot.model
+        if any(model.tilt_rad):           # a copy carries the turned gravity; the robot's model stays as it is
+            from elastocal.identify.level import gravity_in_base
+
+            pin_model = pin.Model(pin_model)
+            pin_model.gravity = pin.Motion(gravity_in_base(pin_model.gravity.linear, model.tilt_rad), np.zeros(3))
+        self.chain = BatchedChain(pin_model)
         self.fid = model.robot.frame_id(LOAD_FRAME)
         self.tool_fid = model.robot.frame_id(model.tool)
         self.offsets = model.robot.offsets

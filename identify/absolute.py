@@ -39,7 +39,7 @@ registration it uses are in identify/kinematics.py and identify/registration.py.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -49,6 +49,7 @@ from elastocal.errors import Arg, InputError
 from elastocal.identify import kinematics as kin
 from elastocal.identify.blas import one_blas_thread
 from elastocal.model.effects import BASE_EFFECT, absolute_effects, get_effect, having
+from elastocal.identify.level import LevelBases, level_bases
 from elastocal.identify.registration import Registration, kabsch, register
 from elastocal.identify.toolpoints import ToolPoints, find_tool_points, fit_tool_points, needs_prefit, usable
 from elastocal.model.kinds import KinematicForm, NoiseSource, TorqueSource, expect
@@ -238,18 +239,29 @@ class _Setup:
     chol: tuple[np.ndarray, ...]
     y: np.ndarray                       # (S, M, 3) measured, tracker frame
     kin_columns: kin.Columns | None = None
+    level: LevelBases | None = None     # the base's tilt from level: its joint-angle columns
+
+    @property
+    def level_names(self) -> tuple[str, ...]:
+        return self.level.names if self.level is not None else ()
 
 
 def _unpack(st: _Setup, x: np.ndarray, n_el: int):
     beta = x[:n_el]
     dr = x[n_el:n_el + 3]
     t = x[n_el + 3:n_el + 6]
-    kv = x[n_el + 6:]
+    kv = x[n_el + 6:n_el + 6 + len(st.kin_names)]
     return beta, dr, t, kv
 
 
-def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.ndarray, *, jacobian: bool):
-    """Predicted tracker positions (S, M, 3) and their Jacobian (S, M, 3, n_el + 6 + n_kin).
+def _lev(st: _Setup, x: np.ndarray, n_el: int) -> np.ndarray:
+    """The base's tilt and its nuisance products (after the kinematic parameters)."""
+    return x[n_el + 6 + len(st.kin_names):]
+
+
+def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.ndarray, *, jacobian: bool,
+           lev: np.ndarray | None = None):
+    """Predicted tracker positions (S, M, 3) and their Jacobian (S, M, 3, n_el + 6 + n_kin + n_level).
 
     The registration is ``p_tracker = R0 (exp(dr) p + dt) + t0``: ``dr`` and
     ``dt`` are a rotation about and a translation along the base axes (so that
@@ -258,21 +270,23 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
     robot = kin.corrected_robot(st.robot, st.kin_names, kv) if st.kin_names and np.any(kv) else st.robot
     b_theta, b_links, b_add = st.bases
     n_el, n_k = len(beta), len(st.kin_names)
+    b_lev = st.level.theta if st.level is not None else np.zeros((ds.n_states, robot.n_joints, 0))
+    n_lev = b_lev.shape[2]
     turn = pin.exp3(dr)
-    dtheta = b_theta @ beta
+    dtheta = b_theta @ beta + (b_lev @ lev if n_lev else 0.0)
     dlink = b_links @ beta
     markers = list(ds.markers)
     nm = len(markers)
     pos = np.empty((ds.n_states, nm, 3))
-    jac = np.zeros((ds.n_states, nm, 3, n_el + 6 + n_k)) if jacobian else None
+    jac = np.zeros((ds.n_states, nm, 3, n_el + 6 + n_k + n_lev)) if jacobian else None
     data = robot.create_data()          # this evaluation's (the corrected robot is a new model)
     batch = jacobian and n_k and not np.any(dlink)
     if batch:       # the geometry's Jacobian of every state at once (no bent links)
         theta_all = ds.q[ds.state_pose] + robot.offsets + dtheta
-        pos[:], jac[..., n_el + 6:] = kin.position_jacobian_batch(robot, theta_all, markers, st.kin_names,
+        pos[:], jac[..., n_el + 6:n_el + 6 + n_k] = kin.position_jacobian_batch(robot, theta_all, markers, st.kin_names,
                                                                   st.kin_columns, data)
     for s in range(ds.n_states):
-        if batch and not n_el:
+        if batch and not n_el and not n_lev:
             break
         theta = robot.theta(ds.q[ds.state_pose[s]]) + dtheta[s]
         if not jacobian:
@@ -283,10 +297,12 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
         j_el = (j10[:, :, robot.actuated_in_link_model] @ b_theta[s]
                 + j10[:, :, robot.springs_in_link_model] @ b_links[s])
         jac[s, :, :, :n_el] = j_el
+        if n_lev:
+            jac[s, :, :, n_el + 6 + n_k:] = j10[:, :, robot.actuated_in_link_model] @ b_lev[s]
         if n_k and not batch:
             _, jk = kin.position_jacobian(robot, theta, markers, st.kin_names, st.kin_columns,
                                           dlink[s] if np.any(dlink[s]) else None, data=data)
-            jac[s, :, :, n_el + 6:] = jk
+            jac[s, :, :, n_el + 6:n_el + 6 + n_k] = jk
     pos += b_add @ beta
     if jacobian:
         jac[..., :n_el] += b_add
@@ -352,6 +368,17 @@ def _whitened(st: _Setup, r: np.ndarray, jac: np.ndarray | None):
 
 
 @dataclass(frozen=True, eq=False)
+class _Sag:
+    """Where a table without loads has the robot's own weight act: the (S, N) link-side angles
+    it sags to and the geometry it sags on (the first pass's corrected robot)."""
+
+    theta: np.ndarray
+    robot: Robot
+    beta: np.ndarray             # the first pass's elastic parameters
+    identified: np.ndarray       # which of them the table determines
+
+
+@dataclass(frozen=True, eq=False)
 class _Start:
     """Where the absolute fit starts: the robot (with the tool-point pre-fit's markers), the
     deflection fit (or an absolute-only table's rigid start), the model's bases per state and
@@ -366,6 +393,7 @@ class _Start:
     pr: Problem
     bases: tuple[np.ndarray, np.ndarray, np.ndarray]
     el_mask: np.ndarray           # the elastic parameters the deflection fit identified
+    level: LevelBases | None = None   # the base's tilt beside self-weight springs (second pass)
 
 
 @dataclass(frozen=True, eq=False)
@@ -399,7 +427,7 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
                       model: Sequence[str] = ("joint_stiffness",), torque: TorqueSource = TorqueSource.CURRENT,
                       form: KinematicForm = KinematicForm.EXACT, max_iter: int = 30,
                       tracker_prior: Sequence[float] | None = None,
-                      excess_var: float | None = None, sag_theta: np.ndarray | None = None) -> AbsoluteFit:
+                      excess_var: float | None = None, _sag: _Sag | None = None) -> AbsoluteFit:
     """Compare the model with the absolute positions (and fit the absolute
     effects of ``model`` jointly with the rest); see the module docstring.
 
@@ -417,15 +445,16 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     alone would leave.
 
     On a table without loads the twist under the robot's own weight is exact: the weight's
-    torques are taken at the sagged configuration (``sag_theta``, (S, N) link-side angles),
-    found by refitting once from the first fit's sag."""
+    torques are taken at the configuration it sags to, on the geometry the fit found (the
+    robot sags on its as-built links, not on the drawing's), by refitting once from the
+    first fit's sag and geometry (``_sag``, internal)."""
     expect(TorqueSource, torque, "torque")
     expect(KinematicForm, form, "form")
     ds0 = data if isinstance(data, StaticDataset) else build_dataset(data)
     stated = ds0.noise_source is NoiseSource.UNCERTAINTY_COLUMNS and is_absolute_only(ds0)
     if stated and excess_var is None:      # a first fit with even weights, then s^2 from its residual
         kwargs = dict(model=model, torque=torque, form=form, max_iter=max_iter, tracker_prior=tracker_prior,
-                      sag_theta=sag_theta)
+                      _sag=_sag)
         first = identify_absolute(robot, ds0, excess_var=float(np.max(ds0.stated_variance)) * 1e6, **kwargs)
         s2 = excess_variance(first.residuals, ds0.stated_variance, first.n_params)
         return identify_absolute(robot, ds0, excess_var=s2, **kwargs)
@@ -433,23 +462,26 @@ def identify_absolute(robot: Robot, data: StaticTable | StaticDataset, *,
     names = tuple(dict.fromkeys(model if only else [BASE_EFFECT, *model]))
     static_model, absolute = split_model(names)
     start = _start(robot, ds0, static_model, absolute, torque=torque, form=form,
-                   sag_theta=sag_theta if only else None, only=only)
+                   sag=_sag if only else None, only=only)
     st, known = _setup(start, ds0, excess_var if stated else None)
     solved = _solve(st, start, absolute, max_iter=max_iter, tracker_prior=tracker_prior)
     fit, n_el = start.fit, len(start.fit.beta_names)
     unc = _uncertainty(st, solved, n_el, ds0, known, excess_var if stated else None)
     beta, dr, dt, kv = _unpack(st, solved.x_full, n_el)
-    if only and fit.beta_names and sag_theta is None and np.any(beta):
-        # the weight's torques at the configuration it sags to (the first pass took them at the commanded one)
-        sag = start.pr.nominal_theta + start.bases[0] @ beta
+    if only and fit.beta_names and _sag is None and np.any(beta):
+        # the weight's torques at the configuration it sags to, on the geometry found (the first
+        # pass took them at the commanded configuration of the drawing's geometry)
+        built = kin.corrected_robot(start.robot, st.kin_names, kv) if st.kin_names else start.robot
+        theta = start.pr.ds.q[start.pr.ds.state_pose] + built.offsets + start.bases[0] @ beta
         return identify_absolute(start.robot, ds0, model=model, torque=torque, form=form, max_iter=max_iter,
-                                 tracker_prior=tracker_prior, excess_var=excess_var, sag_theta=sag)
+                                 tracker_prior=tracker_prior, excess_var=excess_var,
+                                 _sag=_Sag(theta, built, beta.copy(), start.el_mask))
     return _absolute_fit(st, start, solved, unc, ds0, names=names, absolute=absolute, nominal_robot=robot,
                          tracker_prior=tracker_prior)
 
 
 def _start(robot: Robot, ds0: StaticDataset, static_model: tuple[str, ...], absolute: tuple[str, ...], *,
-           torque: TorqueSource, form: KinematicForm, sag_theta: np.ndarray | None, only: bool) -> _Start:
+           torque: TorqueSource, form: KinematicForm, sag: _Sag | None, only: bool) -> _Start:
     """The registration (after the tool-point pre-fit when robot.toml's markers leave the
     readings unexplained), the deflection fit and the model's absolute bases at its solution."""
     reg = register(robot, ds0) if ds0.abs_xyz is not None else None
@@ -472,16 +504,21 @@ def _start(robot: Robot, ds0: StaticDataset, static_model: tuple[str, ...], abso
     effects = fit.effects or tuple(get_effect(n, robot) for n in static_model)   # as fitted (selected components)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
     pr = Problem(robot, ds, effects, torque, form, frames, work)
+    level = None
     if fit.beta_names:
-        tau = state_torques(pr, sag_theta)
+        sagged = replace(pr, robot=sag.robot, data=None) if sag is not None else None
+        tau = state_torques(pr, None) if sag is None else state_torques(sagged, sag.theta)
         iterative = any(e.iterative for e in effects)
         bases = absolute_bases(pr, static_context(pr, tau, fit.beta if iterative else None))
+        if sag is not None and absolute:     # the weight's direction beside the springs the first pass found
+            units = tuple(u for e in effects for u in e.units)
+            level = level_bases(sagged, sag.theta, sag.beta, sag.identified, fit.beta_names, units)
     else:                             # a rigid model: no elastic parameters
         bases = (np.zeros((ds.n_states, robot.n_joints, 0)),
                  np.zeros((ds.n_states, len(robot.springs_in_link_model), 0)),
                  np.zeros((ds.n_states, len(ds.markers), 3, 0)))
     return _Start(robot=robot, tools=tools, registration=reg, kin_names=kin_names, fit=fit, effects=effects, pr=pr,
-                  bases=bases, el_mask=_elastic_mask(fit, effects))
+                  bases=bases, el_mask=_elastic_mask(fit, effects), level=level)
 
 
 def _setup(start: _Start, ds0: StaticDataset, excess_var: float | None) -> tuple[_Setup, bool]:
@@ -500,7 +537,7 @@ def _setup(start: _Start, ds0: StaticDataset, excess_var: float | None) -> tuple
         whitens = tuple(np.apply_along_axis(np.diag, 1, 1.0 / np.sqrt(total)))
         known = True
     st = _Setup(robot, ds, start.bases, frames, start.kin_names, rigid.rotation, rigid.translation, whitens, chols,
-                y, kin.columns(start.kin_names, ds.markers))
+                y, kin.columns(start.kin_names, ds.markers), start.level)
     return st, known
 
 
@@ -512,18 +549,20 @@ def _solve(st: _Setup, start: _Start, absolute: tuple[str, ...], *, max_iter: in
     frame, the markers, the DH errors) refined by Gauss-Newton."""
     fit, kin_names, el_mask = start.fit, start.kin_names, start.el_mask
     n_el = len(fit.beta_names)
-    x_full = np.concatenate([fit.beta, np.zeros(6), np.zeros(len(kin_names))])
+    lev_names = st.level_names
+    x_full = np.concatenate([fit.beta, np.zeros(6), np.zeros(len(kin_names) + len(lev_names))])
     if not absolute:
         return _Solved(x_full, np.concatenate([np.zeros(n_el, dtype=bool), np.ones(6, dtype=bool)]), None, 0)
-    all_names = (*fit.beta_names, *FRAME_NAMES, *kin_names)
-    free = np.concatenate([el_mask, np.ones(6, dtype=bool), np.zeros(len(kin_names), dtype=bool)])
+    all_names = (*fit.beta_names, *FRAME_NAMES, *kin_names, *lev_names)
+    free = np.concatenate([el_mask, np.ones(6, dtype=bool), np.zeros(len(kin_names) + len(lev_names), dtype=bool)])
     ident = None
-    if kin_names:
-        pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True)
+    if kin_names or lev_names:
+        pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True, lev=_lev(st, x_full, n_el))
         _, jw = _whitened(st, st.y - pred, jac)
-        candidate = np.concatenate([el_mask, np.ones(6 + len(kin_names), dtype=bool)])
+        candidate = np.concatenate([el_mask, np.ones(6 + len(kin_names) + len(lev_names), dtype=bool)])
         cand_names = [n for n, k in zip(all_names, candidate) if k]
         markers_first = [n for n in kin_names if n.startswith(("dx_", "dy_", "dz_"))]
+        # the geometry before the tilt: a tilt column is the weight's, which the geometry cannot carry
         priority = [n for n, k in zip(fit.beta_names, el_mask) if k] + list(FRAME_NAMES) + markers_first
         ident = kin.identifiable_set(jw[:, candidate], cand_names, priority)
         kept = dict(zip(cand_names, ident.keep))
@@ -534,7 +573,7 @@ def _solve(st: _Setup, start: _Start, absolute: tuple[str, ...], *, max_iter: in
     def evaluate(xf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         xx = x_full.copy()
         xx[idx] = xf
-        p, j = _model(st, *_unpack(st, xx, n_el), jacobian=True)
+        p, j = _model(st, *_unpack(st, xx, n_el), jacobian=True, lev=_lev(st, xx, n_el))
         rw, jw_ = _whitened(st, st.y - p, j)
         jac_ = -jw_[:, idx]
         if prior is not None:       # three rows: the tracker's position against the cell's
@@ -554,7 +593,7 @@ def _uncertainty(st: _Setup, solved: _Solved, n_el: int, ds0: StaticDataset, kno
     """Covariance of the free parameters and what noise alone would leave:
     ``trace(Σ) - trace(A (A^T Σ^-1 A)^-1 A^T)``, A the unwhitened Jacobian; with stated noise
     (``excess_var`` given) that of the stated noise alone, the fit weighted with the excess in."""
-    pred, jac = _model(st, *_unpack(st, solved.x_full, n_el), jacobian=True)
+    pred, jac = _model(st, *_unpack(st, solved.x_full, n_el), jacobian=True, lev=_lev(st, solved.x_full, n_el))
     rw, jw = _whitened(st, st.y - pred, jac)
     idx = solved.idx
     a_w = jw[:, idx]
@@ -614,7 +653,7 @@ def _absolute_fit(st: _Setup, start: _Start, solved: _Solved, unc: _AbsoluteUnce
     # measured deflections in the tracker frame (a dataset already turned to base axes is turned back)
     d_meas = ds0.dP if ds0.tracker_rotation is None else ds0.dP @ ds0.tracker_rotation.T
     d_res = d_meas - d_pred
-    all_names = (*fit.beta_names, *FRAME_NAMES, *kin_names)
+    all_names = (*fit.beta_names, *FRAME_NAMES, *kin_names, *st.level_names)
     std_full = np.zeros(len(all_names))
     std_full[idx] = np.sqrt(np.clip(np.diag(unc.cov_free), 0.0, None))
     if not absolute:
@@ -622,7 +661,7 @@ def _absolute_fit(st: _Setup, start: _Start, solved: _Solved, unc: _AbsoluteUnce
     params, unident = _report(fit, start.effects, beta, std_full[:n_el], start.el_mask)
     if having("registration", absolute):     # the tracker's placement is a finding of this model
         params += _frame_parameters(st, solved, unc, n_el)
-    kv_total = np.where(free[n_el + 6:], kv, 0.0) if kin_names else np.zeros(0)
+    kv_total = np.where(free[n_el + 6:n_el + 6 + len(kin_names)], kv, 0.0) if kin_names else np.zeros(0)
     if start.tools is not None:        # marker corrections from robot.toml's positions: the pre-fit's and the fit's
         kv, kv_total = _with_prefit(start.tools, nominal_robot, kin_names, kv, kv_total)
     absorbed: dict[str, tuple[tuple[str, float], ...]] = {}
@@ -633,7 +672,13 @@ def _absolute_fit(st: _Setup, start: _Start, solved: _Solved, unc: _AbsoluteUnce
                 params.append(Parameter(name, float(kv[k]), float(std_full[col]), kin.unit_of(name, start.robot)))
             else:
                 unident.append(name)
-        absorbed = dict(solved.ident.absorbed_by) if solved.ident is not None else {}
+    if solved.ident is not None:      # the geometry's words (the tilt is the weight's, never absorbed in words)
+        absorbed = {n: c for n, c in solved.ident.absorbed_by.items() if n not in st.level_names}
+    lev = _lev(st, solved.x_full, n_el)
+    for k, name in enumerate(st.level_names):
+        col = n_el + 6 + len(kin_names) + k
+        if free[col]:             # the base's tilt from level and the products the calibration carries
+            params.append(Parameter(name, float(lev[k]), float(std_full[col]), st.level.units[k]))
     return AbsoluteFit(
         model=names, static=fit, parameters=tuple(params), unidentifiable=tuple(unident), absorbed_by=absorbed,
         identifiable=solved.ident, registration=registration, kinematic_names=kin_names,

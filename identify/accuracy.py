@@ -34,6 +34,7 @@ from elastocal.identify.registration import Registration, kabsch, nominal_positi
 from elastocal.model.kinds import NoiseSource
 from elastocal.model.robot import MARKER_PREFIX, Robot
 from elastocal.identify.dataset import StaticDataset, build_dataset
+from elastocal.identify.level import TILT_NAMES, tilt_twist
 from elastocal.identify.staticmodel import Problem, absolute_bases, absolute_positions, state_torques, static_context
 from elastocal.formats.tables import StaticTable
 from elastocal.model.kinds import KinematicForm, TorqueSource
@@ -177,7 +178,9 @@ def _predicted(robot: Robot, calibration: Calibration, ds: StaticDataset) -> tup
     beta = np.array(beta)
     rob = calibrated_robot(robot, calibration)
     frames = tuple(MARKER_PREFIX + m for m in ds.markers)
-    if not np.any(beta):                   # a rigid model: the corrected geometry alone
+    values = {p.name: p.value for p in calibration.parameters}
+    tilted = any(n in values for n in TILT_NAMES)
+    if not np.any(beta) and not tilted:     # a rigid model: the corrected geometry alone
         return absolute_positions(rob, ds, frames, np.zeros(0), _no_bases(rob, ds)), rigid
     torque = calibration.torque
     if is_absolute_only(ds) and not ds.has_wrench:   # no loads: the robot's own weight only
@@ -189,6 +192,14 @@ def _predicted(robot: Robot, calibration: Calibration, ds: StaticDataset) -> tup
     tau = state_torques(pr, None)
     iterative = any(e.iterative for e in effects)
     bases = absolute_bases(pr, static_context(pr, tau, beta if iterative else None))
+    # the weight's direction the fit found (a base out of level; the currents already hold it)
+    twist = tilt_twist(pr, beta, tuple(p for e in effects for p in e.parameters), values) \
+        if tilted and torque is TorqueSource.FORCE else None
+    if twist is not None:                   # one more column, its coefficient 1
+        bases = (np.concatenate([bases[0], twist[:, :, None]], axis=2),
+                 np.concatenate([bases[1], np.zeros((*bases[1].shape[:2], 1))], axis=2),
+                 np.concatenate([bases[2], np.zeros((*bases[2].shape[:3], 1))], axis=3))
+        beta = np.append(beta, 1.0)
     return absolute_positions(rob, ds, frames, beta, bases, pr.data), rigid
 
 
