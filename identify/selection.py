@@ -39,6 +39,16 @@ CONTROL_SIGN = True
 #: test's threshold) that moves a joint spring by more than this many of its std leaves that spring
 #: not determined by these data
 TWIN_SHIFT = 2.0
+#: a component left out for its sign lets a joint spring's honest 95 % interval (the profile likelihood with
+#: the component free in [0, inf)) reach this many times as far as its printed one: that spring is the
+#: physical bound's, not the data's. The honest reach grows from 1 with the spring's alias with the component
+#: (about the factor its std would grow by were the component fitted); no rule derives the point where that
+#: stops being an interval to state and becomes an undetermined spring. Measured (linearisation of the
+#: selection): the six-joint golden fit's k2 2.2x, six-joint demo-like fits' k1 up to 7.7x (seeds 0-9),
+#: the seven-joint track cell's k6 on seed 6 25.7x.
+BOUND_REACH = 10.0
+#: the interval the honest reach is measured at (chi-square 1 dof, 95 %)
+BOUND_CHI2 = 3.841458820694124
 
 
 @dataclass(frozen=True)
@@ -58,6 +68,22 @@ class Twin:
 
 
 @dataclass(frozen=True)
+class AtBound:
+    """A joint spring its printed std overstates: a component left out only for its sign (below zero
+    within noise) still may be positive by what the data allow, and the spring moves with it."""
+
+    spring: str
+    component: str
+    reach: float            # the honest 95 % interval's reach over the printed one's (1: as printed)
+
+    @property
+    def note(self) -> str:
+        return (f"not determined by these data: {self.component} comes out below zero within noise and is left "
+                f"out (a compliance is not negative), but at values the data still allow it {self.spring} moves "
+                f"{self.reach:.0f} times as far as its 95 % interval says")
+
+
+@dataclass(frozen=True)
 class Selection:
     """What the data support of a selectable effect."""
 
@@ -72,6 +98,15 @@ class Selection:
     controls: tuple[str, ...] = ()
     #: joint springs that follow the choice between a fitted component and its twin (:func:`twins`)
     twins: tuple[Twin, ...] = ()
+    #: joint springs whose honest interval a component left out for its sign widens (:func:`at_bound`)
+    at_bound: tuple[AtBound, ...] = ()
+
+    def undetermined(self) -> dict[str, str]:
+        """The springs these data do not determine, name -> why (twins first, both notes when both)."""
+        out: dict[str, str] = {}
+        for t in (*self.twins, *self.at_bound):
+            out[t.spring] = f"{out[t.spring]}; {t.note}" if t.spring in out else t.note
+        return out
 
     def fitted(self, kept: tuple[str, ...] | None = None) -> tuple[str, ...]:
         """The components a fit holds: ``kept`` (default the kept ones) and the controls."""
@@ -278,6 +313,64 @@ def twins(full_fit, sel: Selection, components: tuple[str, ...], springs: dict[s
             got = lin.solve([*(x for x in fitted if x != k), c])
             if got is not None and (lin.last_rss - rss_now) / s2 < limit and z_last(got) >= -WRONG_SIGN_STD:
                 note(k, c, got[0])          # in place of the kept one it fits as well: which is there?
+    return tuple(best[s] for _, s in rows if s in best)
+
+
+def honest_reach(z: float, r: float, rho: float) -> float:
+    """How far a spring's honest 95 % interval reaches over its printed one, when a component left out
+    at its bound (its value ``z`` of its std beside the fitted ones, ``z <= 0``) is free in [0, inf).
+
+    The printed interval is the fit without the component (the constrained estimate: c = 0), half-width
+    ``sqrt(q)`` of the spring's std. With the component free the spring's std is ``r`` times that and its
+    correlation with the component ``rho``; the profile deviance, against the constrained maximum (which
+    lies ``z**2`` above the free one), reaches ``q`` where the free fit's deviance is ``q + z**2``, on the
+    side where the component grows; the free estimate sits ``|rho| |z|`` of its std on the other side of the
+    constrained one. Where the component at that end would be below zero the bound holds it, and the
+    interval is the printed one."""
+    q, z, rho = BOUND_CHI2, min(z, 0.0), abs(rho)
+    wide = math.sqrt(q + z * z)
+    if rho * wide < abs(z):             # the end lies where the component is held at zero
+        return 1.0
+    return max(r * (wide - rho * abs(z)) / math.sqrt(q), 1.0)
+
+
+def at_bound(full_fit, sel: Selection, components: tuple[str, ...], springs: dict[str, str]) -> tuple[AtBound, ...]:
+    """The joint springs a component left out for its sign leaves undetermined.
+
+    A component not fitted whose value beside the fitted ones is below zero (within noise: beyond
+    WRONG_SIGN_STD it is no compliance at all) is left out because a compliance is not negative: the
+    constrained estimate is zero, and the spring's printed std is the fit's without it. But the data still
+    allow the component positive values, up to about its estimate plus two of its std, and a spring that
+    aliases with it moves with it: its honest interval (:func:`honest_reach`) reaches beyond the printed
+    one on that side. When it reaches more than BOUND_REACH times as far, the spring is reported not
+    determined. The largest reach per spring."""
+    lin = _Linear(full_fit, components)
+    fitted = [nm for nm in sel.fitted() if nm in lin.names]
+    now = lin.solve(fitted)
+    if now is None:
+        return ()
+    nb = len(lin.base)
+    std_now = np.sqrt(np.clip(np.diag(now[1])[:nb], 1e-300, None))
+    rows = [(i, springs[lin.names[c]]) for i, c in enumerate(lin.base) if lin.names[c] in springs]
+    best: dict[str, AtBound] = {}
+    for c in (nm for nm in components if nm in lin.names and nm not in fitted):
+        got = lin.solve([*fitted, c])
+        if got is None:
+            continue
+        b, cov = got
+        var_c = float(cov[-1, -1])
+        if not var_c > 0:
+            continue
+        z = float(b[-1]) / math.sqrt(var_c)
+        if z > 0.0 or z < -WRONG_SIGN_STD:
+            continue            # not left out for its sign (the test's and the controls' business), or no compliance
+        for i, spring in rows:
+            var_k = float(cov[i, i])
+            if not var_k > 0:
+                continue
+            reach = honest_reach(z, math.sqrt(var_k) / std_now[i], float(cov[i, -1]) / math.sqrt(var_k * var_c))
+            if reach > BOUND_REACH and (spring not in best or reach > best[spring].reach):
+                best[spring] = AtBound(spring, c, float(reach))
     return tuple(best[s] for _, s in rows if s in best)
 
 

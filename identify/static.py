@@ -150,8 +150,13 @@ class StaticFit:
     @property
     def undetermined(self) -> dict[str, str]:
         """Joint stiffnesses these data do not determine (name -> why): each follows which of two
-        link-compliance components the data cannot tell apart was fitted (identify/selection.py)."""
-        return {t.spring: t.note for sel in self.selections for t in sel.twins}
+        link-compliance components the data cannot tell apart was fitted, or a component left out for
+        its sign that the data still allow positive (identify/selection.py)."""
+        out: dict[str, str] = {}
+        for sel in self.selections:
+            for spring, why in sel.undetermined().items():
+                out[spring] = f"{out[spring]}; {why}" if spring in out else why
+        return out
 
     def to_json(self) -> dict:
         """The ``identify --json`` object of docs/cli.md."""
@@ -500,7 +505,7 @@ def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: 
     selections = []
     for k, eff in enumerate(effects):
         if eff.selectable and eff.selected_from is None:
-            from elastocal.identify.selection import confirm_selection, confounders, forward_select, twins
+            from elastocal.identify.selection import at_bound, confirm_selection, confounders, forward_select, twins
 
             # (first-order: one linear solve; the kept components are then fitted in ``form``)
             full = identify_static(robot, ds, model=[*effects[:k], eff.restricted(eff.parameters), *effects[k + 1:]],
@@ -520,6 +525,7 @@ def _model_effects(robot: Robot, ds: StaticDataset, model: Sequence, *, torque: 
             springs = dict(zip(base.parameters, base.parameters if base.report_with_model is not None
                                else base.reported_names))
             sel = replace(sel, twins=twins(full, sel, eff.parameters, springs))
+            sel = replace(sel, at_bound=at_bound(full, sel, eff.parameters, springs))
             selections.append(sel)
             # the kept components and the controls (fitted, not named: identify/selection.py)
             effects = (*effects[:k], eff.restricted(sel.fitted()), *effects[k + 1:])
