@@ -33,7 +33,8 @@ import numpy as np
 
 from elastocal.model.robot import LOAD_FRAME, Robot
 from elastocal.sims import physics
-from elastocal.sims.as_built import HH150_PARALLEL, as_built, default_kinematic_errors, error_unit, parallel_axes
+from elastocal.sims.as_built import (HH150_PARALLEL, as_built, default_kinematic_errors, default_urdf_errors,
+                                     error_unit, parallel_axes)
 
 #: HH-150 joint stiffness, Yang Table 6 (current-based) [N·m/rad]
 HH150_STIFFNESS = (0.559e6, 1.435e6, 1.829e6, 0.184e6, 0.171e6, 0.070e6)
@@ -123,8 +124,8 @@ class CellTruth:
     #: measurement noise (one standard deviation per reading)
     tracker_noise_m: float = 10e-6
     current_noise_a: float = 0.02
-    #: the real robot's DH and marker errors, (name, value) under the names of
-    #: identify/kinematics.py; () for a robot built exactly to its drawing
+    #: the real robot's DH (or URDF joint origins') and marker errors, (name, value) under the names
+    #: of identify/kinematics.py; () for a robot built exactly to its drawing
     kinematic_errors: tuple[tuple[str, float], ...] = ()
     #: where the tracker stands: p_tracker = tracker_rotation @ p_base + tracker_translation
     tracker_rotation: np.ndarray = field(default_factory=lambda: DEFAULT_TRACKER[0].copy())
@@ -134,16 +135,20 @@ class CellTruth:
     #: which joints' axes are parallel to the previous joint's (``--hidden kinematic_errors`` tilts
     #: them); () for the HH-150's (:data:`HH150_PARALLEL`) on six joints, none on another number
     parallel: tuple[bool, ...] = ()
+    #: the robot's geometry is a URDF's joint origins (``--hidden kinematic_errors`` moves them,
+    #: :func:`default_urdf_errors`), not a DH table
+    urdf: bool = False
 
     @classmethod
     def for_robot(cls, robot: Robot, **changes) -> "CellTruth":
         """The simulated cell of ``robot``: the HH-150's stiffness (Yang Table 6) on its revolute
         joints in order, :data:`TRACK_STIFFNESS` on a prismatic one, the robot's parallel axes
-        (:func:`parallel_axes`); ``changes`` as the fields."""
+        (:func:`parallel_axes`), whether it is a URDF robot; ``changes`` as the fields."""
         prismatic = tuple(bool(p) for p in robot.prismatic)
         if "stiffness" not in changes:
             changes["stiffness"] = joint_values(prismatic, HH150_STIFFNESS, TRACK_STIFFNESS)
         changes.setdefault("parallel", parallel_axes(robot))
+        changes.setdefault("urdf", robot.urdf is not None)
         return cls(prismatic=prismatic, **changes)
 
     @property
@@ -203,7 +208,9 @@ class CellTruth:
         if effect == "backlash":
             return replace(self, backlash=self.per_joint([6e-5, 5e-5, 5e-5, 1.2e-4, 1.2e-4, 1.5e-4], 2e-5))
         if effect == "kinematic_errors":
-            return replace(self, kinematic_errors=default_kinematic_errors(self.prismatic, self.parallel))
+            errors = default_urdf_errors(self.prismatic) if self.urdf else \
+                default_kinematic_errors(self.prismatic, self.parallel)
+            return replace(self, kinematic_errors=errors)
         if effect == "tracker_frame":
             return replace(self, tracker_rotation=MOVED_TRACKER[0].copy(),
                            tracker_translation=MOVED_TRACKER[1].copy())

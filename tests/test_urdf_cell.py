@@ -34,3 +34,115 @@ def test_validate_on_unseen_poses_is_within_a_quarter_above_the_floor(tmp_path):
     assert absolute["calibrated"]["rms"] <= 1.25 * absolute["noise_floor"], absolute
     # and the calibration is what brings them there: the uncalibrated description is far off
     assert absolute["nominal"]["rms"] > 20 * absolute["noise_floor"], absolute
+
+
+def test_the_as_built_origins_are_found_and_predict_unseen_poses(tmp_path):
+    """``sim static --hidden kinematic_errors`` on the URDF robot: the simulator moves every joint origin
+    (sized by the joint's kind, as on a DH robot) and writes the truth under the fit's URDF names; identify
+    finds each identified origin error within its interval of what it estimates (its own true error plus
+    what it absorbs), and the calibration predicts another seed's poses within a quarter above the floor."""
+    import numpy as np
+
+    from elastocal.formats.calibration import read_calibration
+    from elastocal.formats.robot_toml import load_robot
+    from elastocal.formats.tables import read_static_table
+    from elastocal.identify.absolute import identify_absolute
+    from elastocal.identify.static import build_dataset
+
+    robot_path = bundled_robot_path("hh150_urdf")
+    seen, unseen, cal = tmp_path / "seen", tmp_path / "unseen", tmp_path / "cal.json"
+    # 24 poses: the origins' thirty-odd parameters from 12 poses carry up to 1.3x the floor onto unseen
+    # poses (the DH table's as well, on the same seeds); one load state each is enough for the geometry
+    for out, seed in ((seen, "5"), (unseen, "13")):
+        done = _cli("sim", "static", "--robot", str(robot_path), "--hidden", "kinematic_errors", "--out", str(out),
+                    "--seed", seed, "--poses", "24", "--loads-per-pose", "1")
+        assert done.returncode == 0, done.stderr
+    truth = json.loads((seen / "truth.json").read_text(encoding="utf-8"))["parameters"]
+    robot = load_robot(seen / "robot.toml")
+    # every joint's zero and its origin's six errors, in the fit's names and units
+    for j in range(1, robot.n_joints + 1):
+        assert truth[f"dq{j}"]["unit"] == "rad" and 2e-4 < abs(truth[f"dq{j}"]["value"]) < 1e-3
+        for axis in "xyz":
+            assert truth[f"dp{axis}{j}"]["unit"] == "m" and 5e-5 < abs(truth[f"dp{axis}{j}"]["value"]) < 1e-3
+            assert truth[f"dr{axis}{j}"]["unit"] == "rad" and 2e-4 < abs(truth[f"dr{axis}{j}"]["value"]) < 1e-3
+    done = _cli("identify", "--robot", str(seen / "robot.toml"), "--static", str(seen / "static.csv"),
+                "--model", "kinematic_errors,tracker_frame", "--out", str(cal))
+    assert done.returncode == 0, done.stderr
+    calibration = read_calibration(cal)
+    # what each kept parameter estimates: the same identifiable set, from the same data in-process
+    fit = identify_absolute(robot, build_dataset(read_static_table(seen / "static.csv", robot=robot)),
+                            model=calibration.model)
+    values = {n: p["value"] for n, p in truth.items() if isinstance(p["value"], float)}
+    values |= {f"c{j}": 1.0 / truth[f"k{j}"]["value"] for j in range(1, robot.n_joints + 1)}
+    expected = fit.identifiable.base_value(values)
+    z = {}
+    for name in fit.kinematic_names:
+        if name in fit.unidentifiable:
+            continue
+        got = calibration.find(name)
+        assert abs(got.value - fit.parameter(name).value) < 0.01 * got.std, name     # the command's own fit
+        z[name] = (got.value - expected[name]) / got.std
+    origins = [n for n in z if n[:2] in ("dp", "dr")]
+    assert len(origins) >= 12, sorted(z)
+    inside = sum(abs(v) < 1.96 for v in z.values())
+    # 95 % intervals: binomial noise on about 30 parameters (3 sigma below 95 %), none beyond 4 std
+    assert inside >= 0.95 * len(z) - 3 * np.sqrt(0.05 * 0.95 * len(z)) and max(map(abs, z.values())) < 4.0, z
+    # the errors are there to find: most of what the fit keeps is many std from the drawing
+    assert np.median([abs(expected[n]) / calibration.find(n).std for n in origins]) > 5.0
+    done = _cli("validate", "--robot", str(seen / "robot.toml"), "--calibration", str(cal), "--static",
+                str(unseen / "static.csv"), "--keep-frame", "--json")
+    assert done.returncode == 0, done.stderr
+    absolute = json.loads(done.stdout)["absolute"]
+    assert absolute["calibrated"]["rms"] <= 1.25 * absolute["noise_floor"], absolute
+    assert absolute["nominal"]["rms"] > 20 * absolute["noise_floor"], absolute
+
+
+def test_the_simulator_moves_an_origin_behind_fixed_joints_as_in_the_previous_joints_frame():
+    """The simulator's as-built URDF, first principles: the same robot with a fixed joint (a turned, offset
+    link) put before joint 3 and joint 3's origin given behind it, moved by the same errors, reaches the same
+    marker positions to 1e-12 m (the errors are in the previous joint's frame, whatever links sit between),
+    and the errors move the markers by their size."""
+    import re
+
+    import numpy as np
+    import pinocchio as pin
+
+    from elastocal.formats.robot_toml import bundled_robot, parse_robot
+    from elastocal.sims.as_built import as_built
+    from elastocal.sims.cell import CellTruth
+
+    robot = bundled_robot("hh150_urdf")
+    fixed = pin.SE3(pin.rpy.rpyToMatrix(0.3, -0.2, 0.5), np.array([0.4, -0.1, 0.05]))
+    joint = re.search(r'<joint name="A3".*?<origin xyz="([^"]*)" rpy="([^"]*)"/>', robot.urdf.xml, re.S)
+    origin = pin.SE3(pin.rpy.rpyToMatrix(*map(float, joint.group(2).split())),
+                     np.array([float(v) for v in joint.group(1).split()]))
+    behind = fixed.inverse() * origin
+    xml = robot.urdf.xml[:joint.start(1)] + " ".join(repr(float(v)) for v in behind.translation) + \
+        robot.urdf.xml[joint.end(1):joint.start(2)] + " ".join(repr(float(v)) for v in pin.rpy.matrixToRpy(
+            behind.rotation)) + robot.urdf.xml[joint.end(2):]
+    xml = xml.replace('<parent link="link2"/>\n    <child link="link3"/>',
+                      '<parent link="link2b"/>\n    <child link="link3"/>')
+    xyz, rpy = (" ".join(repr(float(v)) for v in a) for a in (fixed.translation, pin.rpy.matrixToRpy(fixed.rotation)))
+    xml = xml.replace('<joint name="A3"', f'<link name="link2b"/>\n  <joint name="F2" type="fixed">\n    <parent '
+                      f'link="link2"/>\n    <child link="link2b"/>\n    <origin xyz="{xyz}" rpy="{rpy}"/>\n  </joint>\n'
+                      '  <joint name="A3"')
+    text = bundled_robot_path("hh150_urdf").read_text(encoding="utf-8").replace(
+        'urdf = "hh150.urdf"', f"urdf_xml = '''{xml}'''")
+    split = parse_robot(text, base_dir=bundled_robot_path("hh150_urdf").parent)
+    errors = CellTruth.for_robot(robot).with_hidden("kinematic_errors").kinematic_errors
+    q = np.random.default_rng(4).uniform(-1.0, 1.0, (5, robot.n_joints))
+    for qi in q:
+        a, b = (r.positions(r.theta(qi), robot.marker_names) for r in (robot, split))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)       # the same robot, drawn two ways
+        moved = [r.positions(r.theta(qi), robot.marker_names) for r in (as_built(robot, errors),
+                                                                        as_built(split, errors))]
+        np.testing.assert_allclose(moved[0], moved[1], rtol=0, atol=1e-12)
+        assert 2e-4 < np.linalg.norm(moved[0] - a, axis=1).min()
+    # the fixed joint's turn is not undone: an error along x of joint 3's frame before it, not the link's
+    only = [("dpx3", 1e-3)]
+    for qi in q:
+        d = as_built(split, only).positions(split.theta(qi), robot.marker_names) - \
+            split.positions(split.theta(qi), robot.marker_names)
+        frame2 = split.model.createData()
+        pin.framesForwardKinematics(split.model, frame2, split.theta(qi))
+        np.testing.assert_allclose(d, np.tile(1e-3 * frame2.oMi[2].rotation[:, 0], (3, 1)), rtol=0, atol=1e-12)

@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                 "robot.toml, runs.csv, truth.json")):
         p = sub.add_parser(name, help=text, description=text)
         effects = ("link_compliance, thermal_drift, static_friction, backlash, kinematic_errors (the real DH "
-                   "table off by 0.02-0.05 deg and 0.1-0.5 mm), tracker_frame (the tracker on another stand), "
+                   "table, or a URDF robot's joint origins, off by 0.02-0.05 deg and 0.1-0.5 mm), tracker_frame (the tracker on another stand), "
                    "base_tilt (the base tilting under the overturning moment), nonlinear_stiffness (hardening "
                    "gears); several as A,B"
                    if name == "static" else
