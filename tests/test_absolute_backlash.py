@@ -128,9 +128,9 @@ def test_the_play_is_found_with_95_percent_intervals_over_40_seeds():
 
 def _turning_over_on(robot, forearm: int, seed: int, n: int = 40):
     """``turning_over`` on any chain: the forearm joint (0-based ``forearm``) over its vertical;
-    the as-built geometry hidden where the simulator builds it (a modified-DH robot)."""
+    the as-built geometry hidden (a DH table's errors, or a URDF robot's joint origins)."""
     base = CellTruth.for_robot(robot)
-    truth = base.with_hidden("kinematic_errors") if robot.urdf is None else base
+    truth = base.with_hidden("kinematic_errors")
     truth = dataclasses.replace(truth, backlash=base.with_hidden("backlash").backlash)
     rng = np.random.default_rng(seed)
     q = random_poses(robot, n, rng)

@@ -80,7 +80,7 @@ def calibrated_truth(robot, cal, default):
     if spec is not None and all(cal.has(n) for n in spec.parameter_names):
         changes["compensator"] = tuple(cal.value(n) for n in spec.parameter_names)
         holds.append("compensator")
-    if having("geometry", cal.model) and robot.urdf is None:
+    if having("geometry", cal.model):        # a DH table's errors, or a URDF robot's joint origins
         changes["kinematic_errors"] = tuple((n, cal.value(n)) for n in parameter_names(robot, robot.marker_names)
                                             if cal.has(n))
         holds.append("kinematic_errors")
