@@ -3,6 +3,7 @@
 import json
 import re
 
+import numpy as np
 import pytest
 
 from elastocal.cli import main
@@ -130,3 +131,18 @@ def test_the_demo_hides_only_what_it_can_find_and_says_which(tmp_path, capsys, h
     assert err == ("elastocal demo: --hidden: choose one of none, link_compliance, thermal_drift, backlash; "
                    f"got {hidden!r}")
     assert not out.exists()
+
+
+def test_the_plain_words_claim_no_error_for_a_stiffness_not_determined():
+    """A stiffness the fit marks not determined is no finding: the demo's first sentence counts only the
+    others and names it, and with none marked it reads as before."""
+    from elastocal.commands._plain import demo_findings
+
+    validation = {"uncompensated": {"max": 3e-3}, "exact": {"max": 1e-5}}
+    err = np.array([5.8, 1.1, 0.4, 0.2, 40.0, 9.0, 3.0])
+    marked = demo_findings(hidden="none", verdict=None, explanation=None, rms_before=1e-5, rms_after=1e-5,
+                           floor=1e-5, stiffness_error_percent=err, validation=validation, undetermined=[4, 5])
+    assert "got five of the seven within 5.8 %" in marked[0] and "do not determine k5, k6" in marked[0], marked[0]
+    plain = demo_findings(hidden="none", verdict=None, explanation=None, rms_before=1e-5, rms_after=1e-5,
+                          floor=1e-5, stiffness_error_percent=err, validation=validation)
+    assert "got all seven within 40.0 %" in plain[0], plain[0]

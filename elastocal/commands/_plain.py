@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -18,14 +18,25 @@ def _length(x: float) -> str:
 def demo_findings(*, hidden: str, verdict: str | None, explanation: str | None, rms_before: float,
                   rms_after: float, floor: float | None, stiffness_error_percent: np.ndarray,
                   validation: Mapping[str, Mapping[str, float]],
-                  absolute: tuple[float, float] | None = None) -> list[str]:
-    """What the demo found, as sentences a newcomer reads without the glossary."""
-    worst = float(np.max(stiffness_error_percent))
+                  absolute: tuple[float, float] | None = None,
+                  undetermined: Sequence[int] = ()) -> list[str]:
+    """What the demo found, as sentences a newcomer reads without the glossary (``undetermined``: the
+    0-based joints whose stiffness the fit marks not determined; no error is claimed for them)."""
     n = len(stiffness_error_percent)
-    count = {6: "six", 7: "seven", 8: "eight"}.get(n, str(n))
+    words = dict(enumerate(("no", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")))
+    count = words.get(n, str(n))
+    open_ = sorted(set(int(j) for j in undetermined))
+    found = [e for j, e in enumerate(stiffness_error_percent) if j not in open_]
+    worst = float(np.max(found)) if found else float("nan")
+    if not open_:
+        got = f"got all {count} within {worst:.1f} % of the values the simulator was built with."
+    else:
+        names = ", ".join(f"k{j + 1}" for j in open_)
+        got = (f"got {words.get(len(found), str(len(found)))} of the {count} within {worst:.1f} % of the values the "
+               f"simulator was built with; these data do not determine {names} (printed as NOT DETERMINED, "
+               f"never as a result).")
     out = [f"The robot bends under load like {count} springs at its joints. elastocal measured how stiff each "
-           f"spring is from the motor currents and the tracker alone, and got all {count} within {worst:.1f} % of "
-           f"the values the simulator was built with."]
+           f"spring is from the motor currents and the tracker alone, and {got}"]
     if floor is not None and verdict is not None:
         out.append(f"The springs alone do not explain everything: they leave {_um(rms_before)} of error where the "
                    f"measurement noise accounts for only {_um(floor)}. Something else bends. elastocal tested "

@@ -292,7 +292,11 @@ def _run_steps(args: argparse.Namespace, out: pathlib.Path, say: _Say) -> dict:
         print(f"  (the compensation model holds the joint springs; what {diag.verdict} adds on the path is what "
               "exact compensation leaves)")
     err = np.abs(k / truth.stiffness - 1) * 100
-    print(f"\n  stiffness from currents, {k_source}: worst error {err.max():.2f} % against the simulator's truth")
+    marked = getattr(geo if k_source.startswith("with the as-built") else final, "undetermined", {})
+    determined = [e for p, e in zip(k_params, err) if p.name not in marked]
+    worst = f"worst error {max(determined):.2f} %" if determined else "no stiffness determined"
+    left = f" ({', '.join(sorted(marked))} not determined: no error claimed)" if marked else ""
+    print(f"\n  stiffness from currents, {k_source}: {worst} against the simulator's truth{left}")
     return {"diag": diag, "final": final, "err": err, "validation": validation, "absolute": absolute, "geo": geo,
             "truth_k": truth_k, "log": log, "outcome": outcome, "k": (k_params, k_source)}
 
@@ -316,21 +320,23 @@ def _print_findings(args: argparse.Namespace, out: pathlib.Path, found: dict, de
     diag, final, err, validation = found["diag"], found["final"], found["err"], found["validation"]
     absolute, geo, truth_k, log, outcome = (found[k] for k in ("absolute", "geo", "truth_k", "log", "outcome"))
     cand = diag.verdict_candidate
+    k_params, k_source = found["k"]
+    fit_k = geo if k_source.startswith("with the as-built") else final
+    undetermined = getattr(fit_k, "undetermined", {})
+    open_joints = [j for j, p in enumerate(k_params) if p.name in undetermined]
     print("\nWhat the demo found")
     for sentence in demo_findings(hidden=args.hidden, verdict=diag.verdict,
                                   explanation=None if cand is None else cand.explanation,
                                   rms_before=diag.fit.rms, rms_after=final.rms, floor=diag.noise_floor,
                                   stiffness_error_percent=err, validation=validation,
-                                  absolute=(absolute.base.rms, geo.rms)):
+                                  absolute=(absolute.base.rms, geo.rms), undetermined=open_joints):
         print("  " + textwrap.fill(sentence, 96, subsequent_indent="  "))
-    k_params, k_source = found["k"]
     print(f"\n  The numbers: joint stiffness identified ({k_source}, from motor currents) against the truth")
     final_k = {p.name: {"value": p.value, "std": p.std, "unit": p.unit} for p in k_params}
     # a stiffness that follows the link-compliance selection's choice between twins is no finding
     from elastocal.identify.evidence import mark_twins
 
-    fit_k = geo if k_source.startswith("with the as-built") else final
-    print(format_parameters(mark_twins(final_k, getattr(fit_k, "undetermined", {})), truth_k))
+    print(format_parameters(mark_twins(final_k, undetermined), truth_k))
     print("\nThe details, step by step" + details)
     print(f"\n  files in {out}")
     print(f"  Words like noise floor, ΔBIC, exact form, TPDO/SYNC and the effect names: README.md, Glossary. "
@@ -339,6 +345,8 @@ def _print_findings(args: argparse.Namespace, out: pathlib.Path, found: dict, de
         "hidden": args.hidden, "verdict": diag.verdict, "rms_before": diag.fit.rms, "rms_after": final.rms,
         "absolute": {"rms_before": absolute.base.rms, "max_before": absolute.base.max, "rms_after": geo.rms,
                      "max_after": geo.max, "noise_floor": geo.noise_floor},
-        "noise_floor": final.noise_floor, "stiffness_error_percent": err.tolist(), "compensation": validation,
+        "noise_floor": final.noise_floor, "stiffness_error_percent": err.tolist(),
+        # the stiffnesses the fit marks not determined (their error above is against the truth, no finding)
+        "stiffness_not_determined": [k_params[j].name for j in open_joints], "compensation": validation,
         "procedure": {"status": outcome.status, "steps": outcome.steps_done, "elapsed_s": outcome.duration_s},
     }, indent=2))
