@@ -34,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         add_seed(p)
         p.add_argument("--out", required=True, help="output directory")
         p.add_argument("--robot", help="robot.toml to simulate, or a bundled robot by name: hh150 (the default), "
-                                       "hh150_track (the HH-150 on a floor track, seven joints)")
+                                       "hh150_track (the HH-150 on a floor track, seven joints), hh150_urdf (the "
+                                       "HH-150 described by a URDF)")
         p.add_argument("--force", action="store_true", help="overwrite the files of an earlier dataset in --out")
         add_json(p)
         if name == "runs":
@@ -162,7 +163,7 @@ def _robot(args):
     if not args.robot:
         return bundled_robot()
     if not pathlib.Path(args.robot).exists() and bundled_robot_path(args.robot).exists():
-        return bundled_robot(args.robot)        # a bundled robot by name: hh150, hh150_track
+        return bundled_robot(args.robot)        # a bundled robot by name: hh150, hh150_track, hh150_urdf
     return load_robot(args.robot)
 
 
