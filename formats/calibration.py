@@ -289,7 +289,7 @@ def parameter_unit(name: str) -> str | None:
     if name in HYDRO_UNITS or name in SPRING_UNITS:
         return {**HYDRO_UNITS, **SPRING_UNITS}[name]
     kind = name.rstrip("0123456789")        # kinematic_errors (identify/kinematics.py)
-    if kind != name and kind in ("dq", "dalpha", "dbeta"):
+    if kind != name and kind in ("dq", "dalpha", "dbeta", "dtheta"):
         return "rad"
     if kind != name and kind in ("da", "dd") or name.startswith(("dx_", "dy_", "dz_")):
         return "m"

@@ -4,8 +4,9 @@ The real robot differs from its drawing by small errors of the DH table
 (docs/physics.md, "Absolute positions"): per joint ``i`` the joint zero ``dq<i>``
 [rad], the link length ``da<i>`` (of ``a_{i-1}``) [m], the offset along the axis
 ``dd<i>`` [m] and the twist ``dalpha<i>`` (of ``alpha_{i-1}``) [rad] (on a prismatic joint
-``dq<i>`` is the zero of its travel [m], a slide along its axis, and ``dd<i>`` moves
-nothing: ``d_i`` is the travel); where the
+``dq<i>`` is the zero of its travel [m], a slide along its axis, ``dd<i>`` moves
+nothing: ``d_i`` is the travel, and ``dtheta<i>`` [rad] is the error of its fixed angle
+``theta_i``, a turn about its axis, as a track's rails are mounted); where the
 axes of joints ``i-1`` and ``i`` are parallel (``alpha_{i-1}`` = 0 or pi, joints
 2-3 of an industrial arm) a small tilt about y cannot be written with the four
 DH parameters, and Hayati's ``dbeta<i>`` [rad] joins them:
@@ -50,8 +51,9 @@ from elastocal.identify.urdf_geometry import (
 )
 
 #: DH error kinds per joint, in the order of the parameter vector
-DH_KINDS = ("dq", "da", "dd", "dalpha", "dbeta")
-UNITS = {"dq": "rad", "da": "m", "dd": "m", "dalpha": "rad", "dbeta": "rad", "marker": "m", **URDF_UNITS}
+DH_KINDS = ("dq", "da", "dd", "dalpha", "dbeta", "dtheta")
+UNITS = {"dq": "rad", "da": "m", "dd": "m", "dalpha": "rad", "dbeta": "rad", "dtheta": "rad", "marker": "m",
+         **URDF_UNITS}
 #: every kind: the DH ones, then a URDF joint origin's six (identify/urdf_geometry.py)
 ALL_KINDS = DH_KINDS + URDF_KINDS[1:]
 #: |sin(alpha_{i-1})| below this: the axes of joints i-1 and i are parallel
@@ -83,8 +85,11 @@ def parameter_names(robot: Robot, markers: Sequence[str]) -> tuple[str, ...]:
         return urdf_parameter_names(robot, markers)
     parallel = parallel_joints(robot)
     names = []
-    for i in range(1, len(robot.joints) + 1):
-        names += [f"{k}{i}" for k in DH_KINDS if k != "dbeta" or i in parallel]
+    for i, joint in enumerate(robot.joints, start=1):
+        # dbeta only where the axes are parallel; dtheta only where theta is fixed (a prismatic joint:
+        # a revolute joint's theta error is its zero, dq)
+        names += [f"{k}{i}" for k in DH_KINDS if (k != "dbeta" or i in parallel)
+                  and (k != "dtheta" or joint.kind is JointKind.PRISMATIC)]
     for m in markers:
         names += [f"dx_{m}", f"dy_{m}", f"dz_{m}"]
     return tuple(names)
@@ -111,7 +116,8 @@ def describe(name: str) -> str:
         return describe_urdf(kind, joint)
     return {"dq": f"the zero of joint {joint}", "da": f"the link length a{int(joint) - 1}",
             "dd": f"the offset d{joint} along axis {joint}", "dalpha": f"the twist alpha{int(joint) - 1}",
-            "dbeta": f"the tilt beta{joint} of axis {joint} (parallel to axis {int(joint) - 1})"}.get(kind, name)
+            "dbeta": f"the tilt beta{joint} of axis {joint} (parallel to axis {int(joint) - 1})",
+            "dtheta": f"the fixed angle theta{joint} of sliding joint {joint}, about its axis"}.get(kind, name)
 
 
 def _split(names: Sequence[str], values: Sequence[float]) -> tuple[dict[tuple[str, int], float], dict[str, np.ndarray]]:
@@ -138,7 +144,7 @@ def corrected_robot(robot: Robot, names: Sequence[str], values: Sequence[float])
     for i, j in enumerate(robot.joints, start=1):
         joints.append(replace(j, offset=j.offset + dh.get(("dq", i), 0.0), a=j.a + dh.get(("da", i), 0.0),
                               d=j.d + dh.get(("dd", i), 0.0), alpha=j.alpha + dh.get(("dalpha", i), 0.0),
-                              beta=j.beta + dh.get(("dbeta", i), 0.0),
+                              beta=j.beta + dh.get(("dbeta", i), 0.0), theta=j.theta + dh.get(("dtheta", i), 0.0),
                               lower=j.lower, upper=j.upper))
     tool = replace(robot.tool, flange_p_markers=tuple(
         (m, tuple(float(x) for x in np.array(p) + markers.get(m, np.zeros(3)))) for m, p in robot.tool.flange_p_markers))
@@ -225,10 +231,12 @@ def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
     jac = np.zeros((len(markers), 3, n))
     k, j = cols.kind, cols.joint
     slide, fixed_d = _prismatic_columns(robot, cols)
-    # translations: along z_i (dd; a prismatic joint's zero dq), along x_{i-1} (da)
-    sel = (k == DH_KINDS.index("dd")) | slide
+    # translations: along z_i before any spring (dd), along the joint's own axis after the springs it
+    # rides on (a prismatic joint's zero dq: its travel's), along x_{i-1} (da)
+    sel = k == DH_KINDS.index("dd")
     jac[:, :, sel] = z_dd[j[sel]].T[None]
     jac[:, :, fixed_d] = 0.0
+    jac[:, :, slide] = rot[j[slide], :, 2].T[None]
     sel = k == DH_KINDS.index("da")
     jac[:, :, sel] = rot[j[sel] - 1, :, 0].T[None]
     # rotations: about z_i through o_i (dq), x_{i-1} through o_{i-1} (dalpha), Hayati's y (dbeta)
@@ -244,7 +252,12 @@ def position_jacobian(robot: Robot, theta: np.ndarray, markers: Sequence[str],
         local = np.stack([np.zeros(len(jb)), np.cos(alpha[jb]), np.sin(alpha[jb])], axis=1)
         axes[sel_b] = np.einsum("nij,nj->ni", rot[jb - 1], local)
         origins[sel_b] = trans[jb - 1] + a[jb][:, None] * rot[jb - 1, :, 0]
-    rotation = sel | sel_a | sel_b
+    # a prismatic joint's fixed theta: a turn about its sliding axis (z after its DH placement, before
+    # any spring), through the placement's origin, a point of that axis
+    sel_t = k == DH_KINDS.index("dtheta")
+    axes[sel_t] = z_dd[j[sel_t]]
+    origins[sel_t] = np.array([data.oMi[first[i - 1]].translation for i in j[sel_t]]).reshape(-1, 3)
+    rotation = sel | sel_a | sel_b | sel_t
     if rotation.any():
         arm = pos[:, None, :] - origins[None, rotation, :]                     # (M, R, 3)
         jac[:, :, rotation] = np.cross(axes[None, rotation, :], arm).transpose(0, 2, 1)
@@ -308,7 +321,10 @@ def position_jacobian_batch(robot: Robot, theta: np.ndarray, markers: Sequence[s
         local = np.stack([np.zeros(len(jb)), np.cos(alpha[jb]), np.sin(alpha[jb])], axis=1)
         axes[:, sel_b] = np.einsum("snij,nj->sni", rot[:, jb - 1], local)
         origins[:, sel_b] = trans[:, jb - 1] + a[jb][None, :, None] * rot_x[:, jb - 1]
-    rotation = sel | sel_a | sel_b
+    # a prismatic joint's fixed theta: a turn about its sliding axis through its frame's origin (on that axis)
+    sel_t = k == DH_KINDS.index("dtheta")
+    axes[:, sel_t], origins[:, sel_t] = z_dd[:, j[sel_t]], trans[:, j[sel_t]]
+    rotation = sel | sel_a | sel_b | sel_t
     if rotation.any():
         arm = pos[:, :, None, :] - origins[:, None, rotation, :]                 # (S, M, R, 3)
         jac[:, :, :, rotation] = np.cross(axes[:, None, rotation, :], arm).transpose(0, 1, 3, 2)

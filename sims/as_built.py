@@ -43,9 +43,10 @@ HH150_PARALLEL = (False, False, True, False, False, False)
 _ARM_ERRORS = {"dq": (0.03, -0.04, 0.05, -0.02, 0.035, -0.045), "da": (0.2, -0.3, 0.45, -0.15, 0.25, 0.1),
                "dd": (0.3, -0.2, 0.25, -0.4, 0.12, 0.3), "dalpha": (0.02, -0.03, 0.04, -0.025, 0.03, -0.035)}
 #: a prismatic joint's (a linear track's carriage), repeated for more: its zero along the axis [mm]
-#: (a homing switch's repeatability and mounting), a, alpha of the link before it [mm, deg]; no
-#: error in d (a prismatic joint's d is its coordinate: an error in it is one in its zero)
-_PRISMATIC_ERRORS = {"dq": (0.4, -0.3), "da": (0.15, -0.2), "dalpha": (0.02, -0.015)}
+#: (a homing switch's repeatability and mounting), a, alpha of the link before it [mm, deg], and its
+#: fixed theta [deg] (the rails turned about their own axis as mounted, sized like the arm's twists);
+#: no error in d (a prismatic joint's d is its coordinate: an error in it is one in its zero)
+_PRISMATIC_ERRORS = {"dq": (0.4, -0.3), "da": (0.15, -0.2), "dalpha": (0.02, -0.015), "dtheta": (0.025, -0.03)}
 _BETA_DEG = 0.03
 #: a URDF joint's errors of the same sizes, one per joint of its kind in order (repeated beyond): its zero
 #: [deg; mm on a prismatic joint], its origin's position along the previous joint's x, y, z [mm] and its
@@ -62,10 +63,10 @@ _URDF_LENGTHS = ("dpx", "dpy", "dpz")
 def default_kinematic_errors(prismatic: Sequence[bool], parallel: Sequence[bool]) -> tuple[tuple[str, float], ...]:
     """``--hidden kinematic_errors`` for a chain with these joints (``prismatic[i]``; ``parallel[i]``: joint
     i+1's axis parallel to joint i's): each joint its zero error of its own kind (an angle on a revolute
-    joint, a length on a prismatic one), every joint with errors in a, d (revolute) and alpha, a Hayati tilt
-    beta on each axis parallel to the one before, the markers' errors of :data:`KINEMATIC_ERRORS`. The
-    revolute joints take the six-axis arm's values in order, so a six-axis arm is the HH-150's exactly."""
-    per_kind: dict[str, list[tuple[str, float]]] = {k: [] for k in ("dq", "da", "dd", "dalpha")}
+    joint, a length on a prismatic one), every joint with errors in a, d (revolute), theta (prismatic: its
+    fixed angle) and alpha, a Hayati tilt beta on each axis parallel to the one before, the markers' errors
+    of :data:`KINEMATIC_ERRORS`. The revolute joints take the six-axis arm's values in order, so a six-axis arm is the HH-150's exactly."""
+    per_kind: dict[str, list[tuple[str, float]]] = {k: [] for k in ("dq", "da", "dd", "dalpha", "dtheta")}
     revolute = slide = 0
     for i, p in enumerate(prismatic, start=1):
         table, k = (_PRISMATIC_ERRORS, slide) if p else (_ARM_ERRORS, revolute)
@@ -116,19 +117,20 @@ def error_unit(name: str, prismatic: Sequence[bool] = ()) -> str:
     kind = name.rstrip("0123456789")
     if kind == "dq" and int(name[2:]) <= len(prismatic) and prismatic[int(name[2:]) - 1]:
         return "m"
-    return "rad" if kind in ("dq", "dalpha", "dbeta", "drx", "dry", "drz") else "m"
+    return "rad" if kind in ("dq", "dalpha", "dbeta", "dtheta", "drx", "dry", "drz") else "m"
 
 
 def as_built(robot: Robot, errors: Sequence[tuple[str, float]]) -> Robot:
     """The robot as built: the drawing's DH table and markers with the truth's errors
-    (``dq<i>``, ``da<i>``, ``dd<i>``, ``dalpha<i>``, ``dbeta<i>`` on joint i, ``dx_<m>``..
-    on marker m); errors naming a joint or marker the robot does not have are ignored. A URDF
-    robot's are ``dq<i>`` and its origin's ``dpx<i>``..``drz<i>`` (:func:`moved_urdf`); a DH
-    table's errors on a URDF robot are refused."""
+    (``dq<i>``, ``da<i>``, ``dd<i>``, ``dalpha<i>``, ``dbeta<i>`` on joint i, ``dtheta<i>`` on a
+    prismatic joint i's fixed theta, ``dx_<m>``.. on marker m); errors naming a joint or marker the
+    robot does not have are ignored. A URDF robot's are ``dq<i>`` and its origin's
+    ``dpx<i>``..``drz<i>`` (:func:`moved_urdf`); a DH table's errors on a URDF robot are refused."""
     if not errors:
         return robot
     urdf = robot.urdf is not None
-    field_of = {"dq": "offset"} if urdf else {"dq": "offset", "da": "a", "dd": "d", "dalpha": "alpha", "dbeta": "beta"}
+    field_of = {"dq": "offset"} if urdf else {"dq": "offset", "da": "a", "dd": "d", "dalpha": "alpha", "dbeta": "beta",
+                                              "dtheta": "theta"}
     joints = list(robot.joints)
     markers = {m: np.array(p, dtype=float) for m, p in robot.tool.flange_p_markers}
     origin = np.zeros((len(joints), 6))
@@ -139,7 +141,7 @@ def as_built(robot: Robot, errors: Sequence[tuple[str, float]]) -> Robot:
             continue
         kind = name.rstrip("0123456789")
         i = int(name[len(kind):]) - 1
-        if urdf and kind in ("da", "dd", "dalpha", "dbeta"):
+        if urdf and kind in ("da", "dd", "dalpha", "dbeta", "dtheta"):
             raise ValueError(f"{name} is a DH error; a URDF robot's geometry is its joint origins "
                              f"(dpx{i + 1}..drz{i + 1})")
         if kind in ORIGIN_KINDS and 0 <= i < len(joints):

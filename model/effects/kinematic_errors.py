@@ -2,7 +2,8 @@
 
 Parameters (identify/kinematics.py): per joint the zero ``dq<i>`` [rad], the
 length ``da<i>`` and offset ``dd<i>`` [m], the twist ``dalpha<i>`` [rad], and
-Hayati's tilt ``dbeta<i>`` [rad] where axes ``i-1`` and ``i`` are parallel; the
+Hayati's tilt ``dbeta<i>`` [rad] where axes ``i-1`` and ``i`` are parallel, the
+error ``dtheta<i>`` [rad] of a prismatic joint's fixed theta (a turn about its axis); the
 marker positions ``dx_<m>, dy_<m>, dz_<m>`` [m]. The fit keeps the identifiable
 set (a QR of the stacked regressor) and reports the rest as absorbed.
 
