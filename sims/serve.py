@@ -49,7 +49,7 @@ SIM_CAN_INTERFACES = ("virtual", CAN_LOOPBACK)
 
 
 #: the packaged simulated cells, by the bundled robot they hold
-EXAMPLE_CELLS = {"hh150": "sim_cell.toml", "hh150_track": "sim_cell_track.toml"}
+EXAMPLE_CELLS = {"hh150": "sim_cell.toml", "hh150_track": "sim_cell_track.toml", "hh150_urdf": "sim_cell_urdf.toml"}
 
 
 def example_cell_path(robot: str = "hh150") -> pathlib.Path:

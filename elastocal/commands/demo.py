@@ -42,9 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_seed(parser, "random seed of the simulated cell")
     parser.add_argument("--out", help="directory for the files the demo writes (default: a temporary one); "
                                       "a second run into it replaces the files of the first")
-    parser.add_argument("--hidden", default="link_compliance",
+    parser.add_argument("--hidden",
                         help="effect the simulated cell hides from the default model: none, link_compliance, "
-                             "thermal_drift, backlash (default link_compliance)")
+                             "thermal_drift, backlash (default link_compliance; none on the URDF robot, whose "
+                             "bent links are not modelled)")
     parser.add_argument("--poses", type=int, default=DEMO_POSES, help=f"poses of the static procedure "
                                                                       f"(default {DEMO_POSES})")
     parser.add_argument("--realtime", action="store_true",
@@ -53,12 +54,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "then vary a little between runs); by default the procedure and the simulated "
                              "devices share the cell's simulated clock and the same seed prints the same numbers")
     parser.add_argument("--robot", default="hh150", choices=DEMO_ROBOTS,
-                        help="the simulated cell: hh150 (the six-axis arm, default) or hh150_track (the arm on "
-                             "a floor track, seven joints)")
+                        help="the simulated cell: hh150 (the six-axis arm, default), hh150_track (the arm on "
+                             "a floor track, seven joints) or hh150_urdf (the arm described by a URDF: its "
+                             "geometric calibration is of the joint origins)")
 
 
 #: the bundled robots whose simulated cell ships (sims/data)
-DEMO_ROBOTS = ("hh150", "hh150_track")
+DEMO_ROBOTS = ("hh150", "hh150_track", "hh150_urdf")
 
 
 #: the file that marks a folder as the demo's own (a second run into it replaces the demo's files)
@@ -123,8 +125,17 @@ def run(args: argparse.Namespace) -> int:
     from elastocal.errors import InputError
     from elastocal.sims.cell import DEMO_HIDDEN
 
+    from elastocal.formats.robot_toml import bundled_robot
+
+    urdf = bundled_robot(args.robot).urdf is not None
+    if args.hidden is None:
+        args.hidden = "none" if urdf else "link_compliance"
     if args.hidden not in DEMO_HIDDEN:
         raise InputError(f"choose one of {', '.join(DEMO_HIDDEN)}; got {args.hidden!r}", source="--hidden")
+    if urdf and args.hidden == "link_compliance":
+        raise InputError(f"a URDF robot's bent links are not modelled beside its joint origins; choose one of "
+                         f"{', '.join(h for h in DEMO_HIDDEN if h != 'link_compliance')} for --robot {args.robot}",
+                         source="--hidden")
     if args.poses < 4:
         raise InputError("at least 4 poses", source="--poses")
     if args.seed < 0:
