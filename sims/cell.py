@@ -48,6 +48,8 @@ HIDDEN_EFFECTS = ("none", "link_compliance", "thermal_drift", "static_friction",
 #: static procedure shows (the geometry is always hidden; static friction holds part of a load in the
 #: gears and the currents read what the gears carry after it, so no current-based model lacks it)
 DEMO_HIDDEN = ("none", "link_compliance", "thermal_drift", "backlash")
+#: what the demo can hide on a URDF robot: its fit does not model bent links beside its joint origins
+DEMO_HIDDEN_URDF = ("none", "thermal_drift", "backlash")
 
 
 def _rot(axis: int, angle: float) -> np.ndarray:

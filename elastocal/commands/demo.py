@@ -123,7 +123,7 @@ def _um(x: float | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from elastocal.errors import InputError
-    from elastocal.sims.cell import DEMO_HIDDEN
+    from elastocal.sims.cell import DEMO_HIDDEN, DEMO_HIDDEN_URDF
 
     from elastocal.formats.robot_toml import bundled_robot
 
@@ -132,10 +132,9 @@ def run(args: argparse.Namespace) -> int:
         args.hidden = "none" if urdf else "link_compliance"
     if args.hidden not in DEMO_HIDDEN:
         raise InputError(f"choose one of {', '.join(DEMO_HIDDEN)}; got {args.hidden!r}", source="--hidden")
-    if urdf and args.hidden == "link_compliance":
+    if urdf and args.hidden not in DEMO_HIDDEN_URDF:
         raise InputError(f"a URDF robot's bent links are not modelled beside its joint origins; choose one of "
-                         f"{', '.join(h for h in DEMO_HIDDEN if h != 'link_compliance')} for --robot {args.robot}",
-                         source="--hidden")
+                         f"{', '.join(DEMO_HIDDEN_URDF)} for --robot {args.robot}", source="--hidden")
     if args.poses < 4:
         raise InputError("at least 4 poses", source="--poses")
     if args.seed < 0:
