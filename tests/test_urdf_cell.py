@@ -257,3 +257,61 @@ def test_the_demo_chain_runs_on_the_urdf_cell(tmp_path):
     refused = _cli("demo", "--robot", "hh150_urdf", "--hidden", "link_compliance", "--out", str(tmp_path / "no"))
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "--hidden" in refused.stderr
     assert not (tmp_path / "no").exists()
+
+
+#: a lift and two revolute joints, a turned bracket (a fixed joint) between the lift and the shoulder, the
+#: hand behind a fixed joint: the prismatic and fixed-joint cases of the simulator's moved origins
+LIFT_URDF = """<?xml version="1.0"?>
+<robot name="lift">
+  <link name="base_link"/>
+  <link name="torso"><inertial><origin xyz="0 0 0.2"/><mass value="20"/>
+    <inertia ixx="1" iyy="1" izz="1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="bracket"/>
+  <link name="upper"><inertial><origin xyz="0.2 0 0"/><mass value="5"/>
+    <inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="lower"/>
+  <link name="hand"/>
+  <joint name="lift" type="prismatic"><parent link="base_link"/><child link="torso"/>
+    <origin xyz="0 0 0.5"/><axis xyz="0 0 1"/><limit lower="0" upper="0.35" effort="100" velocity="0.1"/></joint>
+  <joint name="mount" type="fixed"><parent link="torso"/><child link="bracket"/>
+    <origin xyz="0.05 0.02 0.3" rpy="0.2 -0.1 0.4"/></joint>
+  <joint name="shoulder" type="revolute"><parent link="bracket"/><child link="upper"/>
+    <origin xyz="0.1 0 0.1" rpy="0 0.1 0"/><axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="50" velocity="1"/>
+  </joint>
+  <joint name="elbow" type="revolute"><parent link="upper"/><child link="lower"/>
+    <origin xyz="0.4 0 0"/><axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="50" velocity="1"/></joint>
+  <joint name="tool" type="fixed"><parent link="lower"/><child link="hand"/><origin xyz="0.3 0 0"/></joint>
+</robot>
+"""
+
+
+def test_the_simulators_as_built_urdf_is_the_fits_correction_of_the_same_errors_on_a_lift(tmp_path):
+    """Two implementations of the same convention, the witness's and the fit's (identify/urdf_geometry.py),
+    on a chain with a prismatic joint and a fixed joint between two movable ones: the default as-built
+    errors (the lift's zero a length, its origin's errors as the arm's) move the markers the same to 1e-12 m."""
+    import numpy as np
+
+    from elastocal.formats.robot_toml import parse_robot
+    from elastocal.identify import kinematics as kin
+    from elastocal.sims.as_built import as_built
+    from elastocal.sims.cell import CellTruth
+
+    (tmp_path / "r.urdf").write_text(LIFT_URDF, encoding="utf-8")
+    text = ('name = "lift"\nurdf = "r.urdf"\ntip_link = "hand"\n'
+            + "".join(f'[[joint]]\nname = "{n}"\n' for n in ("lift", "shoulder", "elbow"))
+            + '[tool]\nload_point = [0.05, 0, 0]\n[tool.markers]\nP = [0.1, 0.0, 0.0]\nQ = [0.0, 0.1, 0.05]\n')
+    robot = parse_robot(text, source=str(tmp_path / "robot.toml"), base_dir=tmp_path)
+    truth = CellTruth.for_robot(robot).with_hidden("kinematic_errors")
+    errors, units = dict(truth.kinematic_errors), truth.parameters(robot)
+    assert units["dq1"]["unit"] == "m" and 1e-4 < abs(errors["dq1"]) < 1e-3          # the lift's zero: a length
+    assert units["dq2"]["unit"] == "rad" and units["dpx2"]["unit"] == "m" and units["drz2"]["unit"] == "rad"
+    assert set(errors) - {"dx_R1", "dy_R1", "dz_R1", "dx_R2", "dy_R2", "dz_R2", "dx_R3", "dy_R3", "dz_R3"} \
+        == set(kin.parameter_names(robot, ())), sorted(errors)
+    names = [n for n in errors if n in kin.parameter_names(robot, robot.marker_names)]
+    fitted = kin.corrected_robot(robot, names, [errors[n] for n in names])
+    witness = as_built(robot, truth.kinematic_errors)
+    q = np.random.default_rng(6).uniform([0.0, -1.5, -1.5], [0.35, 1.5, 1.5], (6, 3))
+    for qi in q:
+        moved = witness.positions(witness.theta(qi), robot.marker_names)
+        np.testing.assert_allclose(moved, fitted.positions(fitted.theta(qi), robot.marker_names), rtol=0, atol=1e-12)
+        assert np.linalg.norm(moved - robot.positions(robot.theta(qi), robot.marker_names), axis=1).min() > 2e-4
