@@ -146,3 +146,23 @@ def test_the_plain_words_claim_no_error_for_a_stiffness_not_determined():
     plain = demo_findings(hidden="none", verdict=None, explanation=None, rms_before=1e-5, rms_after=1e-5,
                           floor=1e-5, stiffness_error_percent=err, validation=validation)
     assert "got all seven within 40.0 %" in plain[0], plain[0]
+
+
+def test_the_plain_words_call_a_geometric_verdict_the_robots_shape_not_a_bending():
+    """With nothing hidden but the as-built geometry the diagnosis names kinematic_errors from the absolute
+    positions while the springs explain the deflections: the words say so, with the effect's own explanation,
+    and do not claim that something else bends."""
+    from elastocal.commands._plain import demo_findings
+
+    validation = {"uncompensated": {"max": 3e-3}, "exact": {"max": 1e-5}}
+    words = demo_findings(hidden="none", verdict="kinematic_errors", explanation=None, rms_before=9.2e-6,
+                          rms_after=9.2e-6, floor=9.1e-6, stiffness_error_percent=np.array([1.0, 2.0]),
+                          validation=validation, absolute=(4.9e-4, 6e-6))
+    text = " ".join(words)
+    assert "Something else bends" not in text and "(None)" not in text, text
+    assert "explain the deflections down to the measurement noise (9 µm left)" in words[1], words[1]
+    assert "kinematic_errors (joint zeros, link lengths and twists differ from the drawing)" in words[1], words[1]
+    bending = demo_findings(hidden="link_compliance", verdict="link_compliance", explanation="the links bend",
+                            rms_before=2e-5, rms_after=9e-6, floor=9e-6, stiffness_error_percent=np.array([1.0]),
+                            validation=validation)
+    assert "Something else bends" in bending[1] and "link_compliance (the links bend)" in bending[1], bending[1]

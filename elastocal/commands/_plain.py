@@ -6,6 +6,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from elastocal.model.effects import get_effect, having
+
 
 def _um(x: float | None) -> str:
     return "-" if x is None else f"{x * 1e6:.0f} µm"
@@ -37,7 +39,14 @@ def demo_findings(*, hidden: str, verdict: str | None, explanation: str | None, 
                f"never as a result).")
     out = [f"The robot bends under load like {count} springs at its joints. elastocal measured how stiff each "
            f"spring is from the motor currents and the tracker alone, and {got}"]
-    if floor is not None and verdict is not None:
+    geometric = verdict is not None and bool(having("geometry", (verdict,)))
+    if geometric:
+        # the deflections were explained: what the diagnosis names is the shape of the robot, not a bending
+        explanation = explanation or get_effect(verdict).explanation
+        out.append(f"The springs explain the deflections down to the measurement noise ({_um(rms_before)} left). "
+                   f"What the tracker's absolute positions still miss is the robot's geometry, and elastocal "
+                   f"names it: {verdict} ({explanation}).")
+    elif floor is not None and verdict is not None:
         out.append(f"The springs alone do not explain everything: they leave {_um(rms_before)} of error where the "
                    f"measurement noise accounts for only {_um(floor)}. Something else bends. elastocal tested "
                    f"the physical effects it knows and found the one that was missing: {verdict} ({explanation}). "
