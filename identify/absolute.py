@@ -260,12 +260,16 @@ def _lev(st: _Setup, x: np.ndarray, n_el: int) -> np.ndarray:
 
 
 def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.ndarray, *, jacobian: bool,
-           lev: np.ndarray | None = None):
+           lev: np.ndarray | None = None, chain_frame: bool = False):
     """Predicted tracker positions (S, M, 3) and their Jacobian (S, M, 3, n_el + 6 + n_kin + n_level).
 
     The registration is ``p_tracker = R0 (exp(dr) p + dt) + t0``: ``dr`` and
     ``dt`` are a rotation about and a translation along the base axes (so that
-    "dq1 is absorbed by the rotation about z" reads as it is)."""
+    "dq1 is absorbed by the rotation about z" reads as it is). With ``chain_frame`` the frame's
+    rotation columns turn the chain's positions without the additive deflections: the geometry's
+    columns do not turn those either (a turn of the whole chain times a deflection is second order,
+    left out of the model), so a joint-1 error that turns the whole chain (the zero of a revolute
+    joint 1, the theta of a track's carriage about its axis) is then exactly the frame's."""
     ds = st.ds
     robot = kin.corrected_robot(st.robot, st.kin_names, kv) if st.kin_names and np.any(kv) else st.robot
     b_theta, b_links, b_add = st.bases
@@ -303,6 +307,7 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
             _, jk = kin.position_jacobian(robot, theta, markers, st.kin_names, st.kin_columns,
                                           dlink[s] if np.any(dlink[s]) else None, data=data)
             jac[s, :, :, n_el + 6:n_el + 6 + n_k] = jk
+    chain = pos @ turn.T if chain_frame else None
     pos += b_add @ beta
     if jacobian:
         jac[..., :n_el] += b_add
@@ -312,10 +317,11 @@ def _model(st: _Setup, beta: np.ndarray, dr: np.ndarray, dt: np.ndarray, kv: np.
         jac[..., :n_el] = np.einsum("ij,smjk->smik", turn, jac[..., :n_el])
         jac[..., n_el + 6:] = np.einsum("ij,smjk->smik", turn, jac[..., n_el + 6:])
         jl = pin.Jexp3(-dr)                       # left Jacobian of exp at dr
+        arm = turned if chain is None else chain
         skew = np.zeros((ds.n_states, nm, 3, 3))
-        skew[..., 0, 1], skew[..., 0, 2] = -turned[..., 2], turned[..., 1]
-        skew[..., 1, 0], skew[..., 1, 2] = turned[..., 2], -turned[..., 0]
-        skew[..., 2, 0], skew[..., 2, 1] = -turned[..., 1], turned[..., 0]
+        skew[..., 0, 1], skew[..., 0, 2] = -arm[..., 2], arm[..., 1]
+        skew[..., 1, 0], skew[..., 1, 2] = arm[..., 2], -arm[..., 0]
+        skew[..., 2, 0], skew[..., 2, 1] = -arm[..., 1], arm[..., 0]
         jac[..., n_el:n_el + 3] = -skew @ jl
         jac[..., n_el + 3:n_el + 6] = np.eye(3)
         jac = np.einsum("ij,smjk->smik", st.rot0, jac)
@@ -557,7 +563,10 @@ def _solve(st: _Setup, start: _Start, absolute: tuple[str, ...], *, max_iter: in
     free = np.concatenate([el_mask, np.ones(6, dtype=bool), np.zeros(len(kin_names) + len(lev_names), dtype=bool)])
     ident = None
     if kin_names or lev_names:
-        pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True, lev=_lev(st, x_full, n_el))
+        # which parameters the data determine, decided on the model's own order: the frame turns the chain
+        # as the geometry's columns do (_model, chain_frame)
+        pred, jac = _model(st, *_unpack(st, x_full, n_el), jacobian=True, lev=_lev(st, x_full, n_el),
+                           chain_frame=True)
         _, jw = _whitened(st, st.y - pred, jac)
         candidate = np.concatenate([el_mask, np.ones(6 + len(kin_names) + len(lev_names), dtype=bool)])
         cand_names = [n for n, k in zip(all_names, candidate) if k]
