@@ -18,6 +18,7 @@ from elastocal.drivers import open_tracker
 from elastocal.drivers.config import TrackerConfig
 from elastocal.drivers.urls import parse_device_url
 from elastocal.sims.config import SimConfig
+from elastocal.drivers.samples import Batch
 from elastocal.drivers.tracker_protocol import Measurement, decode_line, encode_line, parse_measurement
 from elastocal.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, InputError, ProtocolError
 from elastocal.sims.emscon_server import SimEmscon
@@ -196,14 +197,18 @@ def test_line_stream_is_stamped_with_the_trackers_clock(line_tracker):
 class LatePeer:
     """A line-protocol tracker on 127.0.0.1 whose first ``late`` lines reach the host in one
     write, ``delay_s`` after the newest of them was measured (what a loaded host that reads
-    a backlog at once sees), the rest on time. It records the instant of each measurement
-    on the host's monotonic clock (the test shares the clock)."""
+    a backlog at once sees), the rest on time once the test sets ``go`` (it reads the backlog
+    first: the lines measured meanwhile are overdue too, and a reader the machine's load held
+    back would otherwise take some of them in the backlog's read, whose newest line sets the
+    offset). It records the instant of each measurement on the host's monotonic clock (the
+    test shares the clock)."""
 
     def __init__(self, rate_hz: float, lines: int, late: int, delay_s: float) -> None:
         import threading
 
         self.rate_hz, self.lines, self.late, self.delay_s = rate_hz, lines, late, delay_s
         self.measured_ns: dict[int, int] = {}
+        self.go = threading.Event()
         self._server = socket.create_server(("127.0.0.1", 0))
         self.port = self._server.getsockname()[1]
         self._thread = threading.Thread(target=self._serve, daemon=True)
@@ -233,6 +238,8 @@ class LatePeer:
 
         time.sleep(((self.late - 1) * period_ns) / 1e9 + self.delay_s)
         conn.sendall(b"".join(line(k) for k in range(self.late)))
+        if self.late < self.lines:
+            self.go.wait(timeout=30.0)
         for k in range(self.late, self.lines):
             time.sleep(max(0.0, (t0 + k * period_ns - time.monotonic_ns()) / 1e9))
             conn.sendall(line(k))
@@ -296,11 +303,15 @@ def test_a_late_backlog_over_a_socket_keeps_its_order_and_measurement_times():
     tracker = tracker_for(f"tracker+tcp://127.0.0.1:{peer.port}", timeout_s=5.0)
     try:
         with tracker.stream(rate) as stream:
-            batch = read_samples(stream, 40)
+            backlog = read_samples(stream, 6)
+            peer.go.set()
+            rest = read_samples(stream, 40 - len(backlog.samples))
     finally:
+        peer.go.set()
         tracker.close()
         peer.close()
-    samples = batch.samples
+    samples = backlog.samples + rest.samples
+    batch = Batch(samples, backlog.gaps + rest.gaps)
     assert not batch.gaps and [s.seq for s in samples] == list(range(1, len(samples) + 1))
     t = np.array([s.t_ns for s in samples], dtype=np.int64)
     assert np.all(np.diff(t) >= period_ns // 2)
