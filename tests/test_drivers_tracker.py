@@ -188,9 +188,12 @@ def test_line_stream_is_stamped_with_the_trackers_clock(line_tracker):
     t = np.diff([s.t_ns for s in batch.samples])
     # stamped with the tracker's clock, not with the arrival time of the bytes
     assert np.mean(np.abs(t - 1e9 / rate) < 1e3) > 0.75
-    assert np.all(t > 0) and np.mean(t) == pytest.approx(1e9 / rate, rel=0.01)
     dev = np.array([s.device_time_s for s in batch.samples])
     np.testing.assert_allclose(np.diff(dev), 1 / rate, atol=2e-6)
+    # a late first read only slews the offset down, by at most half an interval per sample (the mean
+    # interval then depends on the machine's load): never a step back, never a longer interval
+    offset = np.array([s.t_ns for s in batch.samples]) - np.round(dev * 1e9)
+    assert np.all(np.diff(offset) <= 1e3) and np.all(t >= 0.5e9 / rate - 1e3), (offset, t)
     assert line_tracker.measure().seq > seq[-1]                            # the stream has stopped
 
 
