@@ -325,7 +325,7 @@ def test_compensated_path_through_the_cell_with_geometric_errors(calibration_fil
     """The real robot (calibrated geometry, springs, load) puts the
     tool where the drawing's path meant it, as the tracker sees it."""
     from elastocal.compensation.model import CompensationModel
-    from elastocal.compensation.trajectory import compensate_path
+    from drawing_path import drawing_path, tracker_error
     from elastocal.identify.accuracy import calibration_frame
     from elastocal.formats.calibration import read_calibration
     from elastocal.sims.cell import SimCell
@@ -335,21 +335,9 @@ def test_compensated_path_through_the_cell_with_geometric_errors(calibration_fil
     truth = CellTruth().with_hidden("kinematic_errors")
     cell = SimCell(ROBOT, truth)
     frame = calibration_frame(cal)                     # the cell frame the calibration defines
-    s = np.linspace(0.0, 1.0, 25)[:, None]
-    q = np.array([-0.4, 0.1, -0.3, 0.3, 0.9, -0.2]) * (1 - s) + np.array([0.5, 0.6, 0.1, -0.4, 1.4, 0.5]) * s
-    wrench = np.array([300.0, -200.0, -1500.0, 0.0, 0.0, 0.0])
-    path = compensate_path(model, q, wrench)
+    q, wrench, path = drawing_path(model)
     assert path.reference == "nominal"
-
-    def tracker_error(commands):
-        err = []
-        for qn, qc in zip(q, commands):
-            want = frame.apply(ROBOT.positions(ROBOT.theta(qn), ["R1"]))[0]
-            got = cell.tracker_positions(cell.equilibrium(qc, wrench), ["R1"])[0]
-            err.append(got - want)
-        return np.linalg.norm(err, axis=1)
-
-    before, after = tracker_error(q), tracker_error(path.q_command)
+    before, after = (tracker_error(ROBOT, cell, frame, q, c, wrench) for c in (q, path.q_command))
     assert before.max() > 1e-3                       # millimetres: geometry, sag and load
     assert after.max() <= 2 * truth.tracker_noise_m, after.max()
     # the model predicted the error it removed

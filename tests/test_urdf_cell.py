@@ -117,7 +117,7 @@ def test_the_compensated_path_puts_the_as_built_urdf_robots_tool_where_the_drawi
     import numpy as np
 
     from elastocal.compensation.model import CompensationModel
-    from elastocal.compensation.trajectory import compensate_path
+    from drawing_path import drawing_path, tracker_error
     from elastocal.formats.calibration import read_calibration
     from elastocal.formats.robot_toml import load_robot
     from elastocal.identify.accuracy import calibration_frame
@@ -128,18 +128,9 @@ def test_the_compensated_path_puts_the_as_built_urdf_robots_tool_where_the_drawi
     model = CompensationModel.from_calibration(robot, cal).with_tool("R1")
     truth = CellTruth.for_robot(robot).with_hidden("kinematic_errors")
     cell, frame = SimCell(robot, truth), calibration_frame(cal)
-    s = np.linspace(0.0, 1.0, 25)[:, None]
-    q = np.array([-0.4, 0.1, -0.3, 0.3, 0.9, -0.2]) * (1 - s) + np.array([0.5, 0.6, 0.1, -0.4, 1.4, 0.5]) * s
-    wrench = np.array([300.0, -200.0, -1500.0, 0.0, 0.0, 0.0])
-    path = compensate_path(model, q, wrench)
+    q, wrench, path = drawing_path(model)
     assert path.reference == "nominal"
-
-    def tracker_error(commands):
-        return np.array([np.linalg.norm(cell.tracker_positions(cell.equilibrium(qc, wrench), ["R1"])[0]
-                                        - frame.apply(robot.positions(robot.theta(qn), ["R1"]))[0])
-                         for qn, qc in zip(q, commands)])
-
-    before, after = tracker_error(q), tracker_error(path.q_command)
+    before, after = (tracker_error(robot, cell, frame, q, c, wrench) for c in (q, path.q_command))
     assert before.max() > 1e-3, before.max()
     assert after.max() <= 2 * truth.tracker_noise_m, after.max()
     lines = ["t," + ",".join(f"q{j}" for j in range(1, 7)) + ",fx,fy,fz,mx,my,mz"]
